@@ -1,0 +1,109 @@
+"""The κ-power pseudo-inverse of a Jacobian applied to an output-space gradient.
+
+Source: Schnell, Holl, Thuerey, *Half-Inverse Gradients for Physical Deep Learning*,
+ICLR 2022, eq. for Δθ_HIG; the authors' ``gpinv``; PBDL book, chapter "Half-inverse
+gradients".
+
+For a Jacobian ``J`` (m × P) with thin SVD ``J = U Σ Vᵀ`` and a gradient ``g`` (m,),
+
+    J^κ g := V Σ^κ Uᵀ g,
+
+keeping only singular values ``σ > truncation · σ_max`` (strict) and *dropping* the
+others (not clamping them). κ = +1 gives ``Jᵀ g`` (gradient descent), κ = −1 the
+Gauss–Newton / pseudo-inverse step, κ = −½ the half-inverse gradient.
+
+Two exact routes compute the same vector:
+
+* ``"svd"``: thin SVD of ``J`` in its own dtype (as the paper, float32);
+* ``"gram"``: eigendecomposition of the smaller Gram matrix in float64. For a wide ``J``
+  (m ≤ P), ``J Jᵀ = U Σ² Uᵀ`` and ``J^κ g = Jᵀ U Σ^{κ−1} Uᵀ g``; for a tall ``J``,
+  ``Jᵀ J = V Σ² Vᵀ`` and ``J^κ g = V Σ^{κ−1} Vᵀ Jᵀ g``. The Gram matrix squares the
+  condition number, which is why it is formed and decomposed in float64. This never
+  forms the large factor (``V`` for wide, ``U`` for tall) and costs one matrix product
+  of O(min(m,P)² · max(m,P)) plus an O(min(m,P)³) ``eigh``.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import jax.numpy as jnp
+from jaxtyping import Array, Float
+
+Route = Literal["auto", "svd", "gram"]
+ROUTES = ("auto", "svd", "gram")
+
+
+def choose_route(shape: tuple[int, int]) -> Literal["svd", "gram"]:
+    """The cheaper exact route for a Jacobian of this shape.
+
+    The Gram route wins whenever one side is clearly smaller than the other (every
+    physgrad problem: rows = batch × output size ≪ parameters), because a matrix product
+    and a small symmetric eigensolve are far cheaper than a bidiagonalisation. For
+    nearly square matrices the SVD avoids squaring the condition number at no extra cost.
+    Measured in ``benchmarks/hig_step.py``.
+    """
+    m, p = shape
+    return "gram" if max(m, p) >= 2 * min(m, p) else "svd"
+
+
+def _kept_powers(s: Array, exponent: float, truncation: float) -> Array:
+    """``s**exponent`` where ``s > truncation·max(s)``, else 0 (dropped, not clamped)."""
+    keep = s > truncation * jnp.max(s)
+    # Guard the power before the `where`: 0**negative would leak inf/NaN into gradients.
+    safe = jnp.where(keep, s, jnp.ones_like(s))
+    return jnp.where(keep, safe**exponent, jnp.zeros_like(s))
+
+
+def _svd_route(jacobian, grad, exponent, truncation):
+    u, s, vt = jnp.linalg.svd(jacobian, full_matrices=False)
+    return vt.T @ (_kept_powers(s, exponent, truncation) * (u.T @ grad))
+
+
+def _gram_route(jacobian, grad, exponent, truncation):
+    j = jacobian.astype(jnp.float64)
+    g = grad.astype(jnp.float64)
+    m, p = j.shape
+    wide = m <= p
+    gram = j @ j.T if wide else j.T @ j
+    eigenvalues, vectors = jnp.linalg.eigh(gram)
+    s = jnp.sqrt(jnp.clip(eigenvalues, 0.0, None))
+    # Σ^{κ−1}: one extra Σ⁻¹ turns the Gram eigenvectors into the missing SVD factor.
+    powers = _kept_powers(s, exponent - 1.0, truncation)
+    if wide:  # Jᵀ U Σ^{κ−1} Uᵀ g
+        return j.T @ (vectors @ (powers * (vectors.T @ g)))
+    return vectors @ (powers * (vectors.T @ (j.T @ g)))  # V Σ^{κ−1} Vᵀ Jᵀ g
+
+
+def half_inverse(
+    jacobian: Float[Array, "m p"],
+    grad: Float[Array, " m"],
+    *,
+    exponent: float = -0.5,
+    truncation: float = 1e-6,
+    route: Route = "auto",
+) -> Float[Array, " p"]:
+    """Return ``V · diag(σ^exponent) · Uᵀ · grad`` over the retained singular values.
+
+    Arguments:
+        jacobian: ``J``, shape (m, P); for HIG the per-sample Jacobians of the simulator
+            output stacked sample-major (m = batch × output size).
+        grad: ``g``, shape (m,); the gradient of the batch-mean loss w.r.t. the outputs.
+        exponent: κ; −0.5 half-inverse (HIG), −1 Gauss–Newton, +1 gives ``Jᵀ g``.
+        truncation: τ; singular values ``σ ≤ τ·σ_max`` are dropped.
+        route: ``"svd"``, ``"gram"`` (float64 Gram + ``eigh``) or ``"auto"`` (by shape).
+
+    Returns:
+        The update direction, shape (P,), in the dtype of ``jacobian``. The caller takes
+        the step ``θ ← θ − η · half_inverse(J, g)``.
+    """
+    if jacobian.ndim != 2 or grad.shape != jacobian.shape[:1]:
+        raise ValueError(
+            f"half_inverse needs jacobian (m, P) and grad (m,); got {jacobian.shape} and {grad.shape}"
+        )
+    if route not in ROUTES:
+        raise ValueError(f"unknown route {route!r}; valid choices: {', '.join(ROUTES)}")
+    if route == "auto":
+        route = choose_route(jacobian.shape)
+    solve = _svd_route if route == "svd" else _gram_route
+    return solve(jacobian, grad, exponent, truncation).astype(jacobian.dtype)

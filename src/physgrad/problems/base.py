@@ -1,0 +1,77 @@
+"""The Problem contract: what every benchmark problem provides to the methods."""
+
+from __future__ import annotations
+
+import abc
+import dataclasses
+from typing import Any, ClassVar
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jaxtyping import PRNGKeyArray, PyTree
+
+Sample = PyTree  # one data sample (unbatched); a batch is the same pytree with a leading axis
+
+
+class AbstractProblem(eqx.Module):
+    """A network coupled to a differentiable simulator (open-loop data flow).
+
+        sample ──► network(θ) ──► x ──► simulate ──► y ──► loss(y, sample)
+
+    Subclasses are Equinox modules whose fields are the problem's *settings* (sizes,
+    physical constants), each with the paper's value as default. They define:
+
+    - ``name``, ``description`` (one line) and ``source`` (paper and section);
+    - ``method_defaults``: the paper's hyperparameters per method name, e.g.
+      ``{"adam": {"lr": 3e-4, "batch_size": 512}}``; ``default_batch_size`` otherwise;
+    - ``default_methods``: the paper's comparison, used by ``physgrad compare``;
+    - ``make_data(key) -> {"train": batch, "test": batch}``: deterministic per key;
+    - ``make_network(key)``: the paper's default network;
+    - ``network_output(network, sample) -> x``: per sample (unbatched);
+    - ``simulate(x, sample) -> y``: per sample, differentiable;
+    - ``loss(y, sample) -> scalar``: per-sample loss L_i; methods use the batch mean.
+
+    All per-sample functions must be pure and traceable (vmap, jit, jacrev).
+    """
+
+    name: ClassVar[str]
+    description: ClassVar[str]
+    source: ClassVar[str]
+    method_defaults: ClassVar[dict[str, dict[str, Any]]] = {}
+    default_batch_size: ClassVar[int] = 128
+    default_methods: ClassVar[tuple[str, ...]] = ("adam", "gn", "hig")
+
+    @abc.abstractmethod
+    def make_data(self, key: PRNGKeyArray) -> dict[str, Sample]: ...
+
+    @abc.abstractmethod
+    def make_network(self, key: PRNGKeyArray) -> eqx.Module: ...
+
+    @abc.abstractmethod
+    def network_output(self, network: eqx.Module, sample: Sample) -> PyTree: ...
+
+    @abc.abstractmethod
+    def simulate(self, x: PyTree, sample: Sample) -> jax.Array: ...
+
+    @abc.abstractmethod
+    def loss(self, y: jax.Array, sample: Sample) -> jax.Array: ...
+
+    def predict(self, network: eqx.Module, sample: Sample) -> jax.Array:
+        """Simulator output ``y = P(network(sample))`` for one sample."""
+        return self.simulate(self.network_output(network, sample), sample)
+
+    @classmethod
+    def defaults_for(cls, method: str) -> dict[str, Any]:
+        """The paper's hyperparameters for ``method`` on this problem (batch size included)."""
+        return {"batch_size": cls.default_batch_size, **cls.method_defaults.get(method, {})}
+
+    @classmethod
+    def settings(cls) -> dict[str, Any]:
+        """The problem's settings (dataclass fields) and their defaults."""
+        return {f.name: f.default for f in dataclasses.fields(cls) if f.default is not dataclasses.MISSING}
+
+
+def uniform(key: PRNGKeyArray, shape, dtype, low=0.0, high=1.0) -> jax.Array:
+    """``U[low, high)`` samples in an explicit dtype (physgrad runs with x64 enabled)."""
+    return jax.random.uniform(key, shape, jnp.dtype(dtype), low, high)

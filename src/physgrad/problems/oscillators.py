@@ -1,0 +1,100 @@
+"""Nonlinear coupled oscillators: the HIG paper's first benchmark (Fig. 2b).
+
+Source: Schnell, Holl, Thuerey, ICLR 2022, §"Nonlinear oscillators"; the authors' code
+``Nonlinear_oscillators/`` (see shared/papers/hig.md §2.1).
+
+State ``s = (q_1..q_n, p_1..p_n)`` (positions first), n oscillators with free ends:
+
+    dq_i/dt = p_i
+    dp_i/dt = −q_i + α (q_{i+1} − q_i)³ + α (q_{i−1} − q_i)³ + β (q_{i+1} + q_{i−1} − 2 q_i)
+              + c · u(t) · δ_{i,n}
+
+with cubic coupling α = 1, linear coupling β = 0 and control gain c = 3 on the last
+oscillator only. Classic RK4, dt = 0.125, 96 steps (T = 12), control piecewise constant per
+step. Task: return to the initial state, ``y* = x_0 ~ U[0,1)^{2n}``; the network sees
+``x_0`` and outputs the 96 controls. Loss ``L_i = ‖y_i − y*_i‖²`` (no ½) on the final state.
+Network 4 → 20 → 20 → 20 → 96, ReLU, glorot-uniform kernels, zero biases (2,956 params).
+"""
+
+from __future__ import annotations
+
+from typing import ClassVar
+
+import equinox as eqx
+import jax.numpy as jnp
+import jax
+
+from ..integrators import integrate, rk4_step
+from ..nets import MLP
+from .base import AbstractProblem, uniform
+
+
+class Oscillators(AbstractProblem):
+    """Return-to-start control of a chain of cubically coupled oscillators."""
+
+    n_oscillators: int = eqx.field(static=True, default=2)
+    n_steps: int = eqx.field(static=True, default=96)
+    dt: float = eqx.field(static=True, default=0.125)
+    cubic_coupling: float = eqx.field(static=True, default=1.0)
+    linear_coupling: float = eqx.field(static=True, default=0.0)
+    control_gain: float = eqx.field(static=True, default=3.0)
+    n_train: int = eqx.field(static=True, default=4096)
+    n_test: int = eqx.field(static=True, default=4096)
+    hidden: int = eqx.field(static=True, default=20)
+    dtype: str = eqx.field(static=True, default="float32")
+
+    name: ClassVar[str] = "oscillators"
+    description: ClassVar[str] = (
+        "HIG paper: 2 cubically coupled oscillators, RK4 0.125 x 96, learn 96 controls to return to start"
+    )
+    source: ClassVar[str] = "Schnell, Holl, Thuerey, ICLR 2022, Fig. 2b; hig.md §2.1"
+    default_batch_size: ClassVar[int] = 128
+    # The authors' submit_{Adam,GN,HIG}.py. The other optimizers' settings are not in the
+    # released code (hig.md §6): Keras-default learning rates at Adam's batch of 512.
+    method_defaults: ClassVar[dict] = {
+        "adam": {"lr": 3e-4, "batch_size": 512},
+        "gn": {"lr": 1.0, "batch_size": 128, "truncation": 1e-6},
+        "hig": {"lr": 1.0, "batch_size": 128, "truncation": 1e-6},
+        "sgd": {"lr": 1e-2, "batch_size": 512},
+        "rmsprop": {"lr": 1e-3, "batch_size": 512},
+        "adagrad": {"lr": 1e-2, "batch_size": 512},
+        "adadelta": {"lr": 1.0, "batch_size": 512},
+    }
+    default_methods: ClassVar[tuple[str, ...]] = ("adam", "gn", "hig", "sgd", "rmsprop", "adagrad", "adadelta")
+
+    @property
+    def state_size(self) -> int:
+        return 2 * self.n_oscillators
+
+    def rhs(self, state, control):
+        """Right-hand side ``ds/dt`` of the controlled chain (free ends), one sample."""
+        n = self.n_oscillators
+        q, p = state[:n], state[n:]
+        # Differences to the right neighbour; the last oscillator has none (free end).
+        right = jnp.concatenate([q[1:] - q[:-1], jnp.zeros_like(q[:1])])
+        left = jnp.concatenate([jnp.zeros_like(q[:1]), q[:-1] - q[1:]])
+        force = (
+            -q
+            + self.cubic_coupling * (right**3 + left**3)
+            + self.linear_coupling * (right + left)
+        )
+        force = force.at[n - 1].add(self.control_gain * control)
+        return jnp.concatenate([p, force])
+
+    def make_data(self, key):
+        k_train, k_test = jax.random.split(key)
+        draw = lambda k, n: {"x0": uniform(k, (n, self.state_size), self.dtype)}  # noqa: E731
+        return {"train": draw(k_train, self.n_train), "test": draw(k_test, self.n_test)}
+
+    def make_network(self, key):
+        sizes = (self.state_size, self.hidden, self.hidden, self.hidden, self.n_steps)
+        return MLP(sizes, "relu", key=key, dtype=jnp.dtype(self.dtype))
+
+    def network_output(self, network, sample):
+        return network(sample["x0"])
+
+    def simulate(self, controls, sample):
+        return integrate(rk4_step, self.rhs, sample["x0"], controls, self.dt)
+
+    def loss(self, y, sample):
+        return jnp.sum((y - sample["x0"]) ** 2)

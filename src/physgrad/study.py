@@ -1,0 +1,241 @@
+"""Method × seed comparisons on equal budgets, and their result tables.
+
+A study directory holds ``study.json`` (what was asked), ``runs/<method>-seed<k>-<hash>/``
+(one run directory each; the hash is of the run's canonical configuration, so a changed
+setting makes a new run), ``results.csv`` (every run's metrics in long format with
+problem, method and seed columns), ``summary.csv`` (one row per run) and
+``loss_vs_time.png``. Running the same study again skips finished (or diverged) runs and
+resumes interrupted ones from their checkpoints.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .config import Budget, ConfigError, RunConfig, choose, make_config, valid_settings
+from .methods import METHODS
+from .problems import PROBLEMS
+from .progress import AbstractProgressMeter
+from .train import is_complete, read_metrics, read_summary, train
+
+SUMMARY_COLUMNS = (
+    "problem", "method", "seed", "status", "steps", "epochs", "train_seconds", "time_per_step",
+    "final_train_loss", "final_test_loss", "best_test_loss", "diverged_step", "last_finite_loss",
+    "compile_seconds", "run_dir",
+)  # fmt: skip
+
+
+def settings_for(problem: str, method: str, methods: Sequence[str], settings: dict[str, Any]) -> dict[str, Any]:
+    """The subset of a study's ``--set`` values that applies to one method.
+
+    ``name=value`` applies to every method that has the setting (it must exist for at least
+    one); ``method.name=value`` applies to that method only.
+    """
+    out = {}
+    for key, value in settings.items():
+        target, _, name = key.rpartition(".")
+        if target:
+            choose("method in a scoped setting", target, methods)
+            if target == method:
+                out[name] = value  # validated by make_config
+        elif name in valid_settings(problem, method):
+            out[name] = value
+        elif not any(name in valid_settings(problem, m) for m in methods):
+            valid = sorted(set().union(*(valid_settings(problem, m) for m in methods)))
+            raise ConfigError(f"unknown setting {name!r} for {problem}; valid choices: {', '.join(valid)}")
+    return out
+
+
+def plan(
+    problem: str,
+    methods: Sequence[str] | None,
+    seeds: Sequence[int],
+    budget: Budget,
+    settings: dict[str, Any] | None = None,
+) -> list[RunConfig]:
+    """The run configurations of a study (validated before anything runs)."""
+    choose("problem", problem, PROBLEMS)
+    methods = list(methods or PROBLEMS[problem].default_methods)
+    for m in methods:
+        choose("method", m, METHODS)
+    settings = settings or {}
+    return [
+        make_config(problem, m, budget=budget, seed=s, settings=settings_for(problem, m, methods, settings))
+        for m in methods
+        for s in seeds
+    ]
+
+
+def run_name(config: RunConfig) -> str:
+    """A readable, deterministic run directory name: method, seed and a config hash."""
+    return f"{config.method}-seed{config.seed}-{config.digest()}"
+
+
+def compare(
+    problem: str,
+    methods: Sequence[str] | None,
+    seeds: Sequence[int],
+    budget: Budget,
+    out: str | Path,
+    *,
+    settings: dict[str, Any] | None = None,
+    progress: Callable[[], AbstractProgressMeter] | None = None,
+    echo: Callable[[str], None] = print,
+) -> list[dict[str, Any]]:
+    """Train every method × seed on the same budget into ``out``; return the summary rows."""
+    out = Path(out)
+    configs = plan(problem, methods, seeds, budget, settings)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "study.json").write_text(
+        json.dumps(
+            {
+                "problem": problem,
+                "methods": list(dict.fromkeys(c.method for c in configs)),
+                "seeds": list(seeds),
+                "budget": {budget.kind: budget.amount},
+                "settings": settings or {},
+            },
+            indent=2,
+        )
+        + "\n"
+    )
+    for i, config in enumerate(configs, 1):
+        run_dir = out / "runs" / run_name(config)
+        prefix = f"[{i}/{len(configs)}] {config.method} seed {config.seed}"
+        if is_complete(run_dir):
+            echo(f"{prefix}: done already ({read_summary(run_dir)['status']}), skipped")
+            continue
+        summary = train(config, run_dir, resume=True, progress=progress() if progress else None)
+        echo(f"{prefix}: {describe_run(summary)}")
+    return collect(out)
+
+
+def describe_run(summary: dict[str, Any]) -> str:
+    """One line about a finished run."""
+    if summary["status"] == "diverged":
+        return f"diverged at step {summary['diverged_step']} (last finite loss {summary['last_finite_loss']})"
+    return (
+        f"test loss {summary['final_test_loss']:.3e} after {summary['steps']} steps "
+        f"({1e3 * summary['time_per_step']:.2f} ms/step)"
+    )
+
+
+def collect(out: str | Path) -> list[dict[str, Any]]:
+    """Gather the runs of a study into ``results.csv`` and ``summary.csv``."""
+    out = Path(out)
+    rows, results = [], []
+    for run_dir in sorted((out / "runs").glob("*")):
+        summary, config_path = read_summary(run_dir), run_dir / "config.json"
+        if summary is None or summary.get("status") not in ("finished", "diverged") or not config_path.exists():
+            continue
+        config = json.loads(config_path.read_text())
+        ident = {"problem": config["problem"], "method": config["method"], "seed": config["seed"]}
+        rows.append({**{k: summary.get(k) for k in SUMMARY_COLUMNS}, **ident, "run_dir": str(run_dir.relative_to(out))})
+        results += [{**ident, **r} for r in read_metrics(run_dir / "metrics.csv")]
+    _write_csv(out / "summary.csv", SUMMARY_COLUMNS, rows)
+    _write_csv(out / "results.csv", ("problem", "method", "seed", "step", "wall_time", "split", "metric", "value"), results)
+    return rows
+
+
+def _write_csv(path: Path, columns: Sequence[str], rows: list[dict[str, Any]]):
+    with path.open("w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=list(columns), extrasaction="ignore")
+        writer.writeheader()
+        writer.writerows(rows)
+
+
+def read_csv(path: str | Path) -> list[dict[str, str]]:
+    with Path(path).open() as f:
+        return list(csv.DictReader(f))
+
+
+def _float(text) -> float:
+    try:
+        return float(text)
+    except (TypeError, ValueError):
+        return math.nan
+
+
+def method_order(rows: list[dict[str, Any]], study: dict[str, Any] | None = None) -> list[str]:
+    """Methods in the study's order (or first appearance)."""
+    listed = list((study or {}).get("methods", []))
+    return listed + [m for m in dict.fromkeys(r["method"] for r in rows) if m not in listed]
+
+
+def aggregate(rows: list[dict[str, Any]], order: Sequence[str]) -> list[dict[str, Any]]:
+    """Per method: runs, diverged count, final/best test loss mean ± std, steps, time per step."""
+    table = []
+    for method in order:
+        runs = [r for r in rows if r["method"] == method]
+        if not runs:
+            continue
+        ok = [r for r in runs if r["status"] == "finished"]
+
+        def stat(key, pool=ok):
+            values = np.array([_float(r[key]) for r in pool], dtype=float)
+            values = values[np.isfinite(values)]
+            if values.size == 0:
+                return math.nan, math.nan
+            return float(values.mean()), float(values.std(ddof=1)) if values.size > 1 else 0.0
+
+        table.append(
+            {
+                "method": method,
+                "runs": len(runs),
+                "diverged": len(runs) - len(ok),
+                "final_test_loss": stat("final_test_loss"),
+                "best_test_loss": stat("best_test_loss", runs),
+                "steps": stat("steps", runs)[0],
+                "ms_per_step": 1e3 * stat("time_per_step", runs)[0],
+            }
+        )
+    return table
+
+
+def format_table(table: list[dict[str, Any]], reference: str | None = None) -> list[list[str]]:
+    """Rows of strings for printing: the header first. ``reference`` adds a ratio column."""
+    ref = next((t for t in table if t["method"] == reference), None)
+    header = ["method", "runs", "final test loss", "best test loss", "steps", "ms/step"]
+    if ref is not None:
+        header.append(f"final / {reference}")
+    lines = [header]
+    for t in table:
+        fm, fs = t["final_test_loss"]
+        bm, bs = t["best_test_loss"]
+        runs = f"{t['runs']}" + (f" ({t['diverged']} diverged)" if t["diverged"] else "")
+        line = [t["method"], runs, f"{fm:.3e} ± {fs:.1e}", f"{bm:.3e} ± {bs:.1e}", f"{t['steps']:.0f}", f"{t['ms_per_step']:.2f}"]
+        if ref is not None:
+            line.append(f"{fm / ref['final_test_loss'][0]:.3g}")
+        lines.append(line)
+    return lines
+
+
+def report(out: str | Path) -> tuple[list[list[str]], Path]:
+    """Re-draw a study's table and figure from its files alone (``summary.csv``, ``results.csv``)."""
+    from .plots import loss_vs_time
+
+    out = Path(out)
+    for name in ("summary.csv", "results.csv"):
+        if not (out / name).exists():
+            raise ConfigError(f"{out} is not a study directory: {name} is missing")
+    study = json.loads((out / "study.json").read_text()) if (out / "study.json").exists() else {}
+    rows = read_csv(out / "summary.csv")
+    order = method_order(rows, study)
+    table = aggregate(rows, order)
+    reference = "adam" if "adam" in order else None
+    figure = loss_vs_time(read_csv(out / "results.csv"), out / "loss_vs_time.png", order=order, title=_title(study, rows))
+    return format_table(table, reference), figure
+
+
+def _title(study: dict[str, Any], rows: list[dict[str, Any]]) -> str:
+    problem = study.get("problem") or (rows[0]["problem"] if rows else "")
+    budget = ", ".join(f"{v:g} {k}" for k, v in study.get("budget", {}).items())
+    seeds = len(study.get("seeds", [])) or len({r["seed"] for r in rows})
+    return f"{problem}: test loss vs training time ({budget}, {seeds} seed{'s' if seeds != 1 else ''})"

@@ -1,0 +1,366 @@
+"""The training engine: budgets, evaluation, checkpoints and run directories.
+
+One run trains one method on one problem from one seed::
+
+    data  = problem.make_data(fold_in(key(seed), 0))
+    net   = problem.make_network(fold_in(key(seed), 1))
+    loop: params, state, stats = step(params, state, train_data, order, batch_index)  # one jit
+          every epoch (or ``eval_every`` steps): full train and test loss, not timed
+
+A run directory holds ``config.json`` (the resolved :class:`~physgrad.config.RunConfig`),
+``metrics.csv`` (long format: step, wall_time, split, metric, value), ``env.json``,
+``summary.json``, ``params.eqx`` (the final network, Equinox serialisation) and
+``checkpoint/`` (parameters, optimizer state and counters) for ``resume``.
+
+Wall time counts training steps only: compilation (reported as ``compile_seconds``) and
+evaluation are excluded, so equal budgets compare update rules, not tracing.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import json
+import math
+import os
+import platform
+import time
+from pathlib import Path
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+
+from .config import ConfigError, RunConfig
+from .nets import parameter_count
+from .methods import METHODS, AbstractMethod, Objective
+from .problems import PROBLEMS, AbstractProblem
+from .progress import AbstractProgressMeter, NoProgressMeter
+
+METRICS_HEADER = ("step", "wall_time", "split", "metric", "value")
+FINAL_STATUSES = ("finished", "diverged")
+
+
+@dataclasses.dataclass
+class Setup:
+    """Everything a run builds from its configuration before the first step."""
+
+    problem: AbstractProblem
+    data: dict[str, Any]
+    params: Any
+    static: Any
+    method: AbstractMethod
+    objective: Objective
+    steps_per_epoch: int
+
+    def network(self, params=None):
+        return eqx.combine(self.params if params is None else params, self.static)
+
+
+def build(config: RunConfig) -> Setup:
+    """Problem, data, network and method for a configuration (deterministic per seed)."""
+    problem = PROBLEMS[config.problem](**config.problem_settings)
+    key = jax.random.key(config.seed)
+    data = problem.make_data(jax.random.fold_in(key, 0))
+    network = problem.make_network(jax.random.fold_in(key, 1))
+    params, static = eqx.partition(network, eqx.is_inexact_array)
+    n_train = jax.tree.leaves(data["train"])[0].shape[0]
+    if config.batch_size > n_train:
+        raise ConfigError(f"batch_size {config.batch_size} exceeds the {n_train} training samples")
+    method = METHODS[config.method](**config.hyperparameters)
+
+    def predict(p, sample):
+        return problem.predict(eqx.combine(p, static), sample)
+
+    return Setup(
+        problem=problem,
+        data=data,
+        params=params,
+        static=static,
+        method=method,
+        objective=Objective(predict, problem.loss),
+        steps_per_epoch=n_train // config.batch_size,
+    )
+
+
+def make_step(setup: Setup, batch_size: int):
+    """The training step as one jitted function of (params, state, data, order, index).
+
+    The mini-batch is gathered inside the jit (``order`` is the epoch's sample order,
+    ``index`` the batch number), so a step is a single dispatch with no host work.
+    """
+
+    def step(params, state, data, order, index):
+        rows = jax.lax.dynamic_slice_in_dim(order, index * batch_size, batch_size)
+        batch = jax.tree.map(lambda a: a[rows], data)
+        return setup.method.step(setup.objective, params, state, batch)
+
+    return jax.jit(step)
+
+
+def make_evaluate(setup: Setup, chunk: int = 1024):
+    """Mean per-sample loss over a whole data split (jitted, in chunks of ``chunk``)."""
+
+    def evaluate(params, data):
+        n = jax.tree.leaves(data)[0].shape[0]
+        losses = jax.lax.map(
+            lambda s: setup.objective.loss(setup.objective.predict(params, s), s),
+            data,
+            batch_size=min(chunk, n),
+        )
+        return jnp.mean(losses)
+
+    return jax.jit(evaluate)
+
+
+def environment() -> dict[str, Any]:
+    """Versions and devices, written as ``env.json``."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    versions = {}
+    for name in ("physgrad", "jax", "jaxlib", "equinox", "optax", "numpy"):
+        try:
+            versions[name] = version(name)
+        except PackageNotFoundError:
+            versions[name] = None
+    return {
+        "python": platform.python_version(),
+        "platform": platform.platform(),
+        "cpu_count": os.cpu_count(),
+        "devices": [str(d) for d in jax.devices()],
+        "backend": jax.default_backend(),
+        "x64": bool(jax.config.jax_enable_x64),
+        "versions": versions,
+        "time": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+    }
+
+
+class MetricsLog:
+    """Appends long-format rows to ``metrics.csv``; on resume, drops rows after the checkpoint."""
+
+    def __init__(self, path: Path, keep_until_step: int | None = None):
+        self.path = path
+        rows = []
+        if keep_until_step is not None and path.exists():
+            with path.open() as f:
+                rows = [r for r in csv.DictReader(f) if int(r["step"]) <= keep_until_step]
+        with path.open("w", newline="") as f:
+            writer = csv.writer(f)
+            writer.writerow(METRICS_HEADER)
+            writer.writerows([[r[k] for k in METRICS_HEADER] for r in rows])
+
+    def write(self, step: int, wall_time: float, values: dict[tuple[str, str], float]):
+        with self.path.open("a", newline="") as f:
+            writer = csv.writer(f)
+            for (split, metric), value in values.items():
+                writer.writerow([step, f"{wall_time:.6f}", split, metric, repr(float(value))])
+
+
+def read_metrics(path: Path) -> list[dict[str, Any]]:
+    """``metrics.csv`` as a list of typed rows."""
+    with Path(path).open() as f:
+        return [
+            {
+                "step": int(r["step"]),
+                "wall_time": float(r["wall_time"]),
+                "split": r["split"],
+                "metric": r["metric"],
+                "value": float(r["value"]),
+            }
+            for r in csv.DictReader(f)
+        ]
+
+
+def _write_json(path: Path, data: dict[str, Any]):
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    tmp.write_text(json.dumps(data, indent=2, sort_keys=True, default=str) + "\n")
+    os.replace(tmp, path)
+
+
+def _save_checkpoint(run_dir: Path, params, state, counters: dict[str, Any]):
+    ckpt = run_dir / "checkpoint"
+    ckpt.mkdir(exist_ok=True)
+    tmp = ckpt / "state.eqx.tmp"
+    eqx.tree_serialise_leaves(tmp, (params, state))
+    os.replace(tmp, ckpt / "state.eqx")
+    _write_json(ckpt / "counters.json", counters)
+
+
+def _load_checkpoint(run_dir: Path, like):
+    ckpt = run_dir / "checkpoint"
+    counters = json.loads((ckpt / "counters.json").read_text())
+    params, state = eqx.tree_deserialise_leaves(ckpt / "state.eqx", like)
+    return params, state, counters
+
+
+def load_network(run_dir: str | Path):
+    """The final trained network of a run directory (``params.eqx``)."""
+    run_dir = Path(run_dir)
+    config = RunConfig.from_dict(json.loads((run_dir / "config.json").read_text()))
+    setup = build(config)
+    return eqx.tree_deserialise_leaves(run_dir / "params.eqx", setup.network())
+
+
+def _same_run(a: RunConfig, b: RunConfig) -> bool:
+    strip = lambda c: {k: v for k, v in c.to_dict().items() if k != "budget"}  # noqa: E731
+    return strip(a) == strip(b)
+
+
+def train(
+    config: RunConfig,
+    run_dir: str | Path,
+    *,
+    resume: bool = False,
+    progress: AbstractProgressMeter | None = None,
+) -> dict[str, Any]:
+    """Train one run into ``run_dir`` and return its summary (also ``summary.json``).
+
+    With ``resume=True`` an existing run continues from its last checkpoint up to
+    ``config.budget`` (which may be larger than the original one); a finished run whose
+    budget is already met returns its summary unchanged. A run whose loss turns NaN or
+    infinite stops with status ``"diverged"``, the step and the last finite loss.
+    """
+    run_dir = Path(run_dir)
+    progress = progress or NoProgressMeter()
+    existing = run_dir / "config.json"
+    if existing.exists():
+        if not resume:
+            raise ConfigError(f"run directory {run_dir} exists; pass --resume or choose another --out")
+        old = RunConfig.from_dict(json.loads(existing.read_text()))
+        if not _same_run(old, config):
+            raise ConfigError(f"run directory {run_dir} holds a different configuration; choose another --out")
+    run_dir.mkdir(parents=True, exist_ok=True)
+
+    setup = build(config)
+    params, state = setup.params, setup.method.init(setup.params)
+    counters = {"step": 0, "train_time": 0.0, "compile_seconds": 0.0, "best_test_loss": math.inf}
+    has_ckpt = resume and (run_dir / "checkpoint" / "counters.json").exists()
+    if has_ckpt:
+        params, state, counters = _load_checkpoint(run_dir, (params, state))
+        done = read_summary(run_dir)
+        if done and (done["status"] == "diverged" or (done["status"] == "finished" and done["budget"] == {config.budget.kind: config.budget.amount})):
+            return done
+    _write_json(existing, config.to_dict())
+    _write_json(run_dir / "env.json", environment())
+    log = MetricsLog(run_dir / "metrics.csv", keep_until_step=counters["step"] if has_ckpt else None)
+
+    spe = setup.steps_per_epoch
+    budget = config.budget
+    total_steps = {"steps": budget.amount, "epochs": budget.amount * spe}.get(budget.kind)
+    eval_every = config.eval_every or spe
+    train_data, test_data = setup.data["train"], setup.data["test"]
+    n_train = jax.tree.leaves(train_data)[0].shape[0]
+    shuffle_key = jax.random.fold_in(jax.random.key(config.seed), 2)
+
+    def order_for(epoch: int):
+        if config.shuffle:
+            return jax.random.permutation(jax.random.fold_in(shuffle_key, epoch), n_train).astype(jnp.int32)
+        return jnp.arange(n_train, dtype=jnp.int32)
+
+    def budget_met(step: int, train_time: float) -> bool:
+        if budget.kind == "seconds":
+            return train_time >= budget.amount
+        return step >= total_steps
+
+    evaluate = make_evaluate(setup)
+    step_fn = make_step(setup, config.batch_size)
+    t0 = time.perf_counter()
+    compiled = step_fn.lower(params, state, train_data, order_for(0), jnp.int32(0)).compile()
+    counters["compile_seconds"] += time.perf_counter() - t0
+
+    step, train_time = counters["step"], counters["train_time"]
+    status, diverged_step, last_finite = "running", None, None
+    last_eval: dict[str, float] = {}
+
+    def record(step: int, train_time: float) -> bool:
+        """Full-set losses at this step; returns False if one is not finite."""
+        values = {
+            ("train", "loss"): float(evaluate(params, train_data)),
+            ("test", "loss"): float(evaluate(params, test_data)),
+        }
+        if step > 0:
+            values[("train", "time_per_step")] = train_time / step
+        log.write(step, train_time, values)
+        last_eval.update(train_loss=values[("train", "loss")], test_loss=values[("test", "loss")])
+        if math.isfinite(last_eval["test_loss"]):
+            counters["best_test_loss"] = min(counters["best_test_loss"], last_eval["test_loss"])
+        return math.isfinite(last_eval["train_loss"]) and math.isfinite(last_eval["test_loss"])
+
+    def checkpoint():
+        counters.update(step=step, train_time=train_time)
+        _save_checkpoint(run_dir, params, state, counters)
+
+    if step == 0:
+        record(0, 0.0)
+    last_ckpt_time = train_time
+    progress.start(budget=budget, steps_per_epoch=spe, step=step, train_time=train_time, label=run_dir.name)
+    order = order_for(step // spe)
+    try:
+        while not budget_met(step, train_time):
+            epoch, index = divmod(step, spe)
+            if index == 0:
+                order = order_for(epoch)
+            t_start = time.perf_counter()
+            new_params, new_state, stats = compiled(params, state, train_data, order, jnp.int32(index))
+            loss = float(stats["loss"])  # waits for the step: the timing is honest
+            train_time += time.perf_counter() - t_start
+            if not math.isfinite(loss):
+                status, diverged_step = "diverged", step
+                break
+            params, state, last_finite = new_params, new_state, loss
+            step += 1
+            if step % eval_every == 0 or budget_met(step, train_time):
+                if not record(step, train_time):
+                    status, diverged_step = "diverged", step
+                    break
+            if train_time - last_ckpt_time >= config.checkpoint_seconds:
+                checkpoint()
+                last_ckpt_time = train_time
+            progress.update(step=step, train_time=train_time, loss=loss)
+    except KeyboardInterrupt:
+        checkpoint()
+        _write_json(run_dir / "summary.json", {"status": "interrupted", "steps": step, "train_seconds": train_time})
+        raise
+    finally:
+        progress.close()
+
+    if status == "running":
+        status = "finished"
+    checkpoint()
+    eqx.tree_serialise_leaves(run_dir / "params.eqx", setup.network(params))
+    summary = {
+        "status": status,
+        "problem": config.problem,
+        "method": config.method,
+        "seed": config.seed,
+        "budget": {budget.kind: budget.amount},
+        "steps": step,
+        "epochs": step / spe,
+        "train_seconds": train_time,
+        "compile_seconds": counters["compile_seconds"],
+        "time_per_step": train_time / step if step else None,
+        "final_train_loss": last_eval.get("train_loss"),
+        "final_test_loss": last_eval.get("test_loss"),
+        "best_test_loss": counters["best_test_loss"] if math.isfinite(counters["best_test_loss"]) else None,
+        "diverged_step": diverged_step,
+        "last_finite_loss": last_finite if status == "diverged" else None,
+        "n_params": parameter_count(setup.params),
+    }
+    _write_json(run_dir / "summary.json", summary)
+    return summary
+
+
+def read_summary(run_dir: str | Path) -> dict[str, Any] | None:
+    """A run's ``summary.json``, or None if it has none."""
+    path = Path(run_dir) / "summary.json"
+    return json.loads(path.read_text()) if path.exists() else None
+
+
+def is_complete(run_dir: str | Path) -> bool:
+    """Whether a run finished or diverged (so a study can skip it)."""
+    summary = read_summary(run_dir)
+    return summary is not None and summary.get("status") in FINAL_STATUSES
+
+
+__all__ = ["Setup", "build", "load_network", "make_evaluate", "make_step", "read_metrics", "train"]

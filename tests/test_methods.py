@@ -1,0 +1,98 @@
+"""Every registered method: one step against an independent reference, and training."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from jax.flatten_util import ravel_pytree
+
+from physgrad import METHODS, Budget, make_config
+from physgrad.train import build, make_evaluate, make_step
+
+TINY = {"n_steps": "8", "hidden": "6", "n_train": "64", "n_test": "64", "dtype": "float64", "batch_size": "16"}
+
+
+def tiny_setup(method, **extra):
+    config = make_config("oscillators", method, budget=Budget(steps=1), settings={**TINY, **extra})
+    setup = build(config)
+    batch = jax.tree.map(lambda a: a[:16], setup.data["train"])
+    return config, setup, batch
+
+
+def numpy_gradient(setup, batch, eps=1e-6):
+    flat, unravel = ravel_pytree(setup.params)
+    loss = jax.jit(lambda th: setup.objective.batch_loss(unravel(th), batch))
+    f = lambda th: float(loss(th))  # noqa: E731
+    return np.array([(f(flat.at[j].add(eps)) - f(flat.at[j].add(-eps))) / (2 * eps) for j in range(flat.size)])
+
+
+def test_dp_gradient_and_adam_step_against_hand_written_adam():
+    config, setup, batch = tiny_setup("adam", lr="0.01")
+    flat, unravel = ravel_pytree(setup.params)
+    g = numpy_gradient(setup, batch)
+    params, state = setup.params, setup.method.init(setup.params)
+    theta, m, v = np.asarray(flat), np.zeros_like(g), np.zeros_like(g)
+    lr, b1, b2, eps = 0.01, 0.9, 0.999, 1e-7
+    m, v = (1 - b1) * g, (1 - b2) * g**2
+    want = theta - lr * (m / (1 - b1)) / (np.sqrt(v / (1 - b2)) + eps)
+    params, state, stats = setup.method.step(setup.objective, params, state, batch)
+    np.testing.assert_allclose(np.asarray(ravel_pytree(params)[0]), want, rtol=1e-6, atol=1e-9)
+    assert float(stats["loss"]) == pytest.approx(float(setup.objective.batch_loss(setup.params, batch)))
+
+
+@pytest.mark.parametrize("method,exponent", [("hig", -0.5), ("gn", -1.0)])
+@pytest.mark.parametrize("route", ["svd", "gram"])
+def test_jacobian_power_step_against_numpy(method, exponent, route):
+    # τ = 1e-3 keeps the finite-difference Jacobian's error from being amplified by σ^κ.
+    config, setup, batch = tiny_setup(method, lr="0.5", truncation="1e-3", route=route)
+    flat, unravel = ravel_pytree(setup.params)
+    # independent pieces: J from finite differences of the outputs, g = 2 (y − y*) / b
+    outputs = jax.jit(lambda th: jax.vmap(lambda s: setup.objective.predict(unravel(th), s))(batch).ravel())
+    predict = lambda th: np.asarray(outputs(th))  # noqa: E731
+    eps = 1e-6
+    jac = np.stack([(predict(flat.at[j].add(eps)) - predict(flat.at[j].add(-eps))) / (2 * eps) for j in range(flat.size)], 1)
+    g = 2 * (predict(flat) - np.asarray(batch["x0"]).ravel()) / 16
+    u, s, vt = np.linalg.svd(jac, full_matrices=False)
+    keep = s > 1e-3 * s.max()
+    want = np.asarray(flat) - 0.5 * vt[keep].T @ (s[keep] ** exponent * (u[:, keep].T @ g))
+    params, _, _ = setup.method.step(setup.objective, setup.params, setup.method.init(setup.params), batch)
+    np.testing.assert_allclose(np.asarray(ravel_pytree(params)[0]), want, rtol=1e-4, atol=1e-6)
+
+
+@pytest.mark.parametrize("method", sorted(METHODS))
+def test_every_method_lowers_the_loss_in_float32_without_recompiling(method):
+    settings = {k: v for k, v in TINY.items() if k != "dtype"}
+    if method == "gn":
+        # This 6-unit ReLU net's Jacobian has singular values down to 1e-10 σ_max; the full
+        # inverse of those just above τ = 1e-6 blows up (GN's known instability).
+        settings["truncation"] = "1e-2"
+    config = make_config("oscillators", method, budget=Budget(steps=1), settings=settings)
+    setup = build(config)
+    step = make_step(setup, config.batch_size)
+    evaluate = make_evaluate(setup)
+    data = setup.data["train"]
+    order = jnp.arange(64, dtype=jnp.int32)
+    params, state = setup.params, setup.method.init(setup.params)
+    before = float(evaluate(params, data))
+    for i in range(40):
+        params, state, _ = step(params, state, data, order, jnp.int32(i % 4))
+    assert step._cache_size() == 1
+    assert all(leaf.dtype == jnp.float32 for leaf in jax.tree.leaves(params))
+    assert float(evaluate(params, data)) < before
+
+
+def test_short_hig_run_lowers_test_loss_tenfold():
+    config = make_config(
+        "oscillators", "hig", budget=Budget(steps=1),
+        settings={"n_steps": "24", "n_train": "256", "n_test": "256", "batch_size": "32"},
+    )  # fmt: skip
+    setup = build(config)
+    step, evaluate = make_step(setup, 32), make_evaluate(setup)
+    train, test = setup.data["train"], setup.data["test"]
+    order = jnp.arange(256, dtype=jnp.int32)
+    params, state = setup.params, setup.method.init(setup.params)
+    before = float(evaluate(params, test))
+    for i in range(200):
+        params, state, _ = step(params, state, train, order, jnp.int32(i % 8))
+    after = float(evaluate(params, test))
+    assert after < before / 10, (before, after)
