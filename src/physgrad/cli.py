@@ -126,6 +126,7 @@ def cmd_list(args, console):
     console.print("[bold]methods[/bold]")
     for name in METHODS:
         console.print(f"  {name:<14} {describe(name)}")
+    return 0
 
 
 def _progress(args, console):

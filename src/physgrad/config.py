@@ -154,6 +154,10 @@ def make_config(
         k: parse_value(k, settings.get(k, paper.get(k, d)), d if d is not None else 0)
         for k, d in TRAIN_SETTINGS.items()
     }
+    try:  # the method checks its own hyperparameters (e.g. route choices) on construction
+        METHODS[method](**hyper)
+    except (ValueError, TypeError) as e:
+        raise ConfigError(str(e)) from None
     if train["batch_size"] <= 0:
         raise ConfigError(f"batch_size must be positive, got {train['batch_size']}")
     return RunConfig(

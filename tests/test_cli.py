@@ -1,0 +1,153 @@
+"""The command line and the run/study files, with tiny budgets."""
+
+import csv
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+import physgrad
+from physgrad import Budget, make_config, train
+from physgrad.cli import main
+from physgrad.progress import NoProgressMeter
+
+RUN_FILES = ("config.json", "metrics.csv", "env.json", "summary.json", "params.eqx", "checkpoint/state.eqx")
+
+
+def rows(path):
+    with open(path) as f:
+        return list(csv.DictReader(f))
+
+
+def params_of(run_dir):
+    net = physgrad.load_network(run_dir)
+    return np.concatenate([np.ravel(np.asarray(x)) for x in (net.layers[0].weight, net.layers[1].weight)])
+
+
+def test_list(capsys):
+    assert main(["list"]) == 0
+    out = capsys.readouterr().out
+    for name in ("oscillators", "hig_toy", "adam", "sgd", "rmsprop", "adagrad", "adadelta", "gn", "hig"):
+        assert name in out
+
+
+def test_train_writes_every_documented_file(tmp_path, capsys):
+    out = tmp_path / "run"
+    assert main(["train", "hig_toy", "--method", "hig", "--steps", "6", "--set", "eval_every=2", "--out", str(out)]) == 0
+    for name in RUN_FILES:
+        assert (out / name).exists(), name
+    metrics = rows(out / "metrics.csv")
+    assert list(metrics[0]) == ["step", "wall_time", "split", "metric", "value"]
+    steps = sorted({int(r["step"]) for r in metrics if r["metric"] == "loss"})
+    assert steps == [0, 2, 4, 6]
+    assert {r["split"] for r in metrics} == {"train", "test"}
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["status"] == "finished" and summary["steps"] == 6
+    assert summary["final_test_loss"] == pytest.approx(float([r for r in metrics if r["step"] == "6" and r["split"] == "test" and r["metric"] == "loss"][0]["value"]))
+    config = json.loads((out / "config.json").read_text())
+    assert config["hyperparameters"] == {"lr": 1.0, "truncation": 1e-6, "route": "auto"}
+    assert config["budget"] == {"steps": 6}
+    assert json.loads((out / "env.json").read_text())["versions"]["jax"]
+    # an existing run directory is not overwritten silently
+    assert main(["train", "hig_toy", "--method", "hig", "--steps", "6", "--out", str(out)]) == 2
+    assert "--resume" in capsys.readouterr().err
+
+
+class InterruptAt(NoProgressMeter):
+    def __init__(self, step):
+        self.at = step
+
+    def update(self, *, step, **kwargs):
+        if step == self.at:
+            raise KeyboardInterrupt
+
+
+def test_resume_after_interrupt_matches_uninterrupted_run(tmp_path):
+    config = make_config("hig_toy", "adam", budget=Budget(steps=12), settings={"eval_every": 4, "batch_size": 64})
+    whole = train(config, tmp_path / "whole")
+    with pytest.raises(KeyboardInterrupt):
+        train(config, tmp_path / "cut", progress=InterruptAt(6))
+    assert json.loads((tmp_path / "cut" / "summary.json").read_text())["status"] == "interrupted"
+    resumed = train(config, tmp_path / "cut", resume=True)
+    assert resumed["steps"] == whole["steps"] == 12
+    np.testing.assert_array_equal(params_of(tmp_path / "cut"), params_of(tmp_path / "whole"))
+    assert resumed["final_test_loss"] == whole["final_test_loss"]
+    # metrics: no duplicated rows across the interruption
+    steps = [int(r["step"]) for r in rows(tmp_path / "cut" / "metrics.csv") if r["split"] == "test" and r["metric"] == "loss"]
+    assert steps == [0, 4, 8, 12]
+
+
+def test_resume_extends_a_finished_run_from_the_cli(tmp_path):
+    out = str(tmp_path / "run")
+    base = ["train", "hig_toy", "--method", "adam", "--out", out, "--set", "batch_size=64"]
+    assert main([*base, "--steps", "5"]) == 0
+    assert main([*base, "--steps", "9", "--resume"]) == 0
+    summary = json.loads((tmp_path / "run" / "summary.json").read_text())
+    assert summary["steps"] == 9 and summary["budget"] == {"steps": 9}
+
+
+def test_compare_report_and_skip(tmp_path, capsys):
+    out = tmp_path / "study"
+    argv = ["compare", "hig_toy", "--methods", "adam,hig", "--seeds", "2", "--steps", "4", "--out", str(out)]
+    assert main(argv) == 0
+    printed = capsys.readouterr().out
+    assert "final test loss" in printed and "final / adam" in printed
+    for name in ("results.csv", "summary.csv", "loss_vs_time.png", "study.json"):
+        assert (out / name).exists(), name
+    results = rows(out / "results.csv")
+    assert list(results[0])[:3] == ["problem", "method", "seed"]
+    assert {(r["method"], r["seed"]) for r in results} == {("adam", "0"), ("adam", "1"), ("hig", "0"), ("hig", "1")}
+    summary = rows(out / "summary.csv")
+    assert len(summary) == 4 and {r["status"] for r in summary} == {"finished"}
+    assert main(argv) == 0
+    assert capsys.readouterr().out.count("done already") == 4
+    (out / "loss_vs_time.png").unlink()
+    assert main(["report", str(out)]) == 0
+    assert (out / "loss_vs_time.png").exists()
+    assert "hig" in capsys.readouterr().out
+
+
+def test_diverged_run_is_recorded_and_the_study_goes_on(tmp_path, capsys):
+    out = tmp_path / "study"
+    argv = ["compare", "hig_toy", "--methods", "sgd,adam", "--steps", "20", "--out", str(out),
+            "--set", "sgd.lr=1e12", "--set", "batch_size=64"]  # fmt: skip
+    assert main(argv) == 0
+    summary = {r["method"]: r for r in rows(out / "summary.csv")}
+    assert summary["sgd"]["status"] == "diverged"
+    assert int(summary["sgd"]["diverged_step"]) >= 1
+    assert np.isfinite(float(summary["sgd"]["last_finite_loss"]))
+    assert summary["adam"]["status"] == "finished"
+    assert "diverged" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize(
+    "argv,message",
+    [
+        (["train", "nope", "--method", "adam"], "unknown problem 'nope'; valid choices: hig_toy, oscillators"),
+        (["train", "hig_toy", "--method", "nope"], "unknown method 'nope'; valid choices:"),
+        (["train", "hig_toy", "--method", "adam", "--set", "nope=1"], "unknown setting 'nope' for hig_toy/adam; valid choices:"),
+        (["train", "hig_toy", "--method", "adam", "--set", "lr=fast"], "setting 'lr' expects a float"),
+        (["train", "hig_toy", "--method", "hig", "--set", "route=qr", "--steps", "1"], "unknown route 'qr'; valid choices"),
+        (["compare", "nope"], "unknown problem 'nope'"),
+        (["compare", "hig_toy", "--methods", "adam,nope"], "unknown method 'nope'"),
+        (["compare", "hig_toy", "--set", "nope=1"], "unknown setting 'nope' for hig_toy; valid choices:"),
+        (["compare", "hig_toy", "--methods", "adam", "--set", "hig.lr=1"], "unknown method in a scoped setting 'hig'"),
+        (["train", "hig_toy", "--method", "adam", "--steps", "1", "--seconds", "2"], "only one of"),
+        (["report", "/nonexistent"], "is not a study directory"),
+        (["frobnicate"], "invalid choice"),
+    ],
+)
+def test_bad_input_is_one_line_exit_2(argv, message, capsys, tmp_path):
+    assert main([*argv, *(["--out", str(tmp_path / "x")] if argv[0] in ("train", "compare") else [])]) == 2
+    err = capsys.readouterr().err.strip()
+    assert message in err
+    assert len(err.splitlines()) == 1 and "Traceback" not in err
+
+
+def test_console_script_and_module_entry_points():
+    listed = subprocess.run([sys.executable, "-m", "physgrad", "list"], capture_output=True, text=True)
+    assert listed.returncode == 0 and "oscillators" in listed.stdout
+    bad = subprocess.run([sys.executable, "-m", "physgrad", "train", "nope", "--method", "hig"], capture_output=True, text=True)
+    assert bad.returncode == 2 and bad.stderr.strip().count("\n") == 0 and "valid choices" in bad.stderr
