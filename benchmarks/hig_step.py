@@ -60,7 +60,7 @@ def main():
             jac_time[b] = median_seconds(jac, (setup.params, batch), args.repeats)
             rows_j = jax.eval_shape(jac, setup.params, batch).shape
         label = method + (f" ({extra['route']})" if extra else "")
-        rows.append((label, b, rows_j, t_step, t_step / jac_time[b]))
+        rows.append((label, b, tuple(rows_j) if extra else "-", t_step, t_step / jac_time[b]))
 
     print(f"physgrad {physgrad.__version__} | jax {jax.__version__} | {jax.devices()[0]} | {platform.processor() or platform.machine()}")
     print(f"problem {args.problem}; median of {args.repeats} steps; settings {settings or 'paper defaults'}")
@@ -68,7 +68,7 @@ def main():
     for b, t in jac_time.items():
         print(f"{'Jacobian only':<14}{b:>6}{'':>14}{t * 1e3:>10.2f}{1.0:>12.2f}")
     for label, b, shape, t, ratio in rows:
-        print(f"{label:<14}{b:>6}{str(tuple(shape)):>14}{t * 1e3:>10.2f}{ratio:>12.2f}")
+        print(f"{label:<14}{b:>6}{str(shape):>14}{t * 1e3:>10.2f}{ratio:>12.2f}")
 
 
 if __name__ == "__main__":
