@@ -128,8 +128,11 @@ def test_diverged_run_is_recorded_and_the_study_goes_on(tmp_path, capsys):
         (["train", "nope", "--method", "adam"], "unknown problem 'nope'; valid choices: hig_toy, oscillators"),
         (["train", "hig_toy", "--method", "nope"], "unknown method 'nope'; valid choices:"),
         (["train", "hig_toy", "--method", "adam", "--set", "nope=1"], "unknown setting 'nope' for hig_toy/adam; valid choices:"),
-        (["train", "hig_toy", "--method", "adam", "--set", "lr=fast"], "setting 'lr' expects a float"),
+        (["train", "hig_toy", "--method", "adam", "--set", "lr=fast"], "setting 'lr' expects a number, got 'fast'"),
         (["train", "hig_toy", "--method", "hig", "--set", "route=qr", "--steps", "1"], "unknown route 'qr'; valid choices"),
+        (["train", "hig_toy", "--method", "adam", "--set", "batch_size=1e3"], "setting 'batch_size' expects an integer"),
+        (["train", "hig_toy", "--method", "adam", "--set", "shuffle=maybe"], "setting 'shuffle' expects true or false"),
+        (["train", "hig_toy", "--method", "adam", "--set", "batch_size=4096", "--steps", "1"], "batch_size 4096 exceeds the 1024 training samples"),
         (["compare", "nope"], "unknown problem 'nope'"),
         (["compare", "hig_toy", "--methods", "adam,nope"], "unknown method 'nope'"),
         (["compare", "hig_toy", "--set", "nope=1"], "unknown setting 'nope' for hig_toy; valid choices:"),
@@ -151,3 +154,12 @@ def test_console_script_and_module_entry_points():
     assert listed.returncode == 0 and "oscillators" in listed.stdout
     bad = subprocess.run([sys.executable, "-m", "physgrad", "train", "nope", "--method", "hig"], capture_output=True, text=True)
     assert bad.returncode == 2 and bad.stderr.strip().count("\n") == 0 and "valid choices" in bad.stderr
+
+
+def test_rich_progress_meter_runs_through_a_training_run(tmp_path):
+    from physgrad.progress import RichProgressMeter
+
+    meter = RichProgressMeter(refresh_seconds=0.0)
+    config = make_config("hig_toy", "adam", budget=Budget(epochs=2), settings={"batch_size": 256})
+    summary = train(config, tmp_path / "run", progress=meter)
+    assert summary["steps"] == 8 and meter._progress is None  # closed

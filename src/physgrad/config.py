@@ -47,8 +47,8 @@ def parse_value(name: str, text: Any, default: Any) -> Any:
             return float(text)
         return text
     except ValueError:
-        kind = type(default).__name__
-        raise ConfigError(f"setting {name!r} expects a {kind}, got {text!r}") from None
+        kind = {bool: "true or false", int: "an integer", float: "a number"}.get(type(default), "a string")
+        raise ConfigError(f"setting {name!r} expects {kind}, got {text!r}") from None
 
 
 @dataclasses.dataclass(frozen=True)
