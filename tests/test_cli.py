@@ -163,3 +163,11 @@ def test_rich_progress_meter_runs_through_a_training_run(tmp_path):
     config = make_config("hig_toy", "adam", budget=Budget(epochs=2), settings={"batch_size": 256})
     summary = train(config, tmp_path / "run", progress=meter)
     assert summary["steps"] == 8 and meter._progress is None  # closed
+
+
+def test_demo_runs_and_prints_its_settings_and_ratio(tmp_path, capsys):
+    assert main(["demo", "--seconds", "0.3", "--out", str(tmp_path / "demo")]) == 0
+    out = capsys.readouterr().out
+    assert "batch 32" in out and "hig.batch_size" in out
+    assert "below Adam's at equal wall-clock" in out
+    assert (tmp_path / "demo" / "loss_vs_time.png").exists()

@@ -159,10 +159,10 @@ def _run_compare(console, problem, methods, seeds, budget, settings, out, quiet=
     console.print(f"comparing on {problem}: budget {budget} per run, seeds {list(seeds)}, settings {settings or 'paper defaults'}")
     meter = None if quiet or not console.is_terminal else RichProgressMeter
     compare(problem, methods, seeds, budget, out, settings=settings, progress=meter, echo=console.print)
-    lines, figure = report(out)
-    _print_table(console, lines, title=f"{problem}: {budget} per run")
-    console.print(f"wrote {Path(out) / 'results.csv'}, {Path(out) / 'summary.csv'}, {figure}")
-    return lines
+    result = report(out)
+    _print_table(console, result.lines, title=f"{problem}: {budget} per run")
+    console.print(f"wrote {Path(out) / 'results.csv'}, {Path(out) / 'summary.csv'}, {result.figure}")
+    return result
 
 
 def cmd_compare(args, console):
@@ -177,9 +177,9 @@ def cmd_compare(args, console):
 def cmd_report(args, console):
     from .study import report
 
-    lines, figure = report(args.dir)
-    _print_table(console, lines, title=str(args.dir))
-    console.print(f"wrote {figure}")
+    result = report(args.dir)
+    _print_table(console, result.lines, title=str(args.dir))
+    console.print(f"wrote {result.figure}")
     return 0
 
 
@@ -192,12 +192,11 @@ def cmd_demo(args, console):
         f"instead of the paper's 128, because a 512x512 eigendecomposition dominates a batch-128 step on a few CPU cores.\n"
         f"  {args.seconds:g} s of training per method, full test loss every 64 steps; settings {DEMO['settings']}"
     )
-    lines = _run_compare(
+    result = _run_compare(
         console, DEMO["problem"], DEMO["methods"], [0], Budget(seconds=args.seconds), DEMO["settings"], args.out
     )
-    final = {line[0]: float(line[2].split(" ")[0]) for line in lines[1:]}
-    if "adam" in final and "hig" in final:
-        console.print(f"HIG's final test loss is {final['adam'] / final['hig']:.1f}x below Adam's at equal wall-clock.")
+    ratio = result.final_test_loss("adam") / result.final_test_loss("hig")
+    console.print(f"HIG's final test loss is {ratio:.1f}x below Adam's at equal wall-clock.")
     return 0
 
 

@@ -15,7 +15,7 @@ import json
 import math
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -217,7 +217,19 @@ def format_table(table: list[dict[str, Any]], reference: str | None = None) -> l
     return lines
 
 
-def report(out: str | Path) -> tuple[list[list[str]], Path]:
+class Report(NamedTuple):
+    """A study's aggregated table (per method), its printable lines and the figure's path."""
+
+    table: list[dict[str, Any]]
+    lines: list[list[str]]
+    figure: Path
+
+    def final_test_loss(self, method: str) -> float:
+        """Mean final test loss of one method over its finished seeds (NaN if none)."""
+        return next((t["final_test_loss"][0] for t in self.table if t["method"] == method), math.nan)
+
+
+def report(out: str | Path) -> Report:
     """Re-draw a study's table and figure from its files alone (``summary.csv``, ``results.csv``)."""
     from .plots import loss_vs_time
 
@@ -231,7 +243,7 @@ def report(out: str | Path) -> tuple[list[list[str]], Path]:
     table = aggregate(rows, order)
     reference = "adam" if "adam" in order else None
     figure = loss_vs_time(read_csv(out / "results.csv"), out / "loss_vs_time.png", order=order, title=_title(study, rows))
-    return format_table(table, reference), figure
+    return Report(table, format_table(table, reference), figure)
 
 
 def _title(study: dict[str, Any], rows: list[dict[str, Any]]) -> str:

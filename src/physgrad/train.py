@@ -223,11 +223,11 @@ def train(
     """
     run_dir = Path(run_dir)
     progress = progress or NoProgressMeter()
-    existing = run_dir / "config.json"
-    if existing.exists():
+    config_path = run_dir / "config.json"
+    if config_path.exists():
         if not resume:
             raise ConfigError(f"run directory {run_dir} exists; pass --resume or choose another --out")
-        old = RunConfig.from_dict(json.loads(existing.read_text()))
+        old = RunConfig.from_dict(json.loads(config_path.read_text()))
         if not _same_run(old, config):
             raise ConfigError(f"run directory {run_dir} holds a different configuration; choose another --out")
     run_dir.mkdir(parents=True, exist_ok=True)
@@ -239,9 +239,10 @@ def train(
     if has_ckpt:
         params, state, counters = _load_checkpoint(run_dir, (params, state))
         done = read_summary(run_dir)
-        if done and (done["status"] == "diverged" or (done["status"] == "finished" and done["budget"] == {config.budget.kind: config.budget.amount})):
+        same_budget = done is not None and done.get("budget") == {config.budget.kind: config.budget.amount}
+        if done and (done["status"] == "diverged" or (done["status"] == "finished" and same_budget)):
             return done
-    _write_json(existing, config.to_dict())
+    _write_json(config_path, config.to_dict())
     _write_json(run_dir / "env.json", environment())
     log = MetricsLog(run_dir / "metrics.csv", keep_until_step=counters["step"] if has_ckpt else None)
 
