@@ -31,12 +31,14 @@ def loss_vs_time(
     title: str = "",
     split: str = "test",
     metric: str = "loss",
+    notes: dict[str, str] | None = None,
 ) -> Path:
     """Test loss vs training wall-clock, log y, one colour per method.
 
     The line is the geometric mean over seeds (mean of log10 loss, interpolated on a
     common time grid up to the shortest seed's end) and the band spans the seeds' minimum
-    and maximum; a single seed is drawn as its own curve.
+    and maximum; a single seed is drawn as its own curve. ``notes`` adds text to a method's
+    legend entry (e.g. how many of its runs diverged; their curves end where they diverged).
     """
     import matplotlib
 
@@ -50,13 +52,14 @@ def loss_vs_time(
         if not curves:
             continue
         colour = colours[i % len(colours)]
+        note = f", {notes[method]}" if notes and method in notes else ""
         if len(curves) == 1:
-            ax.plot(*curves[0], color=colour, label=method, lw=1.5)
+            ax.plot(*curves[0], color=colour, label=method + (f" ({note[2:]})" if note else ""), lw=1.5)
             continue
         end = min(t[-1] for t, _ in curves)
         grid = np.linspace(0.0, end, 200)
         logs = np.stack([np.interp(grid, t, np.log10(v)) for t, v in curves])
-        ax.plot(grid, 10 ** logs.mean(0), color=colour, label=f"{method} ({len(curves)} seeds)", lw=1.5)
+        ax.plot(grid, 10 ** logs.mean(0), color=colour, label=f"{method} ({len(curves)} seeds{note})", lw=1.5)
         ax.fill_between(grid, 10 ** logs.min(0), 10 ** logs.max(0), color=colour, alpha=0.2, lw=0)
     ax.set_yscale("log")
     ax.set_xlabel("training wall-clock time [s] (evaluation excluded)")

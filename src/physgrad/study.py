@@ -210,9 +210,11 @@ def format_table(table: list[dict[str, Any]], reference: str | None = None) -> l
         fm, fs = t["final_test_loss"]
         bm, bs = t["best_test_loss"]
         runs = f"{t['runs']}" + (f" ({t['diverged']} diverged)" if t["diverged"] else "")
-        line = [t["method"], runs, f"{fm:.3e} ± {fs:.1e}", f"{bm:.3e} ± {bs:.1e}", f"{t['steps']:.0f}", f"{t['ms_per_step']:.2f}"]
+        final = f"{fm:.3e} ± {fs:.1e}" if math.isfinite(fm) else "all diverged"
+        line = [t["method"], runs, final, f"{bm:.3e} ± {bs:.1e}", f"{t['steps']:.0f}", f"{t['ms_per_step']:.2f}"]
         if ref is not None:
-            line.append(f"{fm / ref['final_test_loss'][0]:.3g}")
+            ratio = fm / ref["final_test_loss"][0]
+            line.append(f"{ratio:.3g}" if math.isfinite(ratio) else "-")
         lines.append(line)
     return lines
 
@@ -242,7 +244,10 @@ def report(out: str | Path) -> Report:
     order = method_order(rows, study)
     table = aggregate(rows, order)
     reference = "adam" if "adam" in order else None
-    figure = loss_vs_time(read_csv(out / "results.csv"), out / "loss_vs_time.png", order=order, title=_title(study, rows))
+    notes = {t["method"]: f"{t['diverged']}/{t['runs']} diverged" for t in table if t["diverged"]}
+    figure = loss_vs_time(
+        read_csv(out / "results.csv"), out / "loss_vs_time.png", order=order, title=_title(study, rows), notes=notes
+    )
     return Report(table, format_table(table, reference), figure)
 
 
