@@ -78,6 +78,10 @@ class Budget:
     def amount(self) -> float:
         return getattr(self, self.kind)
 
+    def to_dict(self) -> dict[str, float]:
+        """``{kind: amount}``, as written in config.json, summary.json and study.json."""
+        return {self.kind: self.amount}
+
     def __str__(self):
         return f"{self.amount:g} {self.kind}"
 
@@ -99,7 +103,7 @@ class RunConfig:
 
     def to_dict(self) -> dict[str, Any]:
         out = dataclasses.asdict(self)
-        out["budget"] = {self.budget.kind: self.budget.amount}
+        out["budget"] = self.budget.to_dict()
         return out
 
     @classmethod

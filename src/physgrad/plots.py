@@ -52,14 +52,15 @@ def loss_vs_time(
         if not curves:
             continue
         colour = colours[i % len(colours)]
-        note = f", {notes[method]}" if notes and method in notes else ""
+        extras = ([f"{len(curves)} seeds"] if len(curves) > 1 else []) + ([notes[method]] if notes and method in notes else [])
+        label = f"{method} ({', '.join(extras)})" if extras else method
         if len(curves) == 1:
-            ax.plot(*curves[0], color=colour, label=method + (f" ({note[2:]})" if note else ""), lw=1.5)
+            ax.plot(*curves[0], color=colour, label=label, lw=1.5)
             continue
         end = min(t[-1] for t, _ in curves)
         grid = np.linspace(0.0, end, 200)
         logs = np.stack([np.interp(grid, t, np.log10(v)) for t, v in curves])
-        ax.plot(grid, 10 ** logs.mean(0), color=colour, label=f"{method} ({len(curves)} seeds{note})", lw=1.5)
+        ax.plot(grid, 10 ** logs.mean(0), color=colour, label=label, lw=1.5)
         ax.fill_between(grid, 10 ** logs.min(0), 10 ** logs.max(0), color=colour, alpha=0.2, lw=0)
     ax.set_yscale("log")
     ax.set_xlabel("training wall-clock time [s] (evaluation excluded)")

@@ -99,7 +99,7 @@ def compare(
                 "problem": problem,
                 "methods": list(dict.fromkeys(c.method for c in configs)),
                 "seeds": list(seeds),
-                "budget": {budget.kind: budget.amount},
+                "budget": budget.to_dict(),
                 "settings": settings or {},
             },
             indent=2,

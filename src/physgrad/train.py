@@ -232,16 +232,19 @@ def train(
             raise ConfigError(f"run directory {run_dir} holds a different configuration; choose another --out")
     run_dir.mkdir(parents=True, exist_ok=True)
 
+    has_ckpt = resume and (run_dir / "checkpoint" / "counters.json").exists()
+    done = read_summary(run_dir) if has_ckpt else None
+    # Nothing to do (checked before building data and network): diverged, or finished on this budget.
+    if done and (
+        done["status"] == "diverged" or (done["status"] == "finished" and done.get("budget") == config.budget.to_dict())
+    ):
+        return done
+
     setup = build(config)
     params, state = setup.params, setup.method.init(setup.params)
     counters = {"step": 0, "train_time": 0.0, "compile_seconds": 0.0, "best_test_loss": math.inf}
-    has_ckpt = resume and (run_dir / "checkpoint" / "counters.json").exists()
     if has_ckpt:
         params, state, counters = _load_checkpoint(run_dir, (params, state))
-        done = read_summary(run_dir)
-        same_budget = done is not None and done.get("budget") == {config.budget.kind: config.budget.amount}
-        if done and (done["status"] == "diverged" or (done["status"] == "finished" and same_budget)):
-            return done
     _write_json(config_path, config.to_dict())
     _write_json(run_dir / "env.json", environment())
     log = MetricsLog(run_dir / "metrics.csv", keep_until_step=counters["step"] if has_ckpt else None)
@@ -335,7 +338,7 @@ def train(
         "problem": config.problem,
         "method": config.method,
         "seed": config.seed,
-        "budget": {budget.kind: budget.amount},
+        "budget": budget.to_dict(),
         "steps": step,
         "epochs": step / spe,
         "train_seconds": train_time,
