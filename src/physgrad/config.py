@@ -19,6 +19,7 @@ class ConfigError(ValueError):
 TRAIN_SETTINGS: dict[str, Any] = {
     "batch_size": None,  # None: the problem's default for the method (the paper's)
     "eval_every": 0,  # steps between full train/test evaluations; 0 = once per epoch
+    "eval_seconds": 0.0,  # if > 0: evaluate every this many training seconds instead
     "shuffle": False,  # the papers take mini-batches in fixed order
     "checkpoint_seconds": 60.0,  # training seconds between checkpoints (and one at the end)
 }
@@ -98,6 +99,7 @@ class RunConfig:
     hyperparameters: dict[str, Any]
     batch_size: int
     eval_every: int = 0
+    eval_seconds: float = 0.0
     shuffle: bool = False
     checkpoint_seconds: float = 60.0
 

@@ -262,6 +262,18 @@ def train(
             return jax.random.permutation(jax.random.fold_in(shuffle_key, epoch), n_train).astype(jnp.int32)
         return jnp.arange(n_train, dtype=jnp.int32)
 
+    next_eval_time = [config.eval_seconds * (1 + math.floor(counters["train_time"] / config.eval_seconds))] if config.eval_seconds > 0 else None
+
+    def eval_due(step: int, train_time: float) -> bool:
+        """Every ``eval_seconds`` of training time if set (equal points per curve in a
+        wall-clock comparison), else every ``eval_every`` steps (default: every epoch)."""
+        if next_eval_time is None:
+            return step % eval_every == 0
+        if train_time < next_eval_time[0]:
+            return False
+        next_eval_time[0] = config.eval_seconds * (1 + math.floor(train_time / config.eval_seconds))
+        return True
+
     def budget_met(step: int, train_time: float) -> bool:
         if budget.kind == "seconds":
             return train_time >= budget.amount
@@ -314,7 +326,7 @@ def train(
                 break
             params, state, last_finite = new_params, new_state, loss
             step += 1
-            if step % eval_every == 0 or budget_met(step, train_time):
+            if eval_due(step, train_time) or budget_met(step, train_time):
                 if not record(step, train_time):
                     status, diverged_step = "diverged", step
                     break
