@@ -51,9 +51,9 @@ def main():
         state = setup.method.init(setup.params)
         data = setup.data["train"]
         order = jnp.arange(jax.tree.leaves(data)[0].shape[0], dtype=jnp.int32)
-        step = make_step(setup, config.batch_size)
+        step = make_step(setup, config.phases[0].batch_size)
         t_step = median_seconds(step, (setup.params, state, data, order, jnp.int32(0)), args.repeats)
-        b = config.batch_size
+        b = config.phases[0].batch_size
         if b not in jac_time:
             batch = jax.tree.map(lambda a: a[:b], data)
             jac = jax.jit(lambda p, x: stacked_jacobian(setup.objective.predict, p, x)[0])

@@ -47,7 +47,7 @@ def test_train_writes_every_documented_file(tmp_path, capsys):
     assert summary["status"] == "finished" and summary["steps"] == 6
     assert summary["final_test_loss"] == pytest.approx(float([r for r in metrics if r["step"] == "6" and r["split"] == "test" and r["metric"] == "loss"][0]["value"]))
     config = json.loads((out / "config.json").read_text())
-    assert config["hyperparameters"] == {"lr": 1.0, "truncation": 1e-6, "route": "auto"}
+    assert config["phases"] == [{"method": "hig", "hyperparameters": {"lr": 1.0, "truncation": 1e-6, "route": "auto"}, "batch_size": 256, "steps": None}]
     assert config["budget"] == {"steps": 6}
     assert json.loads((out / "env.json").read_text())["versions"]["jax"]
     # an existing run directory is not overwritten silently
@@ -125,7 +125,7 @@ def test_diverged_run_is_recorded_and_the_study_goes_on(tmp_path, capsys):
 @pytest.mark.parametrize(
     "argv,message",
     [
-        (["train", "nope", "--method", "adam"], "unknown problem 'nope'; valid choices: hig_toy, oscillators"),
+        (["train", "nope", "--method", "adam"], "unknown problem 'nope'; valid choices: hig_toy, linear_oscillators, oscillators, poisson_hig, quantum_dipole"),
         (["train", "hig_toy", "--method", "nope"], "unknown method 'nope'; valid choices:"),
         (["train", "hig_toy", "--method", "adam", "--set", "nope=1"], "unknown setting 'nope' for hig_toy/adam; valid choices:"),
         (["train", "hig_toy", "--method", "adam", "--set", "lr=fast"], "setting 'lr' expects a number, got 'fast'"),

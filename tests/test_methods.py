@@ -68,17 +68,17 @@ def test_every_method_lowers_the_loss_in_float32_without_recompiling(method):
         settings["truncation"] = "1e-2"
     config = make_config("oscillators", method, budget=Budget(steps=1), settings=settings)
     setup = build(config)
-    step = make_step(setup, config.batch_size)
+    step = make_step(setup, config.phases[0].batch_size)
     evaluate = make_evaluate(setup)
     data = setup.data["train"]
     order = jnp.arange(64, dtype=jnp.int32)
     params, state = setup.params, setup.method.init(setup.params)
-    before = float(evaluate(params, data))
+    before = float(evaluate(params, data)["loss"])
     for i in range(40):
         params, state, _ = step(params, state, data, order, jnp.int32(i % 4))
     assert step._cache_size() == 1
     assert all(leaf.dtype == jnp.float32 for leaf in jax.tree.leaves(params))
-    assert float(evaluate(params, data)) < before
+    assert float(evaluate(params, data)["loss"]) < before
 
 
 def test_short_hig_run_lowers_test_loss_tenfold():
@@ -91,8 +91,8 @@ def test_short_hig_run_lowers_test_loss_tenfold():
     train, test = setup.data["train"], setup.data["test"]
     order = jnp.arange(256, dtype=jnp.int32)
     params, state = setup.params, setup.method.init(setup.params)
-    before = float(evaluate(params, test))
+    before = float(evaluate(params, test)["loss"])
     for i in range(200):
         params, state, _ = step(params, state, train, order, jnp.int32(i % 8))
-    after = float(evaluate(params, test))
+    after = float(evaluate(params, test)["loss"])
     assert after < before / 10, (before, after)

@@ -1,7 +1,7 @@
 """The ``physgrad`` command line: a thin layer over :mod:`physgrad.train` and :mod:`physgrad.study`.
 
     physgrad list
-    physgrad train PROBLEM --method M [--seconds S | --steps N | --epochs E] [--seed K]
+    physgrad train PROBLEM --method M|M1:N,M2 [--seconds S | --steps N | --epochs E] [--seed K]
                    [--set name=value ...] [--out DIR] [--resume]
     physgrad compare PROBLEM [--methods a,b,...] [--seeds N] [budget] [--set ...] [--out DIR]
     physgrad report DIR
@@ -85,7 +85,7 @@ def build_parser() -> Parser:
 
     p = sub.add_parser("train", help="train one method on one problem")
     p.add_argument("problem")
-    p.add_argument("--method", required=True)
+    p.add_argument("--method", required=True, help="a method, or a sequence such as adam:2000,hig (Adam for 2000 steps, then HIG)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", help="run directory (default runs/PROBLEM-METHOD-seedK)")
     p.add_argument("--resume", action="store_true", help="continue the run in --out from its last checkpoint")
@@ -94,7 +94,7 @@ def build_parser() -> Parser:
 
     p = sub.add_parser("compare", help="every method x seed on the same budget; table and figure")
     p.add_argument("problem")
-    p.add_argument("--methods", help="comma-separated (default: the paper's comparison)")
+    p.add_argument("--methods", help="comma-separated, sequences allowed: adam,hig,adam:2000,hig (default: the paper's comparison)")
     p.add_argument("--seeds", type=int, default=1, help="number of seeds 0..N-1 (default 1)")
     p.add_argument("--out", help="study directory (default studies/PROBLEM)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
@@ -143,11 +143,14 @@ def cmd_train(args, console):
     from .train import train
 
     config = make_config(args.problem, args.method, budget=_budget(args), seed=args.seed, settings=_settings(args.set))
-    out = Path(args.out or f"runs/{args.problem}-{args.method}-seed{args.seed}")
-    console.print(
-        f"{config.problem} / {config.method}, seed {config.seed}, budget {config.budget}, batch {config.batch_size}, "
-        f"{', '.join(f'{k} {v}' for k, v in config.hyperparameters.items())} -> {out}"
+    method = args.method.replace(":", "").replace(",", "+")
+    out = Path(args.out or f"runs/{args.problem}-{method}-seed{args.seed}")
+    stages = "; then ".join(
+        f"{p.method}" + (f" for {p.steps} steps" if p.steps else "") + f": batch {p.batch_size}, "
+        + ", ".join(f"{k} {v}" for k, v in p.hyperparameters.items())
+        for p in config.phases
     )
+    console.print(f"{config.problem} / {stages}; seed {config.seed}, budget {config.budget} -> {out}")
     summary = train(config, out, resume=args.resume, progress=_progress(args, console))
     console.print(f"{summary['status']}: {describe_run(summary)}")
     return 0
@@ -168,7 +171,9 @@ def _run_compare(console, problem, methods, seeds, budget, settings, out, quiet=
 
 
 def cmd_compare(args, console):
-    methods = [m.strip() for m in args.methods.split(",") if m.strip()] if args.methods else None
+    from .config import split_methods
+
+    methods = split_methods(args.methods) if args.methods else None
     if args.seeds < 1:
         raise UsageError("--seeds must be at least 1")
     out = args.out or f"studies/{args.problem}"

@@ -88,16 +88,78 @@ class Budget:
 
 
 @dataclasses.dataclass(frozen=True)
+class Phase:
+    """One stage of a run: a registered method with its hyperparameters and batch size.
+
+    ``steps`` is the stage's length; the last stage has ``steps=None`` and runs until the
+    budget is spent.
+    """
+
+    method: str
+    hyperparameters: dict[str, Any]
+    batch_size: int
+    steps: int | None = None
+
+
+def parse_method(spec: str) -> list[tuple[str, int | None]]:
+    """A method or a method sequence: ``"hig"`` or ``"adam:2000,hig"`` (Adam for 2000 steps,
+    then HIG from those parameters) → ``[("adam", 2000), ("hig", None)]``."""
+    parts = [p.strip() for p in str(spec).split(",")]
+    phases = []
+    for i, part in enumerate(parts):
+        name, sep, count = part.partition(":")
+        choose("method", name, METHODS)
+        last = i == len(parts) - 1
+        if sep:
+            if last:
+                raise ConfigError(f"the last method of {spec!r} runs until the budget is spent; drop ':{count}'")
+            try:
+                steps = int(count)
+            except ValueError:
+                raise ConfigError(f"method sequence {spec!r}: ':{count}' must be a number of steps") from None
+            if steps <= 0:
+                raise ConfigError(f"method sequence {spec!r}: {name} needs a positive number of steps")
+        elif not last:
+            raise ConfigError(f"method sequence {spec!r}: give {name}'s number of steps as {name}:N")
+        phases.append((name, steps if sep else None))
+    return phases
+
+
+def split_methods(text: str) -> list[str]:
+    """A comma-separated list of methods where ``name:N,`` binds to the next entry:
+    ``"adam,hig,adam:2000,hig"`` → ``["adam", "hig", "adam:2000,hig"]``."""
+    out, pending = [], []
+    for part in (p.strip() for p in text.split(",")):
+        if not part:
+            continue
+        pending.append(part)
+        if ":" not in part:
+            out.append(",".join(pending))
+            pending = []
+    if pending:
+        out.append(",".join(pending))  # parse_method reports the missing final method
+    return out
+
+
+def phase_methods(spec: str) -> list[str]:
+    """The registered method names in a method (sequence) spec."""
+    return [name for name, _ in parse_method(spec)]
+
+
+@dataclasses.dataclass(frozen=True)
 class RunConfig:
-    """Everything needed to re-run a training run exactly (written as ``config.json``)."""
+    """Everything needed to re-run a training run exactly (written as ``config.json``).
+
+    ``method`` is the user's spec (``"hig"`` or ``"adam:2000,hig"``); ``phases`` holds each
+    stage's resolved hyperparameters and batch size.
+    """
 
     problem: str
     method: str
     seed: int
     budget: Budget
     problem_settings: dict[str, Any]
-    hyperparameters: dict[str, Any]
-    batch_size: int
+    phases: tuple[Phase, ...]
     eval_every: int = 0
     eval_seconds: float = 0.0
     shuffle: bool = False
@@ -106,12 +168,14 @@ class RunConfig:
     def to_dict(self) -> dict[str, Any]:
         out = dataclasses.asdict(self)
         out["budget"] = self.budget.to_dict()
+        out["phases"] = [dataclasses.asdict(p) for p in self.phases]
         return out
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> RunConfig:
         data = dict(data)
         data["budget"] = Budget(**data["budget"])
+        data["phases"] = tuple(Phase(**p) for p in data["phases"])
         fields = {f.name for f in dataclasses.fields(cls)}
         return cls(**{k: v for k, v in data.items() if k in fields})
 
@@ -122,8 +186,11 @@ class RunConfig:
 
 
 def valid_settings(problem: str, method: str) -> dict[str, Any]:
-    """Every settable name for this problem and method, with its default."""
-    return {**PROBLEMS[problem].settings(), **hyperparameters(method), **TRAIN_SETTINGS}
+    """Every settable name for this problem and method (or sequence), with its default."""
+    hyper = {}
+    for name in phase_methods(method):
+        hyper.update(hyperparameters(name))
+    return {**PROBLEMS[problem].settings(), **hyper, **TRAIN_SETTINGS}
 
 
 def make_config(
@@ -136,42 +203,61 @@ def make_config(
 ) -> RunConfig:
     """Resolve a run: paper defaults for (problem, method), then the user's ``settings``.
 
-    ``settings`` may name problem settings, method hyperparameters or training settings;
-    values may be strings (from the command line) and are converted to the right type.
+    ``method`` is a registered name or a sequence such as ``"adam:2000,hig"``. ``settings``
+    may name problem settings, method hyperparameters or training settings; ``m.name``
+    scopes a hyperparameter or batch size to the stages that use method ``m``. Values may
+    be strings (from the command line) and are converted to the right type.
     """
     choose("problem", problem, PROBLEMS)
-    choose("method", method, METHODS)
-    settings = dict(settings or {})
+    stages = parse_method(method)
+    names = [name for name, _ in stages]
     valid = valid_settings(problem, method)
-    for name in settings:
+    scoped: dict[str, dict[str, Any]] = {}
+    plain: dict[str, Any] = {}
+    for key, value in (settings or {}).items():
+        target, _, name = key.rpartition(".")
+        if target and target not in names:
+            raise ConfigError(f"setting {key!r}: {target!r} is not a method of {method!r}; valid choices: {', '.join(names)}")
         if name not in valid:
             raise ConfigError(
                 f"unknown setting {name!r} for {problem}/{method}; valid choices: {', '.join(sorted(valid))}"
             )
+        if target:
+            scoped.setdefault(target, {})[name] = value
+        else:
+            plain[name] = value
+    # Problem and training settings belong to the whole run; a scoped one (e.g.
+    # "hig.eval_every" in a study) applies to the runs whose method uses that stage.
+    run_level = dict(plain)
+    for values in scoped.values():
+        run_level.update(values)
     problem_cls = PROBLEMS[problem]
-    paper = problem_cls.defaults_for(method)
-    problem_settings = {
-        k: parse_value(k, settings.get(k, d), d) for k, d in problem_cls.settings().items()
-    }
-    hyper = {
-        k: parse_value(k, settings.get(k, paper.get(k, d)), d) for k, d in hyperparameters(method).items()
-    }
+    problem_settings = {k: parse_value(k, run_level.get(k, d), d) for k, d in problem_cls.settings().items()}
+
+    def stage_value(name, key, default, paper):
+        return parse_value(key, scoped.get(name, {}).get(key, plain.get(key, paper.get(key, default))), default)
+
+    phases = []
+    for name, steps in stages:
+        paper = problem_cls.defaults_for(name)
+        hyper = {k: stage_value(name, k, d, paper) for k, d in hyperparameters(name).items()}
+        try:  # the method checks its own hyperparameters (e.g. route choices) on construction
+            METHODS[name](**hyper)
+        except (ValueError, TypeError) as e:
+            raise ConfigError(str(e)) from None
+        batch_size = stage_value(name, "batch_size", 0, paper)
+        if batch_size <= 0:
+            raise ConfigError(f"batch_size must be positive, got {batch_size}")
+        phases.append(Phase(name, hyper, batch_size, steps))
     train = {
-        k: parse_value(k, settings.get(k, paper.get(k, d)), d if d is not None else 0)
-        for k, d in TRAIN_SETTINGS.items()
+        k: parse_value(k, run_level.get(k, d), d) for k, d in TRAIN_SETTINGS.items() if k != "batch_size"
     }
-    try:  # the method checks its own hyperparameters (e.g. route choices) on construction
-        METHODS[method](**hyper)
-    except (ValueError, TypeError) as e:
-        raise ConfigError(str(e)) from None
-    if train["batch_size"] <= 0:
-        raise ConfigError(f"batch_size must be positive, got {train['batch_size']}")
     return RunConfig(
         problem=problem,
         method=method,
         seed=int(seed),
         budget=budget,
         problem_settings=problem_settings,
-        hyperparameters=hyper,
+        phases=tuple(phases),
         **train,
     )

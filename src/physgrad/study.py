@@ -19,8 +19,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from .config import Budget, ConfigError, RunConfig, choose, make_config, valid_settings
-from .methods import METHODS
+from .config import Budget, ConfigError, RunConfig, choose, make_config, parse_method, phase_methods, valid_settings
 from .problems import PROBLEMS
 from .progress import AbstractProgressMeter
 from .train import is_complete, read_metrics, read_summary, train
@@ -33,18 +32,21 @@ SUMMARY_COLUMNS = (
 
 
 def settings_for(problem: str, method: str, methods: Sequence[str], settings: dict[str, Any]) -> dict[str, Any]:
-    """The subset of a study's ``--set`` values that applies to one method.
+    """The subset of a study's ``--set`` values that applies to one method (or sequence).
 
     ``name=value`` applies to every method that has the setting (it must exist for at least
-    one); ``method.name=value`` applies to that method only.
+    one); ``m.name=value`` applies to method ``m``, also where ``m`` is a stage of a
+    sequence such as ``adam:2000,hig``.
     """
+    names = set(phase_methods(method))
+    everywhere = sorted(set().union(*(phase_methods(m) for m in methods)))
     out = {}
     for key, value in settings.items():
         target, _, name = key.rpartition(".")
         if target:
-            choose("method in a scoped setting", target, methods)
-            if target == method:
-                out[name] = value  # validated by make_config
+            choose("method in a scoped setting", target, everywhere)
+            if target in names:
+                out[key] = value  # validated by make_config
         elif name in valid_settings(problem, method):
             out[name] = value
         elif not any(name in valid_settings(problem, m) for m in methods):
@@ -64,7 +66,7 @@ def plan(
     choose("problem", problem, PROBLEMS)
     methods = list(methods or PROBLEMS[problem].default_methods)
     for m in methods:
-        choose("method", m, METHODS)
+        parse_method(m)
     settings = settings or {}
     return [
         make_config(problem, m, budget=budget, seed=s, settings=settings_for(problem, m, methods, settings))
@@ -74,8 +76,10 @@ def plan(
 
 
 def run_name(config: RunConfig) -> str:
-    """A readable, deterministic run directory name: method, seed and a config hash."""
-    return f"{config.method}-seed{config.seed}-{config.digest()}"
+    """A readable, deterministic run directory name: method, seed and a config hash
+    (a sequence ``adam:2000,hig`` reads ``adam2000+hig``)."""
+    method = config.method.replace(":", "").replace(",", "+")
+    return f"{method}-seed{config.seed}-{config.digest()}"
 
 
 def compare(

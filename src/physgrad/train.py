@@ -43,6 +43,20 @@ FINAL_STATUSES = ("finished", "diverged")
 
 
 @dataclasses.dataclass
+class Stage:
+    """One phase of a run, built: its method, batch size, length and first global step."""
+
+    method: AbstractMethod
+    batch_size: int
+    steps_per_epoch: int
+    start: int
+    steps: int | None  # None: until the budget is spent
+
+    def contains(self, step: int) -> bool:
+        return step >= self.start and (self.steps is None or step < self.start + self.steps)
+
+
+@dataclasses.dataclass
 class Setup:
     """Everything a run builds from its configuration before the first step."""
 
@@ -50,25 +64,49 @@ class Setup:
     data: dict[str, Any]
     params: Any
     static: Any
-    method: AbstractMethod
     objective: Objective
-    steps_per_epoch: int
+    stages: list[Stage]
+
+    @property
+    def method(self) -> AbstractMethod:
+        """The first (for a single method: the only) stage's method."""
+        return self.stages[0].method
+
+    @property
+    def steps_per_epoch(self) -> int:
+        return self.stages[0].steps_per_epoch
+
+    def stage_index(self, step: int) -> int:
+        """The stage that takes global step ``step`` (0-based)."""
+        return next(i for i, s in enumerate(self.stages) if s.contains(step))
+
+    def epochs(self, step: int) -> float:
+        """Epochs done after ``step`` steps (each stage counts its own batch size)."""
+        done = 0.0
+        for s in self.stages:
+            local = min(max(step - s.start, 0), s.steps if s.steps is not None else step)
+            done += local / s.steps_per_epoch
+        return done
 
     def network(self, params=None):
         return eqx.combine(self.params if params is None else params, self.static)
 
 
 def build(config: RunConfig) -> Setup:
-    """Problem, data, network and method for a configuration (deterministic per seed)."""
+    """Problem, data, network and method(s) for a configuration (deterministic per seed)."""
     problem = PROBLEMS[config.problem](**config.problem_settings)
     key = jax.random.key(config.seed)
     data = problem.make_data(jax.random.fold_in(key, 0))
     network = problem.make_network(jax.random.fold_in(key, 1))
     params, static = eqx.partition(network, eqx.is_inexact_array)
     n_train = jax.tree.leaves(data["train"])[0].shape[0]
-    if config.batch_size > n_train:
-        raise ConfigError(f"batch_size {config.batch_size} exceeds the {n_train} training samples")
-    method = METHODS[config.method](**config.hyperparameters)
+    stages, start = [], 0
+    for phase in config.phases:
+        if phase.batch_size > n_train:
+            raise ConfigError(f"batch_size {phase.batch_size} exceeds the {n_train} training samples")
+        method = METHODS[phase.method](**phase.hyperparameters)
+        stages.append(Stage(method, phase.batch_size, n_train // phase.batch_size, start, phase.steps))
+        start += phase.steps or 0
 
     def predict(p, sample):
         return problem.predict(eqx.combine(p, static), sample)
@@ -78,38 +116,42 @@ def build(config: RunConfig) -> Setup:
         data=data,
         params=params,
         static=static,
-        method=method,
         objective=Objective(predict, problem.loss),
-        steps_per_epoch=n_train // config.batch_size,
+        stages=stages,
     )
 
 
-def make_step(setup: Setup, batch_size: int):
+def make_step(setup: Setup, batch_size: int, method: AbstractMethod | None = None):
     """The training step as one jitted function of (params, state, data, order, index).
 
     The mini-batch is gathered inside the jit (``order`` is the epoch's sample order,
     ``index`` the batch number), so a step is a single dispatch with no host work.
+    ``method`` defaults to the first stage's.
     """
+    method = method or setup.method
 
     def step(params, state, data, order, index):
         rows = jax.lax.dynamic_slice_in_dim(order, index * batch_size, batch_size)
         batch = jax.tree.map(lambda a: a[rows], data)
-        return setup.method.step(setup.objective, params, state, batch)
+        return method.step(setup.objective, params, state, batch)
 
     return jax.jit(step)
 
 
 def make_evaluate(setup: Setup, chunk: int = 1024):
-    """Mean per-sample loss over a whole data split (jitted, in chunks of ``chunk``)."""
+    """Mean per-sample loss and the problem's extra metrics over a data split (jitted, in
+    chunks of ``chunk``): ``{"loss": ..., **problem.metrics}``."""
+    problem = setup.problem
+
+    def per_sample(params, sample):
+        x = problem.network_output(setup.network(params), sample)
+        y = problem.simulate(x, sample)
+        return {"loss": problem.loss(y, sample), **problem.metrics(x, y, sample)}
 
     def evaluate(params, data):
         n = jax.tree.leaves(data)[0].shape[0]
-        losses = jax.lax.map(
-            lambda s: setup.objective.loss(setup.objective.predict(params, s), s),
-            data,
-            batch_size=min(chunk, n),
-        )
-        return jnp.mean(losses)
+        values = jax.lax.map(lambda s: per_sample(params, s), data, batch_size=min(chunk, n))
+        return jax.tree.map(jnp.mean, values)
 
     return jax.jit(evaluate)
 
@@ -241,64 +283,82 @@ def train(
         return done
 
     setup = build(config)
-    params, state = setup.params, setup.method.init(setup.params)
-    counters = {"step": 0, "train_time": 0.0, "compile_seconds": 0.0, "best_test_loss": math.inf}
+    counters = {"step": 0, "stage": 0, "train_time": 0.0, "compile_seconds": 0.0, "best_test_loss": math.inf}
+    params = setup.params
     if has_ckpt:
-        params, state, counters = _load_checkpoint(run_dir, (params, state))
+        stage_of_ckpt = json.loads((run_dir / "checkpoint" / "counters.json").read_text()).get("stage", 0)
+        like = (params, setup.stages[stage_of_ckpt].method.init(params))
+        params, state, counters = _load_checkpoint(run_dir, like)
+        counters.setdefault("stage", 0)
+    else:
+        state = setup.stages[0].method.init(params)
     _write_json(config_path, config.to_dict())
     _write_json(run_dir / "env.json", environment())
     log = MetricsLog(run_dir / "metrics.csv", keep_until_step=counters["step"] if has_ckpt else None)
 
-    spe = setup.steps_per_epoch
     budget = config.budget
-    total_steps = {"steps": budget.amount, "epochs": budget.amount * spe}.get(budget.kind)
-    eval_every = config.eval_every or spe
     train_data, test_data = setup.data["train"], setup.data["test"]
     n_train = jax.tree.leaves(train_data)[0].shape[0]
     shuffle_key = jax.random.fold_in(jax.random.key(config.seed), 2)
+    evaluate = make_evaluate(setup)
 
-    def order_for(epoch: int):
+    def order_for(stage: int, epoch: int):
         if config.shuffle:
-            return jax.random.permutation(jax.random.fold_in(shuffle_key, epoch), n_train).astype(jnp.int32)
+            key = jax.random.fold_in(jax.random.fold_in(shuffle_key, stage), epoch)
+            return jax.random.permutation(key, n_train).astype(jnp.int32)
         return jnp.arange(n_train, dtype=jnp.int32)
-
-    next_eval_time = [config.eval_seconds * (1 + math.floor(counters["train_time"] / config.eval_seconds))] if config.eval_seconds > 0 else None
-
-    def eval_due(step: int, train_time: float) -> bool:
-        """Every ``eval_seconds`` of training time if set (equal points per curve in a
-        wall-clock comparison), else every ``eval_every`` steps (default: every epoch)."""
-        if next_eval_time is None:
-            return step % eval_every == 0
-        if train_time < next_eval_time[0]:
-            return False
-        next_eval_time[0] = config.eval_seconds * (1 + math.floor(train_time / config.eval_seconds))
-        return True
 
     def budget_met(step: int, train_time: float) -> bool:
         if budget.kind == "seconds":
             return train_time >= budget.amount
-        return step >= total_steps
+        if budget.kind == "steps":
+            return step >= budget.amount
+        return setup.epochs(step) >= budget.amount - 1e-9
 
-    evaluate = make_evaluate(setup)
-    step_fn = make_step(setup, config.batch_size)
-    t0 = time.perf_counter()
-    compiled = step_fn.lower(params, state, train_data, order_for(0), jnp.int32(0)).compile()
-    counters["compile_seconds"] += time.perf_counter() - t0
+    def stage_end(step: int) -> bool:
+        current = setup.stages[counters["stage"]]
+        return current.steps is not None and step == current.start + current.steps
+
+    next_eval = [config.eval_seconds * (1 + math.floor(counters["train_time"] / config.eval_seconds))] if config.eval_seconds > 0 else None
+
+    def eval_due(step: int, train_time: float) -> bool:
+        """Every ``eval_seconds`` of training time if set (equal points per curve in a
+        wall-clock comparison), else every ``eval_every`` steps, else every epoch of the
+        current stage; always at the end of a stage and of the budget."""
+        if budget_met(step, train_time) or stage_end(step):
+            return True
+        if next_eval is not None:
+            if train_time < next_eval[0]:
+                return False
+            next_eval[0] = config.eval_seconds * (1 + math.floor(train_time / config.eval_seconds))
+            return True
+        if config.eval_every:
+            return step % config.eval_every == 0
+        current = setup.stages[counters["stage"]]
+        return (step - current.start) % current.steps_per_epoch == 0
+
+    def compile_stage(index: int):
+        current = setup.stages[index]
+        fn = make_step(setup, current.batch_size, current.method)
+        t0 = time.perf_counter()
+        compiled = fn.lower(params, state, train_data, order_for(index, 0), jnp.int32(0)).compile()
+        counters["compile_seconds"] += time.perf_counter() - t0
+        return compiled
 
     step, train_time = counters["step"], counters["train_time"]
     status, diverged_step, last_finite = "running", None, None
     last_eval: dict[str, float] = {}
 
     def record(step: int, train_time: float) -> bool:
-        """Full-set losses at this step; returns False if one is not finite."""
-        values = {
-            ("train", "loss"): float(evaluate(params, train_data)),
-            ("test", "loss"): float(evaluate(params, test_data)),
-        }
+        """Full-set losses and metrics at this step; returns False if a loss is not finite."""
+        values = {}
+        for split, split_data in (("train", train_data), ("test", test_data)):
+            for metric, value in evaluate(params, split_data).items():
+                values[(split, metric)] = float(value)
         if step > 0:
             values[("train", "time_per_step")] = train_time / step
         log.write(step, train_time, values)
-        last_eval.update(train_loss=values[("train", "loss")], test_loss=values[("test", "loss")])
+        last_eval.update({f"{split}_{metric}": v for (split, metric), v in values.items()})
         if math.isfinite(last_eval["test_loss"]):
             counters["best_test_loss"] = min(counters["best_test_loss"], last_eval["test_loss"])
         return math.isfinite(last_eval["train_loss"]) and math.isfinite(last_eval["test_loss"])
@@ -310,15 +370,25 @@ def train(
     if step == 0:
         record(0, 0.0)
     last_ckpt_time = train_time
-    progress.start(budget=budget, steps_per_epoch=spe, step=step, train_time=train_time, label=run_dir.name)
-    order = order_for(step // spe)
+    progress.start(
+        budget=budget, steps_per_epoch=setup.steps_per_epoch, step=step, train_time=train_time, label=run_dir.name
+    )
+    compiled = compile_stage(counters["stage"])
+    order, order_epoch = None, None
     try:
         while not budget_met(step, train_time):
-            epoch, index = divmod(step, spe)
-            if index == 0:
-                order = order_for(epoch)
+            index = setup.stage_index(step)
+            if index != counters["stage"]:
+                # Switch method: the parameters carry over exactly, the new method starts fresh.
+                counters["stage"] = index
+                state = setup.stages[index].method.init(params)
+                compiled = compile_stage(index)
+            current = setup.stages[index]
+            epoch, batch = divmod(step - current.start, current.steps_per_epoch)
+            if (index, epoch) != order_epoch:
+                order, order_epoch = order_for(index, epoch), (index, epoch)
             t_start = time.perf_counter()
-            new_params, new_state, stats = compiled(params, state, train_data, order, jnp.int32(index))
+            new_params, new_state, stats = compiled(params, state, train_data, order, jnp.int32(batch))
             loss = float(stats["loss"])  # waits for the step: the timing is honest
             train_time += time.perf_counter() - t_start
             if not math.isfinite(loss):
@@ -326,7 +396,7 @@ def train(
                 break
             params, state, last_finite = new_params, new_state, loss
             step += 1
-            if eval_due(step, train_time) or budget_met(step, train_time):
+            if eval_due(step, train_time):
                 if not record(step, train_time):
                     status, diverged_step = "diverged", step
                     break
@@ -352,12 +422,17 @@ def train(
         "seed": config.seed,
         "budget": budget.to_dict(),
         "steps": step,
-        "epochs": step / spe,
+        "epochs": setup.epochs(step),
+        "stage_steps": {
+            p.method if len(config.phases) == 1 else f"{i}:{p.method}": min(max(step - s.start, 0), s.steps or step)
+            for i, (p, s) in enumerate(zip(config.phases, setup.stages))
+        },
         "train_seconds": train_time,
         "compile_seconds": counters["compile_seconds"],
         "time_per_step": train_time / step if step else None,
         "final_train_loss": last_eval.get("train_loss"),
         "final_test_loss": last_eval.get("test_loss"),
+        "final_test_metrics": {k[5:]: v for k, v in last_eval.items() if k.startswith("test_") and k != "test_loss"},
         "best_test_loss": counters["best_test_loss"] if math.isfinite(counters["best_test_loss"]) else None,
         "diverged_step": diverged_step,
         "last_finite_loss": last_finite if status == "diverged" else None,

@@ -30,7 +30,9 @@ class AbstractProblem(eqx.Module):
     - ``make_network(key)``: the paper's default network;
     - ``network_output(network, sample) -> x``: per sample (unbatched);
     - ``simulate(x, sample) -> y``: per sample, differentiable;
-    - ``loss(y, sample) -> scalar``: per-sample loss L_i; methods use the batch mean.
+    - ``loss(y, sample) -> scalar``: per-sample loss L_i; methods use the batch mean;
+    - optionally ``metrics(x, y, sample) -> {name: scalar}``: extra per-sample metrics (e.g.
+      the error against a ground truth), averaged over each split at evaluation.
 
     All per-sample functions must be pure and traceable (vmap, jit, jacrev).
     """
@@ -56,6 +58,10 @@ class AbstractProblem(eqx.Module):
 
     @abc.abstractmethod
     def loss(self, y: jax.Array, sample: Sample) -> jax.Array: ...
+
+    def metrics(self, x: PyTree, y: jax.Array, sample: Sample) -> dict[str, jax.Array]:
+        """Extra per-sample metrics besides the loss (none by default)."""
+        return {}
 
     def predict(self, network: eqx.Module, sample: Sample) -> jax.Array:
         """Simulator output ``y = P(network(sample))`` for one sample."""

@@ -41,6 +41,7 @@ class Oscillators(AbstractProblem):
     n_train: int = eqx.field(static=True, default=4096)
     n_test: int = eqx.field(static=True, default=4096)
     hidden: int = eqx.field(static=True, default=20)
+    activation: str = eqx.field(static=True, default="relu")
     dtype: str = eqx.field(static=True, default="float32")
 
     name: ClassVar[str] = "oscillators"
@@ -88,7 +89,7 @@ class Oscillators(AbstractProblem):
 
     def make_network(self, key):
         sizes = (self.state_size, self.hidden, self.hidden, self.hidden, self.n_steps)
-        return MLP(sizes, "relu", key=key, dtype=jnp.dtype(self.dtype))
+        return MLP(sizes, self.activation, key=key, dtype=jnp.dtype(self.dtype))
 
     def network_output(self, network, sample):
         return network(sample["x0"])
