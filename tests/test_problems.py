@@ -45,3 +45,16 @@ def test_public_names_have_docstrings():
         obj = getattr(physgrad, name)
         if callable(obj) or isinstance(obj, type):
             assert (obj.__doc__ or "").strip(), name
+
+
+@pytest.mark.parametrize("name", sorted(PROBLEMS))
+def test_paper_comparison_resolves_with_paper_defaults(name):
+    from physgrad.study import plan
+
+    configs = plan(name, None, [0], Budget(seconds=1))
+    assert [c.method for c in configs] == list(PROBLEMS[name].default_methods)
+    for config in configs:
+        for phase in config.phases:
+            paper = PROBLEMS[name].defaults_for(phase.method)
+            assert phase.batch_size == paper["batch_size"]
+            assert all(phase.hyperparameters[k] == v for k, v in paper.items() if k != "batch_size")

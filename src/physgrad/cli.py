@@ -124,10 +124,12 @@ def cmd_list(args, console):
 
     console.print("[bold]problems[/bold]")
     for name, cls in PROBLEMS.items():
-        console.print(f"  {name:<14} {cls.description}")
+        console.print(f"  {name:<19} {cls.description}", markup=False)
+        console.print(f"  {'':<19} paper comparison: {', '.join(cls.default_methods)}", markup=False)
     console.print("[bold]methods[/bold]")
     for name in METHODS:
-        console.print(f"  {name:<14} {describe(name)}")
+        console.print(f"  {name:<19} {describe(name)}", markup=False)
+    console.print("  a sequence such as adam:2000,hig runs Adam for 2000 steps, then HIG from those parameters")
     return 0
 
 

@@ -319,7 +319,10 @@ def train(
         current = setup.stages[counters["stage"]]
         return current.steps is not None and step == current.start + current.steps
 
-    next_eval = [config.eval_seconds * (1 + math.floor(counters["train_time"] / config.eval_seconds))] if config.eval_seconds > 0 else None
+    def next_eval_time(train_time: float) -> float:
+        return config.eval_seconds * (1 + math.floor(train_time / config.eval_seconds))
+
+    next_eval = [next_eval_time(counters["train_time"])] if config.eval_seconds > 0 else None
 
     def eval_due(step: int, train_time: float) -> bool:
         """Every ``eval_seconds`` of training time if set (equal points per curve in a
@@ -330,7 +333,7 @@ def train(
         if next_eval is not None:
             if train_time < next_eval[0]:
                 return False
-            next_eval[0] = config.eval_seconds * (1 + math.floor(train_time / config.eval_seconds))
+            next_eval[0] = next_eval_time(train_time)
             return True
         if config.eval_every:
             return step % config.eval_every == 0
