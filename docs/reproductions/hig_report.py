@@ -102,7 +102,7 @@ def main():
             name = key if metric == "loss" else f"{key}_{metric}"
             path = loss_vs_time(
                 results, FIGURES / f"{name}.png", order=order, metric=metric, notes=notes,
-                title=f"{title}: test {metric} vs training time ({seeds} seeds; line: geometric mean, band: min-max)",
+                title=f"{title}: test {metric}, {seeds} seeds (line: geometric mean, band: min-max)",
             )  # fmt: skip
             print(f"![{title}](figures/{path.name})\n")
 

@@ -11,5 +11,5 @@ $PG compare hig_toy --methods adam,gn,hig --seeds 3 --seconds 20 --set lam=1 --s
 $PG compare oscillators --seeds 3 --seconds 120 --set eval_seconds=2 --out studies/hig/oscillators --quiet
 $PG compare linear_oscillators --seeds 3 --seconds 100 --set eval_seconds=1 --out studies/hig/linear_oscillators --quiet
 $PG compare quantum_dipole --seeds 3 --seconds 150 --set eval_seconds=5 --out studies/hig/quantum_dipole --quiet
-$PG compare poisson_hig --methods adam,hig --seeds 3 --seconds 90 --set eval_seconds=2 --out studies/hig/poisson_hig --quiet
-$PG compare poisson_hig --methods hig,adam:1413,hig --seeds 3 --seconds 90 --set hig.batch_size=8 --set eval_seconds=2 --out studies/hig/poisson_hig_b8 --quiet
+$PG compare poisson_hig --methods adam,hig --seeds 3 --seconds 60 --set eval_seconds=2 --out studies/hig/poisson_hig --quiet
+$PG compare poisson_hig --methods hig,adam:1413,hig --seeds 3 --seconds 60 --set hig.batch_size=8 --set eval_seconds=2 --out studies/hig/poisson_hig_b8 --quiet
