@@ -140,13 +140,12 @@ def _progress(args, console):
 
 
 def cmd_train(args, console):
-    from .config import make_config
+    from .config import make_config, method_slug
     from .study import describe_run
     from .train import train
 
     config = make_config(args.problem, args.method, budget=_budget(args), seed=args.seed, settings=_settings(args.set))
-    method = args.method.replace(":", "").replace(",", "+")
-    out = Path(args.out or f"runs/{args.problem}-{method}-seed{args.seed}")
+    out = Path(args.out or f"runs/{args.problem}-{method_slug(args.method)}-seed{args.seed}")
     stages = "; then ".join(
         f"{p.method}" + (f" for {p.steps} steps" if p.steps else "") + f": batch {p.batch_size}, "
         + ", ".join(f"{k} {v}" for k, v in p.hyperparameters.items())

@@ -141,6 +141,11 @@ def split_methods(text: str) -> list[str]:
     return out
 
 
+def method_slug(spec: str) -> str:
+    """A method spec as a file name: ``"adam:2000,hig"`` → ``"adam2000+hig"``."""
+    return spec.replace(":", "").replace(",", "+")
+
+
 def phase_methods(spec: str) -> list[str]:
     """The registered method names in a method (sequence) spec."""
     return [name for name, _ in parse_method(spec)]

@@ -19,7 +19,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from .config import Budget, ConfigError, RunConfig, choose, make_config, parse_method, phase_methods, valid_settings
+from .config import Budget, ConfigError, RunConfig, choose, make_config, method_slug, parse_method, phase_methods, valid_settings
 from .problems import PROBLEMS
 from .progress import AbstractProgressMeter
 from .train import is_complete, read_metrics, read_summary, train
@@ -78,8 +78,7 @@ def plan(
 def run_name(config: RunConfig) -> str:
     """A readable, deterministic run directory name: method, seed and a config hash
     (a sequence ``adam:2000,hig`` reads ``adam2000+hig``)."""
-    method = config.method.replace(":", "").replace(",", "+")
-    return f"{method}-seed{config.seed}-{config.digest()}"
+    return f"{method_slug(config.method)}-seed{config.seed}-{config.digest()}"
 
 
 def compare(

@@ -25,6 +25,7 @@ import math
 import os
 import platform
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -55,6 +56,11 @@ class Stage:
     def contains(self, step: int) -> bool:
         return step >= self.start and (self.steps is None or step < self.start + self.steps)
 
+    def steps_done(self, step: int) -> int:
+        """How many of the run's first ``step`` steps this stage took."""
+        local = max(step - self.start, 0)
+        return local if self.steps is None else min(local, self.steps)
+
 
 @dataclasses.dataclass
 class Setup:
@@ -82,11 +88,7 @@ class Setup:
 
     def epochs(self, step: int) -> float:
         """Epochs done after ``step`` steps (each stage counts its own batch size)."""
-        done = 0.0
-        for s in self.stages:
-            local = min(max(step - s.start, 0), s.steps if s.steps is not None else step)
-            done += local / s.steps_per_epoch
-        return done
+        return sum(s.steps_done(step) / s.steps_per_epoch for s in self.stages)
 
     def network(self, params=None):
         return eqx.combine(self.params if params is None else params, self.static)
@@ -229,10 +231,13 @@ def _save_checkpoint(run_dir: Path, params, state, counters: dict[str, Any]):
     _write_json(ckpt / "counters.json", counters)
 
 
-def _load_checkpoint(run_dir: Path, like):
+def _load_checkpoint(run_dir: Path, like: Callable[[dict[str, Any]], Any]):
+    """Counters, then (params, state) shaped as ``like(counters)`` (the state's structure
+    depends on the stage the checkpoint was taken in)."""
     ckpt = run_dir / "checkpoint"
     counters = json.loads((ckpt / "counters.json").read_text())
-    params, state = eqx.tree_deserialise_leaves(ckpt / "state.eqx", like)
+    counters.setdefault("stage", 0)
+    params, state = eqx.tree_deserialise_leaves(ckpt / "state.eqx", like(counters))
     return params, state, counters
 
 
@@ -286,10 +291,8 @@ def train(
     counters = {"step": 0, "stage": 0, "train_time": 0.0, "compile_seconds": 0.0, "best_test_loss": math.inf}
     params = setup.params
     if has_ckpt:
-        stage_of_ckpt = json.loads((run_dir / "checkpoint" / "counters.json").read_text()).get("stage", 0)
-        like = (params, setup.stages[stage_of_ckpt].method.init(params))
+        like = lambda c: (params, setup.stages[c["stage"]].method.init(params))  # noqa: E731
         params, state, counters = _load_checkpoint(run_dir, like)
-        counters.setdefault("stage", 0)
     else:
         state = setup.stages[0].method.init(params)
     _write_json(config_path, config.to_dict())
@@ -427,7 +430,7 @@ def train(
         "steps": step,
         "epochs": setup.epochs(step),
         "stage_steps": {
-            p.method if len(config.phases) == 1 else f"{i}:{p.method}": min(max(step - s.start, 0), s.steps or step)
+            p.method if len(config.phases) == 1 else f"{i}:{p.method}": s.steps_done(step)
             for i, (p, s) in enumerate(zip(config.phases, setup.stages))
         },
         "train_seconds": train_time,

@@ -30,19 +30,17 @@ from .oscillators import Oscillators
 
 
 class LinearOscillators(Oscillators):
-    """Return-to-start control of two linearly coupled oscillators (PBDL book)."""
+    """Return-to-start control of two linearly coupled oscillators (PBDL book).
 
-    n_oscillators: int = eqx.field(static=True, default=2)
+    Only the settings whose book value differs from the nonlinear chain's are redeclared.
+    """
+
     n_steps: int = eqx.field(static=True, default=24)
     dt: float = eqx.field(static=True, default=0.5)
     cubic_coupling: float = eqx.field(static=True, default=0.0)
     linear_coupling: float = eqx.field(static=True, default=0.2)
     control_gain: float = eqx.field(static=True, default=1.0)
-    n_train: int = eqx.field(static=True, default=4096)
-    n_test: int = eqx.field(static=True, default=4096)
-    hidden: int = eqx.field(static=True, default=20)
     activation: str = eqx.field(static=True, default="tanh")
-    dtype: str = eqx.field(static=True, default="float32")
 
     name: ClassVar[str] = "linear_oscillators"
     description: ClassVar[str] = "PBDL book: 2 linearly coupled oscillators, RK4 0.5 x 24, learn 24 controls to return to start"
