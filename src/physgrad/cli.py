@@ -59,6 +59,14 @@ def _budget(args):
     return Budget(**given)
 
 
+def _run_settings(args):
+    """--set pairs plus the --no-network flag."""
+    settings = _settings(args.set)
+    if getattr(args, "no_network", False):
+        settings["no_network"] = True
+    return settings
+
+
 def _settings(pairs):
     settings = {}
     for pair in pairs:
@@ -74,6 +82,8 @@ def _add_budget(p):
     g.add_argument("--seconds", type=float, help="training wall-clock seconds (evaluation excluded)")
     g.add_argument("--steps", type=int, help="training steps")
     g.add_argument("--epochs", type=int, help="epochs over the training set")
+    p.add_argument("--no-network", action="store_true",
+                   help="direct optimisation: optimise x itself for each test sample (no network)")
     p.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
                    help="a problem setting, method hyperparameter or training setting; repeatable")  # fmt: skip
 
@@ -144,7 +154,7 @@ def cmd_train(args, console):
     from .study import describe_run
     from .train import train
 
-    config = make_config(args.problem, args.method, budget=_budget(args), seed=args.seed, settings=_settings(args.set))
+    config = make_config(args.problem, args.method, budget=_budget(args), seed=args.seed, settings=_run_settings(args))
     out = Path(args.out or f"runs/{args.problem}-{method_slug(args.method)}-seed{args.seed}")
     stages = "; then ".join(
         f"{p.method}" + (f" for {p.steps} steps" if p.steps else "") + f": batch {p.batch_size}, "
@@ -178,7 +188,7 @@ def cmd_compare(args, console):
     if args.seeds < 1:
         raise UsageError("--seeds must be at least 1")
     out = args.out or f"studies/{args.problem}"
-    _run_compare(console, args.problem, methods, range(args.seeds), _budget(args), _settings(args.set), out, args.quiet)
+    _run_compare(console, args.problem, methods, range(args.seeds), _budget(args), _run_settings(args), out, args.quiet)
     return 0
 
 

@@ -72,3 +72,75 @@ class MLP(eqx.Module):
 def parameter_count(module) -> int:
     """Number of scalar parameters (inexact array leaves) in an Equinox module."""
     return sum(leaf.size for leaf in jax.tree.leaves(eqx.filter(module, eqx.is_inexact_array)))
+
+
+def _circular_conv(conv: eqx.nn.Conv2d, x: Float[Array, "c h w"]) -> Float[Array, "c2 h w"]:
+    """3×3 convolution with periodic ("circular") padding, as PhiFlow's U-Net pads."""
+    pad = conv.kernel_size[0] // 2
+    return conv(jnp.pad(x, ((0, 0), (pad, pad), (pad, pad)), mode="wrap"))
+
+
+class _DoubleConv(eqx.Module):
+    """(3×3 circular conv → ReLU) × 2."""
+
+    first: eqx.nn.Conv2d
+    second: eqx.nn.Conv2d
+
+    def __init__(self, c_in: int, c_out: int, *, key: PRNGKeyArray, dtype):
+        k1, k2 = jax.random.split(key)
+        self.first = eqx.nn.Conv2d(c_in, c_out, 3, key=k1, dtype=dtype)
+        self.second = eqx.nn.Conv2d(c_out, c_out, 3, key=k2, dtype=dtype)
+
+    def __call__(self, x):
+        return jax.nn.relu(_circular_conv(self.second, jax.nn.relu(_circular_conv(self.first, x))))
+
+
+def _max_pool_2x2(x: Float[Array, "c h w"]) -> Float[Array, "c h/2 w/2"]:
+    c, h, w = x.shape
+    return x.reshape(c, h // 2, 2, w // 2, 2).max(axis=(2, 4))
+
+
+def _upsample_2x(x: Float[Array, "c h w"]) -> Float[Array, "c 2h 2w"]:
+    """Bilinear ×2 upsampling with half-pixel centres (PyTorch ``align_corners=False``)."""
+    c, h, w = x.shape
+    return jax.image.resize(x, (c, 2 * h, 2 * w), "bilinear")
+
+
+class UNet(eqx.Module):
+    """The SIP paper's U-Net (PhiFlow ``u_net``), per sample: (c_in, H, W) → (c_out, H, W).
+
+    ``levels`` resolution levels with ``filters`` channels each: a double 3×3 conv at full
+    resolution, then per lower level a 2×2 max-pool and a double conv; going up, bilinear
+    ×2 upsampling, concatenation with the skip connection and a double conv; a 1×1 output
+    conv. Convolutions pad circularly; ReLU activations; PyTorch's default initialisation
+    (U(±1/√fan_in) for kernels and biases, which is Equinox's too). ``u_net(1, 1)``
+    (4 levels × 16 filters) has 37,249 parameters here: PhiFlow's 37,697 minus the 448
+    batch-norm scales and offsets. Batch norm is left out on purpose: physgrad's networks
+    are per-sample functions (HIG's per-sample Jacobians and SIP's per-sample targets need
+    a sample's output to depend on that sample only). H and W must be divisible by
+    2^(levels − 1).
+    """
+
+    down: tuple[_DoubleConv, ...]
+    up: tuple[_DoubleConv, ...]
+    out: eqx.nn.Conv2d
+    levels: int = eqx.field(static=True)
+
+    def __init__(self, c_in: int, c_out: int, *, levels: int = 4, filters: int = 16, key: PRNGKeyArray, dtype=jnp.float32):
+        keys = jax.random.split(key, 2 * levels)
+        self.levels = levels
+        self.down = tuple(
+            _DoubleConv(c_in if i == 0 else filters, filters, key=keys[i], dtype=dtype) for i in range(levels)
+        )
+        self.up = tuple(_DoubleConv(2 * filters, filters, key=keys[levels + i], dtype=dtype) for i in range(levels - 1))
+        self.out = eqx.nn.Conv2d(filters, c_out, 1, key=keys[-1], dtype=dtype)
+
+    def __call__(self, x: Float[Array, "c h w"]) -> Float[Array, "c2 h w"]:
+        x = x.astype(self.out.weight.dtype)
+        skips = []
+        for i, block in enumerate(self.down):
+            x = block(x if i == 0 else _max_pool_2x2(x))
+            skips.append(x)
+        for block, skip in zip(self.up, reversed(skips[:-1])):
+            x = block(jnp.concatenate([_upsample_2x(x), skip], axis=0))
+        return self.out(x)

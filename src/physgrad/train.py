@@ -37,6 +37,7 @@ from .config import ConfigError, RunConfig
 from .nets import parameter_count
 from .methods import METHODS, AbstractMethod, Objective
 from .problems import PROBLEMS, AbstractProblem
+from .problems.direct import DirectOptimisation
 from .progress import AbstractProgressMeter, NoProgressMeter
 
 METRICS_HEADER = ("step", "wall_time", "split", "metric", "value")
@@ -98,8 +99,13 @@ def build(config: RunConfig) -> Setup:
     """Problem, data, network and method(s) for a configuration (deterministic per seed)."""
     problem = PROBLEMS[config.problem](**config.problem_settings)
     key = jax.random.key(config.seed)
+    if config.no_network:
+        problem = DirectOptimisation(problem)
     data = problem.make_data(jax.random.fold_in(key, 0))
-    network = problem.make_network(jax.random.fold_in(key, 1))
+    if config.no_network:
+        network = problem.initial_network(data["train"])
+    else:
+        network = problem.make_network(jax.random.fold_in(key, 1))
     params, static = eqx.partition(network, eqx.is_inexact_array)
     n_train = jax.tree.leaves(data["train"])[0].shape[0]
     stages, start = [], 0
@@ -113,14 +119,23 @@ def build(config: RunConfig) -> Setup:
     def predict(p, sample):
         return problem.predict(eqx.combine(p, static), sample)
 
-    return Setup(
-        problem=problem,
-        data=data,
-        params=params,
-        static=static,
-        objective=Objective(predict, problem.loss),
-        stages=stages,
+    def network_output(p, sample):
+        return problem.network_output(eqx.combine(p, static), sample)
+
+    objective = Objective(
+        predict,
+        problem.loss,
+        network_output=network_output,
+        simulate=problem.simulate,
+        target=problem.target,
+        inverse=problem.inverse,
     )
+    for stage, phase in zip(stages, config.phases):
+        try:
+            stage.method.check(objective)
+        except ValueError as e:
+            raise ConfigError(f"{phase.method} on {config.problem}: {e}") from None
+    return Setup(problem=problem, data=data, params=params, static=static, objective=objective, stages=stages)
 
 
 def make_step(setup: Setup, batch_size: int, method: AbstractMethod | None = None):

@@ -12,6 +12,8 @@ from typing import Any
 from .base import AbstractMethod, Objective
 from .dp import DifferentiablePhysics, adadelta, adagrad, adam, rmsprop, sgd
 from .hig import JacobianPower, gn, hig
+from .newton import Newton, newton
+from .sip import ScaleInvariantPhysics, sip
 
 METHODS: dict[str, Callable[..., AbstractMethod]] = {
     "adam": adam,
@@ -21,6 +23,8 @@ METHODS: dict[str, Callable[..., AbstractMethod]] = {
     "adadelta": adadelta,
     "gn": gn,
     "hig": hig,
+    "sip": sip,
+    "newton": newton,
 }
 
 
@@ -40,6 +44,8 @@ __all__ = [
     "AbstractMethod",
     "DifferentiablePhysics",
     "JacobianPower",
+    "Newton",
+    "ScaleInvariantPhysics",
     "Objective",
     "describe",
     "hyperparameters",

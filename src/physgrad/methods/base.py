@@ -18,10 +18,19 @@ class Objective(NamedTuple):
     ``predict(params, sample) -> y`` runs network and simulator for one sample;
     ``loss(y, sample) -> L_i`` is the per-sample loss. Methods use the batch mean
     ``L = (1/b) Σ_i L_i``, as the HIG paper's code does.
+
+    Methods that treat network and physics separately (SIP) also use
+    ``network_output(params, sample) -> x``, ``simulate(x, sample) -> y``,
+    ``target(sample) -> y*`` (the y-space target, None if the problem has none) and
+    ``inverse(x, y, y_target, sample) -> x̃`` (the problem's analytic local inverse or None).
     """
 
     predict: Callable[[PyTree, PyTree], Array]
     loss: Callable[[Array, PyTree], Array]
+    network_output: Callable[[PyTree, PyTree], Array] | None = None
+    simulate: Callable[[Array, PyTree], Array] | None = None
+    target: Callable[[PyTree], Array] | None = None
+    inverse: Callable | None = None
 
     def sample_losses(self, params: PyTree, batch: PyTree) -> Array:
         return jax.vmap(lambda s: self.loss(self.predict(params, s), s))(batch)
@@ -41,6 +50,9 @@ class AbstractMethod(eqx.Module):
 
     @abc.abstractmethod
     def init(self, params: PyTree) -> Any: ...
+
+    def check(self, objective: Objective) -> None:
+        """Raise ``ValueError`` if this method cannot run on ``objective`` (default: it can)."""
 
     @abc.abstractmethod
     def step(

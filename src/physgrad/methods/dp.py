@@ -56,3 +56,11 @@ def adagrad(*, lr: float = 1e-2, initial_accumulator: float = 0.1, eps: float = 
 def adadelta(*, lr: float = 1.0, rho: float = 0.95, eps: float = 1e-7):
     """Adadelta on DP gradients (Zeiler 2012: η = 1, ρ = 0.95)."""
     return DifferentiablePhysics(optax.adadelta(lr, rho=rho, eps=eps))
+
+
+# The DP optimizers with their defaults above, by name, for methods that apply an optax
+# optimizer to some other direction (SIP's proxy gradient): name -> (lr -> transformation).
+OPTIMIZERS = {
+    factory.__name__: (lambda lr, factory=factory: factory(lr=lr).optimizer)
+    for factory in (adam, sgd, rmsprop, adagrad, adadelta)
+}

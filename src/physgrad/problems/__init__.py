@@ -1,6 +1,11 @@
 """Benchmark problems, one file each, and the ``PROBLEMS`` registry (name → class)."""
 
 from .base import AbstractProblem
+from .exp_inverse import ExpInverse
+from .heat import Heat
+from .poisson import Poisson
+from .sine import Sine
+from .toy2d import Toy2d
 from .hig_toy import HigToy
 from .linear_oscillators import LinearOscillators
 from .oscillators import Oscillators
@@ -8,7 +13,10 @@ from .poisson_hig import PoissonHig
 from .quantum_dipole import QuantumDipole
 
 PROBLEMS: dict[str, type[AbstractProblem]] = {
-    cls.name: cls for cls in (HigToy, Oscillators, QuantumDipole, PoissonHig, LinearOscillators)
+    cls.name: cls for cls in (
+        HigToy, Oscillators, QuantumDipole, PoissonHig, LinearOscillators,
+        Toy2d, ExpInverse, Sine, Poisson, Heat,
+    )  # fmt: skip
 }
 
-__all__ = ["PROBLEMS", "AbstractProblem", "HigToy", "LinearOscillators", "Oscillators", "PoissonHig", "QuantumDipole"]
+__all__ = ["PROBLEMS", "AbstractProblem", "ExpInverse", "Heat", "Poisson", "Sine", "Toy2d", "HigToy", "LinearOscillators", "Oscillators", "PoissonHig", "QuantumDipole"]

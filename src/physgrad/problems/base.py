@@ -32,7 +32,13 @@ class AbstractProblem(eqx.Module):
     - ``simulate(x, sample) -> y``: per sample, differentiable;
     - ``loss(y, sample) -> scalar``: per-sample loss L_i; methods use the batch mean;
     - optionally ``metrics(x, y, sample) -> {name: scalar}``: extra per-sample metrics (e.g.
-      the error against a ground truth), averaged over each split at evaluation.
+      the error against a ground truth), averaged over each split at evaluation;
+    - optionally ``target(sample) -> y*``: the y-space target, when the loss measures the
+      distance to one (needed by SIP);
+    - optionally ``inverse(x, y, y_target, sample) -> x̃``: the analytic local inverse of
+      ``simulate`` near the prediction x (SIP's ``analytic`` solver);
+    - optionally ``initial_guess(sample) -> x``: where direct optimisation without a
+      network (``--no-network``) starts (zeros by default).
 
     All per-sample functions must be pure and traceable (vmap, jit, jacrev).
     """
@@ -62,6 +68,19 @@ class AbstractProblem(eqx.Module):
     def metrics(self, x: PyTree, y: jax.Array, sample: Sample) -> dict[str, jax.Array]:
         """Extra per-sample metrics besides the loss (none by default)."""
         return {}
+
+    def initial_guess(self, sample: Sample) -> PyTree:
+        """Start of direct optimisation of x for one sample (zeros shaped like the output)."""
+        network = self.make_network(jax.random.key(0))
+        shape = jax.eval_shape(self.network_output, network, sample)
+        return jnp.zeros(shape.shape, shape.dtype)
+
+    def provides(self, name: str) -> bool:
+        """Whether this problem defines the optional method ``name`` (``target``, ``inverse``)."""
+        return getattr(type(self), name, None) is not None
+
+    target = None  # optional: (sample) -> y*
+    inverse = None  # optional: (x, y, y_target, sample) -> x̃
 
     def predict(self, network: eqx.Module, sample: Sample) -> jax.Array:
         """Simulator output ``y = P(network(sample))`` for one sample."""

@@ -99,3 +99,7 @@ class Oscillators(AbstractProblem):
 
     def loss(self, y, sample):
         return jnp.sum((y - sample["x0"]) ** 2)
+
+    def target(self, sample):
+        """Return to the start: y* = x₀ (SIP's y-space target)."""
+        return sample["x0"]

@@ -1,0 +1,25 @@
+"""``Analytic``: the problem's own (local) inverse.
+
+Assumptions: ``fn(x, y, y_target, sample) -> x̃`` is the problem's closed-form inverse,
+conditioned on the current prediction ``x`` where P is not injective (pick the solution
+closest to x, sip.md §1.2). Examples: Poisson ``x̃ = x + ∇²(y_t − y)``; exp ``x̃ = log y_t``;
+the heat equation's damped Fourier deconvolution. Converged = all entries finite.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import equinox as eqx
+
+from .base import AbstractInverseSolver, InverseResult, all_finite
+
+
+class Analytic(AbstractInverseSolver):
+    """x̃ = fn(x, y, y_target, sample), the problem's closed-form local inverse."""
+
+    fn: Callable = eqx.field(static=True)
+
+    def __call__(self, simulate, x, y, y_target, sample):
+        x_new = self.fn(x, y, y_target, sample)
+        return InverseResult(x_new, all_finite(x_new))

@@ -1,0 +1,74 @@
+"""Direct optimisation without a network (``--no-network``): x itself is trained.
+
+The PBDL book and the SIP paper compare update rules first on the bare inverse problem,
+``min_x L(P(x), y*)`` per sample, before putting a network in front (sip.md §2.1, §3.2's
+``plot_heat_optim.py``). :class:`DirectOptimisation` wraps any problem so that the engine
+does exactly that: the "network" is a table of free variables, one x per sample, started
+at ``problem.initial_guess(sample)``; every method applies unchanged (Adam/SGD = gradient
+descent on x, ``newton`` = Newton on x, ``sip`` with ``optimizer=sgd, lr=1`` = iterating
+the inverse simulator x ← P⁻¹(y + η(y* − y); x)). The wrapped problem's *test* samples are
+the ones optimised, and are both splits (there is nothing to generalise to).
+"""
+
+from __future__ import annotations
+
+from typing import ClassVar
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array
+
+from .base import AbstractProblem
+
+
+class FreeVariables(eqx.Module):
+    """One x per sample: ``x[i]`` is sample i's current estimate; shape (n, *x_shape)."""
+
+    x: Array
+
+
+class DirectOptimisation(AbstractProblem):
+    """``problem`` with its network replaced by free per-sample variables."""
+
+    problem: AbstractProblem
+
+    name: ClassVar[str] = "direct"
+    description: ClassVar[str] = "direct optimisation of x per sample (no network)"
+    source: ClassVar[str] = "sip.md §2.1"
+
+    def make_data(self, key):
+        samples = self.problem.make_data(key)["test"]
+        n = jax.tree.leaves(samples)[0].shape[0]
+        indexed = {"sample": samples, "index": jnp.arange(n)}
+        return {"train": indexed, "test": indexed}
+
+    def make_network(self, key):
+        raise NotImplementedError("use initial_network(samples): the start depends on the data")
+
+    def initial_network(self, samples) -> FreeVariables:
+        return FreeVariables(jax.vmap(self.problem.initial_guess)(samples["sample"]))
+
+    def network_output(self, network, sample):
+        return network.x[sample["index"]]
+
+    def simulate(self, x, sample):
+        return self.problem.simulate(x, sample["sample"])
+
+    def loss(self, y, sample):
+        return self.problem.loss(y, sample["sample"])
+
+    def metrics(self, x, y, sample):
+        return self.problem.metrics(x, y, sample["sample"])
+
+    @property
+    def target(self):
+        if self.problem.target is None:
+            return None
+        return lambda sample: self.problem.target(sample["sample"])
+
+    @property
+    def inverse(self):
+        if self.problem.inverse is None:
+            return None
+        return lambda x, y, y_target, sample: self.problem.inverse(x, y, y_target, sample["sample"])
