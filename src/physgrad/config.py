@@ -22,6 +22,7 @@ TRAIN_SETTINGS: dict[str, Any] = {
     "eval_seconds": 0.0,  # if > 0: evaluate every this many training seconds instead
     "shuffle": False,  # the papers take mini-batches in fixed order
     "checkpoint_seconds": 60.0,  # training seconds between checkpoints (and one at the end)
+    "eval_samples": 0,  # evaluate the train split on its first N samples only; 0 = all
     "no_network": False,  # optimise x itself for each test sample instead of training a network
 }
 
@@ -170,6 +171,7 @@ class RunConfig:
     eval_seconds: float = 0.0
     shuffle: bool = False
     checkpoint_seconds: float = 60.0
+    eval_samples: int = 0
     no_network: bool = False
 
     def to_dict(self) -> dict[str, Any]:

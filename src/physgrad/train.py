@@ -369,11 +369,15 @@ def train(
     step, train_time = counters["step"], counters["train_time"]
     status, diverged_step, last_finite = "running", None, None
     last_eval: dict[str, float] = {}
+    # The train-split evaluation may be limited to its first eval_samples samples (large
+    # image datasets would otherwise cost more per evaluation than many training steps).
+    n_eval = config.eval_samples or None
+    eval_train = jax.tree.map(lambda a: a[:n_eval], train_data)
 
     def record(step: int, train_time: float) -> bool:
         """Full-set losses and metrics at this step; returns False if a loss is not finite."""
         values = {}
-        for split, split_data in (("train", train_data), ("test", test_data)):
+        for split, split_data in (("train", eval_train), ("test", test_data)):
             for metric, value in evaluate(params, split_data).items():
                 values[(split, metric)] = float(value)
         if step > 0:

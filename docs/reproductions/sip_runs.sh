@@ -1,0 +1,38 @@
+#!/usr/bin/env bash
+# The SIP reproduction studies (docs/reproductions/sip.md), as `physgrad compare` commands.
+# Two independent lanes; the report ran each pinned to one core, side by side:
+#   taskset -c 0 bash docs/reproductions/sip_runs.sh a &  taskset -c 1 bash docs/reproductions/sip_runs.sh b
+# Then: python docs/reproductions/sip_report.py  (tables and figures from the study CSVs).
+set -euo pipefail
+PG=${PHYSGRAD:-physgrad}
+OUT=${OUT:-studies/sip}
+lane=${1:-all}
+
+lane_a() {
+  $PG compare toy2d --steps 10 --set eval_every=1 --out "$OUT/toy2d" --quiet
+  $PG compare linear_oscillators --methods adam,sip,hig --seconds 100 --seeds 3 \
+    --set eval_seconds=5 --out "$OUT/linear_oscillators" --quiet
+  $PG compare poisson --methods adam,sip --seconds 120 --seeds 3 \
+    --set eval_seconds=15 --set eval_samples=128 --out "$OUT/poisson" --quiet
+  $PG compare exp_inverse --methods sgd,adam,sip --seconds 20 --seeds 3 \
+    --set eval_seconds=1 --out "$OUT/exp_inverse" --quiet
+}
+
+lane_b() {
+  $PG compare heat --methods adam,sgd,sip --seconds 120 --seeds 3 \
+    --set eval_seconds=15 --set eval_samples=128 --out "$OUT/heat" --quiet
+  for xi in 1 4 16 64; do  # the paper's xi sweep at phi = 0
+    $PG compare sine --methods adam,sip --seconds 20 --seeds 3 --set xi=$xi --set phi=0 \
+      --set eval_seconds=1 --set eval_samples=4096 --out "$OUT/sine-xi$xi-phi0" --quiet
+  done
+  for phi in 0 15 30 45; do  # the paper's phi sweep at xi = 32
+    $PG compare sine --methods adam,sip --seconds 20 --seeds 3 --set xi=32 --set phi=$phi \
+      --set eval_seconds=1 --set eval_samples=4096 --out "$OUT/sine-xi32-phi$phi" --quiet
+  done
+}
+
+case $lane in
+  a) lane_a ;;
+  b) lane_b ;;
+  *) lane_a; lane_b ;;
+esac
