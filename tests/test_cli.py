@@ -125,7 +125,11 @@ def test_diverged_run_is_recorded_and_the_study_goes_on(tmp_path, capsys):
 @pytest.mark.parametrize(
     "argv,message",
     [
-        (["train", "nope", "--method", "adam"], "unknown problem 'nope'; valid choices: hig_toy, linear_oscillators, oscillators, poisson_hig, quantum_dipole"),
+        (["train", "nope", "--method", "adam"], "unknown problem 'nope'; valid choices: exp_inverse, heat, hig_toy, linear_oscillators, oscillators, poisson, poisson_hig, quantum_dipole, sine, toy2d"),
+        (["train", "sine", "--method", "sip", "--set", "solver=magic", "--steps", "1"], "unknown inverse solver 'magic'; valid choices: auto, analytic"),
+        (["train", "sine", "--method", "sip", "--set", "solver=analytic", "--steps", "1"], "sip on sine: this problem has no analytic inverse; valid choices: gauss_newton"),
+        (["train", "quantum_dipole", "--method", "sip", "--steps", "1"], "sip on quantum_dipole: sip needs a problem with a y-space target"),
+        (["train", "sine", "--method", "sip", "--set", "proxy=l3", "--steps", "1"], "unknown proxy 'l3'; valid choices: l2, l1"),
         (["train", "hig_toy", "--method", "nope"], "unknown method 'nope'; valid choices:"),
         (["train", "hig_toy", "--method", "adam", "--set", "nope=1"], "unknown setting 'nope' for hig_toy/adam; valid choices:"),
         (["train", "hig_toy", "--method", "adam", "--set", "lr=fast"], "setting 'lr' expects a number, got 'fast'"),

@@ -83,13 +83,11 @@ class ScaleInvariantPhysics(AbstractMethod):
 
     def local_inverse(self, objective, x, y, batch):
         """(x̃, converged) per sample; failed samples get x̃ = x."""
-        y_star = jax.vmap(objective.target)(batch)
-        y_target = y + self.eta * (y_star - y)
         cast = _caster(self.precision)
+        y, y_star = cast(y), cast(jax.vmap(objective.target)(batch))
+        y_target = y + self.eta * (y_star - y)  # in the solver's precision: y* may be ≪ y
         solver = self.solver(objective)
-        result = jax.vmap(lambda *a: solver(objective.simulate, *a))(
-            cast(x), cast(y), cast(y_target), jax.tree.map(cast, batch)
-        )
+        result = jax.vmap(lambda *a: solver(objective.simulate, *a))(cast(x), y, y_target, jax.tree.map(cast, batch))
         ok = result.converged & jnp.all(jnp.isfinite(result.x.reshape(x.shape[0], -1)), axis=1)
         mask = ok.reshape((-1,) + (1,) * (x.ndim - 1))
         return jnp.where(mask, result.x.astype(x.dtype), x), ok

@@ -1,0 +1,189 @@
+"""The SIP method: exact targets on linear physics, no gradient through the simulator,
+failure handling, and direct optimisation (the 2D toy) against hand-written loops."""
+
+from typing import ClassVar
+
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from physgrad import Budget, make_config, train
+from physgrad.methods import METHODS
+from physgrad.problems import PROBLEMS, ExpInverse
+from physgrad.train import build, make_step
+
+
+SMALL = {"exp_inverse": {"n_train": 256, "n_test": 16}, "sine": {"n_train": 256, "n_test": 16}}
+
+
+def one_step(problem, method, settings=None, seed=0):
+    settings = {**SMALL.get(problem, {}), **(settings or {})}
+    config = make_config(problem, method, budget=Budget(steps=1), seed=seed, settings=settings)
+    setup = build(config)
+    stage = setup.stages[0]
+    batch = jax.tree.map(lambda a: a[: stage.batch_size], setup.data["train"])
+    return setup, stage, batch
+
+
+def jit_step(method, objective, params, batch):
+    return jax.jit(lambda p, b: method.step(objective, p, method.init(p), b))(params, batch)
+
+
+def test_sip_on_linear_invertible_physics_targets_the_ground_truth():
+    setup, stage, batch = one_step("poisson", "sip", {"resolution": 16, "n_train": 8, "n_test": 8, "batch_size": 8, "levels": 2})
+    obj = setup.objective
+    x = jax.vmap(obj.network_output, (None, 0))(setup.params, batch)
+    y = jax.vmap(obj.simulate)(x, batch)
+    x_tilde, ok = stage.method.local_inverse(obj, x, y, batch)
+    assert bool(jnp.all(ok))
+    np.testing.assert_allclose(x_tilde, batch["x_gt"], atol=2e-4)  # float32 U-Net output, exact inverse
+
+
+def test_sip_gradient_is_the_supervised_gradient_on_linear_physics():
+    """η = 1, exact inverse: ∇_θ proxy = ∇_θ (1/b) Σ ½‖f(y*) − x*‖² (SIP = supervised)."""
+    settings = {"resolution": 16, "n_train": 8, "n_test": 8, "batch_size": 8, "levels": 2, "lr": 1.0, "optimizer": "sgd"}
+    setup, stage, batch = one_step("poisson", "sip", settings)
+    obj = setup.objective
+
+    def supervised(p):
+        x = jax.vmap(obj.network_output, (None, 0))(p, batch)
+        return 0.5 * jnp.sum((x - batch["x_gt"]) ** 2) / x.shape[0]
+
+    expected = jax.tree.map(lambda p, g: p - g, setup.params, jax.grad(supervised)(setup.params))
+    new, _, stats = jit_step(stage.method, obj, setup.params, batch)
+    for a, b in zip(jax.tree.leaves(new), jax.tree.leaves(expected)):
+        np.testing.assert_allclose(a, b, rtol=1e-3, atol=1e-6)
+    assert int(stats["inverse_failures"]) == 0
+
+
+@pytest.mark.parametrize("solver", ["gauss_newton", "linear_solve", "lbfgs"])
+def test_generic_solvers_agree_with_the_analytic_inverse(solver):
+    """exp is invertible per sample: GN (one step), Krylov (one Newton–Krylov step) and
+    L-BFGS are different routes; at η small enough for GN to be accurate they match log."""
+    setup, stage, batch = one_step("exp_inverse", "sip", {"solver": solver, "eta": 1e-3, "tol": 1e-12, "max_steps": 200})
+    obj = setup.objective
+    x = jax.vmap(obj.network_output, (None, 0))(setup.params, batch).astype(jnp.float64)
+    y = jnp.exp(x)
+    x_tilde, ok = stage.method.local_inverse(obj, x, y, batch)
+    expected = np.log(np.asarray(y) + 1e-3 * (np.asarray(batch["y"], np.float64) - np.asarray(y)))
+    assert bool(jnp.all(ok))
+    np.testing.assert_allclose(x_tilde, expected, atol=1e-5)
+
+
+@jax.custom_jvp
+def untouchable_exp(x):
+    return jnp.exp(x)
+
+
+@untouchable_exp.defjvp
+def _untouchable(primals, tangents):
+    raise RuntimeError("the simulator was differentiated")
+
+
+class NonDifferentiableExp(ExpInverse):
+    name: ClassVar[str] = "nondiff_exp"
+
+    def simulate(self, x, sample):
+        return untouchable_exp(x)
+
+
+def test_the_proxy_sends_no_gradient_into_the_simulator(tmp_path, monkeypatch):
+    monkeypatch.setitem(PROBLEMS, "nondiff_exp", NonDifferentiableExp)
+    budget = Budget(steps=20)
+    summary = train(make_config("nondiff_exp", "sip", budget=budget), tmp_path / "sip")
+    assert summary["status"] == "finished" and summary["steps"] == 20
+    with pytest.raises(RuntimeError, match="differentiated"):  # DP must differentiate it
+        train(make_config("nondiff_exp", "adam", budget=budget), tmp_path / "adam")
+
+
+def test_failed_solves_are_counted_and_contribute_nothing():
+    setup, stage, batch = one_step("exp_inverse", "sip", {"eta": 1.0})
+    obj = setup.objective
+    # The analytic inverse log(y_t) is NaN where y_t < 0: force that with a huge η.
+    bad = METHODS["sip"](eta=1e6, solver="analytic")
+    x = jax.vmap(obj.network_output, (None, 0))(setup.params, batch)
+    y = jnp.exp(x)
+    x_tilde, ok = bad.local_inverse(obj, x, y, batch)
+    failed = ~np.asarray(ok)
+    assert failed.any()
+    np.testing.assert_array_equal(np.asarray(x_tilde)[failed], np.asarray(x)[failed])
+    _, _, stats = jit_step(bad, obj, setup.params, batch)
+    assert int(stats["inverse_failures"]) == failed.sum() and np.isfinite(float(stats["proxy"]))
+
+
+def test_l1_proxy_gradient_is_the_sign():
+    setup, stage, batch = one_step("sine", "sip", {"optimizer": "sgd", "lr": 1.0, "batch_size": 4})
+    obj, method = setup.objective, stage.method
+    assert method.proxy == "l1"
+    x = jax.vmap(obj.network_output, (None, 0))(setup.params, batch)
+    y = jax.vmap(obj.simulate)(x, batch)
+    x_tilde, _ = method.local_inverse(obj, x, y, batch)
+
+    def l1(p):
+        xp = jax.vmap(obj.network_output, (None, 0))(p, batch)
+        return jnp.sum(jnp.abs(xp - x_tilde)) / 4
+
+    expected = jax.tree.map(lambda p, g: p - g, setup.params, jax.grad(l1)(setup.params))
+    new, _, _ = jit_step(method, obj, setup.params, batch)
+    for a, b in zip(jax.tree.leaves(new), jax.tree.leaves(expected)):
+        np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-7)
+
+
+def toy_reference(rule, steps=10):
+    """The book's 2D toy by hand: y = (x₀, x₁²), L = |y|², from (3, 3)."""
+    x, path = np.array([3.0, 3.0]), []
+    for _ in range(steps):
+        if rule == "sgd":
+            x = x - 0.01 * np.array([2 * x[0], 4 * x[1] ** 3])
+        elif rule == "newton":
+            x = x - (1 / 3) * np.array([2 * x[0], 4 * x[1] ** 3]) / np.array([2.0, 12 * x[1] ** 2])
+        else:
+            y = np.array([x[0], x[1] ** 2]) * (1 - 0.3)
+            x = np.array([y[0], np.sqrt(y[1])])
+        path.append(x.copy())
+    return np.array(path)
+
+
+@pytest.mark.parametrize("rule", ["sgd", "newton", "sip"])
+def test_toy2d_trajectories_equal_hand_written_loops(rule, tmp_path):
+    summary = train(make_config("toy2d", rule, budget=Budget(steps=10), settings={"eval_every": 1}), tmp_path)
+    rows = [line.split(",") for line in (tmp_path / "metrics.csv").read_text().splitlines()[1:]]
+    xs = {int(r[0]): {} for r in rows}
+    for step, _, split, metric, value in rows:
+        if split == "test" and metric in ("x0", "x1"):
+            xs[int(step)][metric] = float(value)
+    path = np.array([[xs[k]["x0"], xs[k]["x1"]] for k in range(1, 11)])
+    np.testing.assert_allclose(path, toy_reference(rule), rtol=1e-12)
+    assert summary["steps"] == 10
+
+
+def test_toy2d_ordering_after_ten_iterations():
+    dist = {rule: np.linalg.norm(toy_reference(rule)[-1]) for rule in ("sgd", "newton", "sip")}
+    assert dist["sip"] < dist["newton"] < dist["sgd"]
+
+
+def test_no_network_optimises_each_test_sample_directly(tmp_path):
+    """exp_inverse without a network: SIP with η = 1 and SGD at lr = b (the proxy is a batch
+    mean, so each x_i's gradient carries 1/b) lands on x* in one step."""
+    settings = {"no_network": True, "optimizer": "sgd", "lr": 16.0, "n_test": 16, "batch_size": 16, "n_train": 16,
+                "precision": "float64"}
+    config = make_config("exp_inverse", "sip", budget=Budget(steps=1), settings=settings)
+    setup = build(config)
+    step = make_step(setup, 16)
+    order = jnp.arange(16)
+    params, _, _ = step(setup.params, setup.stages[0].method.init(setup.params), setup.data["train"], order, 0)
+    samples = setup.data["train"]["sample"]
+    np.testing.assert_allclose(params.x, samples["x_gt"], rtol=1e-5, atol=1e-5)
+    assert params.x.shape == (16, 1)
+    summary = train(config, tmp_path)
+    assert summary["final_test_metrics"]["x_l1"] < 1e-4
+
+
+def test_newton_method_equals_numpy_newton_on_a_quadratic():
+    setup, stage, batch = one_step("toy2d", "newton", {"lr": 1.0})
+    new, _, _ = jit_step(stage.method, setup.objective, setup.params, batch)
+    x = np.array([3.0, 3.0])
+    np.testing.assert_allclose(new.x, x - np.array([2 * x[0], 4 * x[1] ** 3]) / np.array([2.0, 12 * x[1] ** 2]))
+
