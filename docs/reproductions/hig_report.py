@@ -13,13 +13,10 @@ batch 8) are merged, their methods labelled with the setting.
 from __future__ import annotations
 
 import argparse
-import math
 from pathlib import Path
 
-import numpy as np
-
 from physgrad.plots import loss_vs_time
-from physgrad.study import aggregate, format_table, read_csv
+from physgrad.study import aggregate, final_metric, format_table, load_studies, markdown
 
 FIGURES = Path(__file__).parent / "figures"
 
@@ -38,45 +35,6 @@ REPORTS = {
 }
 
 
-def load(root: Path, parts):
-    """Summary rows and metric rows of one or more studies, methods relabelled per study."""
-    rows, results, order = [], [], []
-    for name, suffix in parts:
-        study = root / name
-        if not (study / "summary.csv").exists():
-            continue
-        for r in read_csv(study / "summary.csv"):
-            r["method"] += suffix
-            rows.append(r)
-            if r["method"] not in order:
-                order.append(r["method"])
-        for r in read_csv(study / "results.csv"):
-            r["method"] += suffix
-            results.append(r)
-    return rows, results, order
-
-
-def final_metric(results, method: str, metric: str) -> tuple[float, float]:
-    """Mean ± std over seeds of a method's last test value of ``metric``."""
-    last: dict[str, tuple[int, float]] = {}
-    for r in results:
-        if r["method"] == method and r["split"] == "test" and r["metric"] == metric:
-            step = int(r["step"])
-            if r["seed"] not in last or step > last[r["seed"]][0]:
-                last[r["seed"]] = (step, float(r["value"]))
-    values = np.array([v for _, v in last.values()])
-    values = values[np.isfinite(values)]
-    if values.size == 0:
-        return math.nan, math.nan
-    return float(values.mean()), float(values.std(ddof=1)) if values.size > 1 else 0.0
-
-
-def markdown(lines: list[list[str]]) -> str:
-    out = ["| " + " | ".join(lines[0]) + " |", "|" + "---|" * len(lines[0])]
-    out += ["| " + " | ".join(line) + " |" for line in lines[1:]]
-    return "\n".join(out)
-
-
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--studies", default="studies/hig", help="directory holding the study directories")
@@ -84,7 +42,7 @@ def main():
     root = Path(args.studies)
     FIGURES.mkdir(parents=True, exist_ok=True)
     for key, (title, parts, metrics) in REPORTS.items():
-        rows, results, order = load(root, parts)
+        rows, results, order = load_studies(root, parts)
         if not rows:
             print(f"## {title}: no results under {root} yet\n")
             continue

@@ -10,10 +10,11 @@ import jax
 jax.config.update("jax_enable_x64", True)
 
 from .config import Budget, ConfigError, RunConfig, make_config  # noqa: E402
+from . import inverse  # noqa: E402
 from .half_inverse import half_inverse  # noqa: E402
 from .jacobian import stacked_jacobian  # noqa: E402
 from .methods import METHODS, AbstractMethod, Objective  # noqa: E402
-from .nets import MLP, parameter_count  # noqa: E402
+from .nets import MLP, UNet, parameter_count  # noqa: E402
 from .problems import PROBLEMS, AbstractProblem  # noqa: E402
 from .train import build, load_network, train  # noqa: E402
 
@@ -29,8 +30,10 @@ __all__ = [
     "ConfigError",
     "Objective",
     "RunConfig",
+    "UNet",
     "build",
     "half_inverse",
+    "inverse",
     "load_network",
     "make_config",
     "parameter_count",

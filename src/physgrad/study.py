@@ -259,3 +259,50 @@ def _title(study: dict[str, Any], rows: list[dict[str, Any]]) -> str:
     budget = ", ".join(f"{v:g} {k}" for k, v in study.get("budget", {}).items())
     seeds = len(study.get("seeds", [])) or len({r["seed"] for r in rows})
     return f"{problem}: test loss vs training time ({budget}, {seeds} seed{'s' if seeds != 1 else ''})"
+
+
+def load_studies(root: str | Path, parts: Sequence[tuple[str, str]]):
+    """Summary rows, metric rows and method order of one or more studies under ``root``;
+    each part is (study directory name, suffix appended to its method labels).
+    Missing studies are skipped."""
+    rows, results, order = [], [], []
+    for name, suffix in parts:
+        study = Path(root) / name
+        if not (study / "summary.csv").exists():
+            continue
+        for r in read_csv(study / "summary.csv"):
+            r["method"] += suffix
+            rows.append(r)
+            if r["method"] not in order:
+                order.append(r["method"])
+        for r in read_csv(study / "results.csv"):
+            r["method"] += suffix
+            results.append(r)
+    return rows, results, order
+
+
+def final_metric(results, method: str, metric: str, tail: float = 0.0) -> tuple[float, float]:
+    """Mean ± std over seeds of a method's last test value of ``metric``; with ``tail`` > 0,
+    each seed's value is the mean over its evaluations in the last ``tail`` fraction of its
+    training time (the SIP paper averages the last 10 %)."""
+    by_seed: dict[str, list[tuple[float, float]]] = {}
+    for r in results:
+        if r["method"] == method and r["split"] == "test" and r["metric"] == metric:
+            by_seed.setdefault(r["seed"], []).append((float(r["wall_time"]), float(r["value"])))
+    values = []
+    for points in by_seed.values():
+        points.sort()
+        end = points[-1][0]
+        values.append(np.mean([v for t, v in points if t >= (1 - tail) * end]) if tail > 0 else points[-1][1])
+    values = np.array(values)
+    values = values[np.isfinite(values)]
+    if values.size == 0:
+        return math.nan, math.nan
+    return float(values.mean()), float(values.std(ddof=1)) if values.size > 1 else 0.0
+
+
+def markdown(lines: list[list[str]]) -> str:
+    """A Markdown table from rows of cells (the first row is the header)."""
+    out = ["| " + " | ".join(lines[0]) + " |", "|" + "---|" * len(lines[0])]
+    out += ["| " + " | ".join(line) + " |" for line in lines[1:]]
+    return "\n".join(out)
