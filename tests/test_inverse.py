@@ -145,3 +145,11 @@ def test_make_solver_names_and_errors():
         make_solver("magic")
     with pytest.raises(ValueError, match="unknown krylov 'qr'"):
         make_solver("linear_solve", krylov="qr")
+
+
+def test_lbfgs_accepts_float32_predictions():
+    result = LBFGS(max_steps=500, tol=1e-10)(
+        simulate, jnp.asarray(X, jnp.float32), jnp.asarray(Y, jnp.float32), jnp.asarray(Y_TARGET, jnp.float32), SAMPLE
+    )
+    assert result.x.dtype == jnp.float32 and bool(result.converged)
+    np.testing.assert_allclose(np_simulate(np.asarray(result.x, np.float64)), Y_TARGET, atol=1e-5)
