@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # The SIP reproduction studies (docs/reproductions/sip.md), as `physgrad compare` commands.
-# Two independent lanes; the report ran each pinned to one core, side by side:
-#   taskset -c 0 bash docs/reproductions/sip_runs.sh a &  taskset -c 1 bash docs/reproductions/sip_runs.sh b
+# Four independent lanes; the report ran a and b pinned to one core each, side by side,
+# then c and d the same way:
+#   taskset -c 1 bash docs/reproductions/sip_runs.sh a &  taskset -c 0 bash docs/reproductions/sip_runs.sh b
 # Then: python docs/reproductions/sip_report.py  (tables and figures from the study CSVs).
 set -euo pipefail
 PG=${PHYSGRAD:-physgrad}
@@ -31,8 +32,20 @@ lane_b() {
   done
 }
 
+lane_c() {  # longer heat and Poisson runs (the 120 s studies stop early in training)
+  $PG compare heat --methods adam,sip --seconds 400 --seeds 3 \
+    --set eval_seconds=40 --set eval_samples=128 --out "$OUT/heat-400s" --quiet
+}
+
+lane_d() {
+  $PG compare poisson --methods adam,sip --seconds 400 --seeds 3 \
+    --set eval_seconds=40 --set eval_samples=128 --out "$OUT/poisson-400s" --quiet
+}
+
 case $lane in
   a) lane_a ;;
   b) lane_b ;;
-  *) lane_a; lane_b ;;
+  c) lane_c ;;
+  d) lane_d ;;
+  *) lane_a; lane_b; lane_c; lane_d ;;
 esac
