@@ -83,6 +83,21 @@ def test_saddle_free_newton_equals_the_numpy_formula_with_finite_difference_deri
     np.testing.assert_allclose(np.asarray(result.x) - X, sfn_reference(grad, hess, max_loss_change), rtol=1e-4, atol=1e-7)
 
 
+def test_saddle_free_newton_is_newton_on_a_convex_quadratic():
+    from physgrad.inverse.saddle_free_newton import saddle_free_newton_step
+
+    G = RNG.normal(size=(4, 4))
+    H, g = G @ G.T + np.eye(4), RNG.normal(size=4)
+    np.testing.assert_allclose(saddle_free_newton_step(jnp.asarray(g), jnp.asarray(H)), -np.linalg.solve(H, g), rtol=1e-10)
+
+
+def test_saddle_free_newton_caps_zero_curvature_steps():
+    from physgrad.inverse.saddle_free_newton import saddle_free_newton_step
+
+    step = saddle_free_newton_step(jnp.array([1.0, 1.0]), jnp.diag(jnp.array([4.0, 0.0])), 0.2)
+    np.testing.assert_allclose(step, [-0.25, -0.2])  # s = 0: the cap 0.2/|g| sets the step
+
+
 def test_saddle_free_newton_descends_at_a_saddle():
     # ℓ = ½ (x₀² − x₁²): Newton would step *to* the saddle along x₁; |H| steps away from it.
     from physgrad.inverse.saddle_free_newton import saddle_free_newton_step
@@ -153,3 +168,12 @@ def test_lbfgs_accepts_float32_predictions():
     )
     assert result.x.dtype == jnp.float32 and bool(result.converged)
     np.testing.assert_allclose(np_simulate(np.asarray(result.x, np.float64)), Y_TARGET, atol=1e-5)
+
+
+def test_linear_solve_with_a_float64_simulator_on_float32_predictions():
+    M = RNG.normal(size=(5, 5)) + 5 * np.eye(5)
+    sim = lambda x, s: jnp.asarray(M) @ x.astype(jnp.float64)  # noqa: E731  (float64 physics)
+    x, yt = jnp.zeros(5, jnp.float32), RNG.normal(size=5)
+    result = LinearSolve("gmres", rtol=1e-6, atol=1e-8)(sim, x, sim(x, None), jnp.asarray(yt), None)
+    assert result.x.dtype == jnp.float32 and bool(result.converged)
+    np.testing.assert_allclose(result.x, np.linalg.solve(M, yt), rtol=1e-4, atol=1e-5)

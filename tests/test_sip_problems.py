@@ -7,7 +7,7 @@ import pytest
 
 from physgrad.nets import UNet, parameter_count
 from physgrad.problems import LinearOscillators, Sine, Toy2d
-from physgrad.problems.heat import damped_deconvolution, diffuse, random_boxes, soft_box
+from physgrad.problems.heat import box_parameters, damped_deconvolution, diffuse, random_boxes, soft_box
 from physgrad.problems.poisson import solve_poisson
 from physgrad.problems.poisson_hig import laplace_zero_boundary
 from physgrad.inverse import GaussNewton
@@ -73,18 +73,31 @@ def test_soft_boxes_cover_their_exact_area():
     box = soft_box(64, jnp.array([20.3, 31.7]), jnp.array([3.25, 5.5]))
     np.testing.assert_allclose(jnp.sum(box), 4 * 3.25 * 5.5, rtol=1e-12)
     assert float(box.max()) == 1.0 and float(box.min()) == 0.0
-    fields = jax.vmap(lambda k: random_boxes(k, 64))(jax.random.split(jax.random.key(0), 64))
-    assert fields.shape == (64, 64, 64) and float(fields.min()) >= 0.0
-    assert float(fields[:, 0, :].max()) == 0.0 or float(fields[:, :3, :].max()) < 1.0  # centred, inside
 
 
-def test_unet_matches_the_phiflow_layout_and_is_shift_equivariant():
+def test_heat_examples_follow_the_authors_generator():
+    keys = jax.random.split(jax.random.key(0), 256)
+    centres, halves, strengths = jax.vmap(lambda k: box_parameters(k, 64))(keys)
+    counts = np.asarray(jnp.sum(strengths > 0, axis=1))
+    assert counts.min() >= 4 and counts.max() <= 10 and len(set(counts.tolist())) == 7  # ⌊4 + 7u⌋
+    assert float(halves.min()) >= 0 and float(halves.max()) < 10
+    assert bool(jnp.all(centres - halves >= 0)) and bool(jnp.all(centres + halves <= 64))  # inside
+    fields = jax.vmap(lambda k: random_boxes(k, 64))(keys)
+    # every box lies inside, so the field's total heat is Σ strength × exact area
+    np.testing.assert_allclose(
+        jnp.sum(fields, axis=(1, 2)), jnp.sum(strengths * 4 * halves[..., 0] * halves[..., 1], axis=1), rtol=1e-10
+    )
+
+
+def test_unet_matches_the_phiflow_layout():
     net = UNet(1, 1, key=jax.random.key(0))
     assert parameter_count(net) == 37697 - 448  # PhiFlow u_net(1, 1) minus batch norm
     x = jax.random.normal(jax.random.key(1), (1, 64, 64), jnp.float32)
     out = net(x)
     assert out.shape == (1, 64, 64)
     assert bool(jnp.all(jnp.isfinite(out)))
+    with pytest.raises(ValueError, match="divisible by 8"):
+        net(jnp.zeros((1, 60, 64)))
 
 
 def test_unet_convolutions_pad_circularly():

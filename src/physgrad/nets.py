@@ -136,6 +136,9 @@ class UNet(eqx.Module):
         self.out = eqx.nn.Conv2d(filters, c_out, 1, key=keys[-1], dtype=dtype)
 
     def __call__(self, x: Float[Array, "c h w"]) -> Float[Array, "c2 h w"]:
+        factor = 2 ** (self.levels - 1)
+        if x.shape[1] % factor or x.shape[2] % factor:
+            raise ValueError(f"UNet with {self.levels} levels needs H and W divisible by {factor}, got {x.shape[1:]}")
         x = x.astype(self.out.weight.dtype)
         skips = []
         for i, block in enumerate(self.down):

@@ -124,9 +124,11 @@ def describe_run(summary: dict[str, Any]) -> str:
     """One line about a finished run."""
     if summary["status"] == "diverged":
         return f"diverged at step {summary['diverged_step']} (last finite loss {summary['last_finite_loss']})"
+    failures = (summary.get("step_stat_totals") or {}).get("inverse_failures", 0)
     return (
         f"test loss {summary['final_test_loss']:.3e} after {summary['steps']} steps "
         f"({1e3 * summary['time_per_step']:.2f} ms/step)"
+        + (f"; {failures:.0f} local inverse solves failed (their samples got no update)" if failures else "")
     )
 
 

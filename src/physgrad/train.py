@@ -252,6 +252,7 @@ def _load_checkpoint(run_dir: Path, like: Callable[[dict[str, Any]], Any]):
     ckpt = run_dir / "checkpoint"
     counters = json.loads((ckpt / "counters.json").read_text())
     counters.setdefault("stage", 0)
+    counters.setdefault("stat_totals", {})
     params, state = eqx.tree_deserialise_leaves(ckpt / "state.eqx", like(counters))
     return params, state, counters
 
@@ -303,7 +304,10 @@ def train(
         return done
 
     setup = build(config)
-    counters = {"step": 0, "stage": 0, "train_time": 0.0, "compile_seconds": 0.0, "best_test_loss": math.inf}
+    counters = {
+        "step": 0, "stage": 0, "train_time": 0.0, "compile_seconds": 0.0, "best_test_loss": math.inf,
+        "stat_totals": {},  # sums over all steps of the methods' extra step statistics
+    }  # fmt: skip
     params = setup.params
     if has_ckpt:
         like = lambda c: (params, setup.stages[c["stage"]].method.init(params))  # noqa: E731
@@ -369,6 +373,7 @@ def train(
     step, train_time = counters["step"], counters["train_time"]
     status, diverged_step, last_finite = "running", None, None
     last_eval: dict[str, float] = {}
+    window: dict[str, tuple[float, int]] = {}
     # The train-split evaluation may be limited to its first eval_samples samples (large
     # image datasets would otherwise cost more per evaluation than many training steps).
     n_eval = config.eval_samples or None
@@ -377,6 +382,11 @@ def train(
     def record(step: int, train_time: float) -> bool:
         """Full-set losses and metrics at this step; returns False if a loss is not finite."""
         values = {}
+        # The methods' extra per-step statistics (SIP's proxy loss and inverse failures),
+        # averaged over the steps since the last evaluation: split "train", metric "step_<name>".
+        for name, (total, count) in window.items():
+            values[("train", f"step_{name}")] = total / count
+        window.clear()
         for split, split_data in (("train", eval_train), ("test", test_data)):
             for metric, value in evaluate(params, split_data).items():
                 values[(split, metric)] = float(value)
@@ -420,6 +430,12 @@ def train(
                 status, diverged_step = "diverged", step
                 break
             params, state, last_finite = new_params, new_state, loss
+            for name, value in stats.items():
+                if name != "loss":
+                    value = float(value)
+                    total, count = window.get(name, (0.0, 0))
+                    window[name] = (total + value, count + 1)
+                    counters["stat_totals"][name] = counters["stat_totals"].get(name, 0.0) + value
             step += 1
             if eval_due(step, train_time):
                 if not record(step, train_time):
@@ -462,6 +478,7 @@ def train(
         "diverged_step": diverged_step,
         "last_finite_loss": last_finite if status == "diverged" else None,
         "n_params": parameter_count(setup.params),
+        "step_stat_totals": counters["stat_totals"],
     }
     _write_json(run_dir / "summary.json", summary)
     return summary

@@ -50,8 +50,8 @@ class LinearSolve(AbstractInverseSolver):
             raise ValueError(f"unknown krylov {self.krylov!r}; valid choices: {', '.join(KRYLOV)}")
 
     def __call__(self, simulate, x, y, y_target, sample):
-        def apply(v):
-            return jax.jvp(lambda z: simulate(z, sample), (x,), (v,))[1]
+        def apply(v):  # in x's dtype: a float64 simulator on float32 x stays a square operator
+            return jax.jvp(lambda z: simulate(z, sample), (x,), (v,))[1].astype(x.dtype)
 
         tags = {
             "cg": (lx.symmetric_tag, lx.positive_semidefinite_tag),
@@ -59,7 +59,7 @@ class LinearSolve(AbstractInverseSolver):
         }.get(self.krylov, ())
         operator = lx.FunctionLinearOperator(apply, jax.eval_shape(lambda: x), tags=frozenset(tags))
         solver = _krylov(self.krylov, self.rtol, self.atol, self.max_steps)
-        solution = lx.linear_solve(operator, y_target - y, solver, throw=False)
+        solution = lx.linear_solve(operator, (y_target - y).astype(x.dtype), solver, throw=False)
         x_new = x + solution.value
         ok = (solution.result == lx.RESULTS.successful) & all_finite(x_new)
         return InverseResult(x_new, ok)

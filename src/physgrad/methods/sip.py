@@ -7,14 +7,15 @@ Per mini-batch, with the network output x_i = f(y*_i; θ) and y_i = P(x_i):
 
     y_t,i = y_i + η (y*_i − y_i)                  (the Newton step of an L2 loss in y)
     x̃_i  = stop_gradient(P⁻¹(y_t,i; x_i))        (local inverse solver, per sample)
-    L_proxy = (1/b) Σ_i ½ ‖x_i − x̃_i‖²            (or Σ_j |x_ij − x̃_ij| with proxy="l1")
+    L_proxy = (1/b) Σ_i ½ ‖x_i − x̃_i‖²            (or (1/b) Σ_i Σ_j |x_ij − x̃_ij|, proxy="l1")
     θ ← θ + optimizer(∇_θ L_proxy)                 (Adam by default)
 
 The simulator and the solver run on stop-gradient values outside the network's autodiff:
 no gradient flows into the simulator (it may be non-differentiable, e.g. an external code,
 when the solver does not need derivatives), and it may run in float64 (``precision``).
 A sample whose solve does not converge (or is not finite) gets x̃ = x, i.e. contributes
-nothing, and is counted in the step's ``inverse_failures``. The authors sum the proxy
+nothing, and is counted in the step's ``inverse_failures`` (logged per evaluation window as
+``step_inverse_failures`` and summed in ``summary.json``). The authors sum the proxy
 over the batch; physgrad averages (Adam is invariant to the factor; SGD's lr absorbs it).
 With η = 1 and linear invertible P, x̃ = x* and SIP is supervised training (sip.md §1.3).
 """
@@ -47,6 +48,8 @@ class ScaleInvariantPhysics(AbstractMethod):
     def __check_init__(self):
         if self.proxy not in PROXIES:
             raise ValueError(f"unknown proxy {self.proxy!r}; valid choices: {', '.join(PROXIES)}")
+        if not self.eta > 0:
+            raise ValueError(f"eta must be > 0 (the fraction of the y-space step), got {self.eta}")
         if self.precision not in PRECISIONS:
             raise ValueError(f"unknown precision {self.precision!r}; valid choices: {', '.join(PRECISIONS)}")
         make_solver(self.solver_name, analytic=_probe, **dict(self.solver_settings))
@@ -85,7 +88,8 @@ class ScaleInvariantPhysics(AbstractMethod):
         """(x̃, converged) per sample; failed samples get x̃ = x."""
         cast = _caster(self.precision)
         y, y_star = cast(y), cast(jax.vmap(objective.target)(batch))
-        y_target = y + self.eta * (y_star - y)  # in the solver's precision: y* may be ≪ y
+        # (1 − η) y + η y*, not y + η (y* − y): exactly y* at η = 1 even when y* ≪ y.
+        y_target = (1 - self.eta) * y + self.eta * y_star
         solver = self.solver(objective)
         result = jax.vmap(lambda *a: solver(objective.simulate, *a))(cast(x), y, y_target, jax.tree.map(cast, batch))
         ok = result.converged & jnp.all(jnp.isfinite(result.x.reshape(x.shape[0], -1)), axis=1)

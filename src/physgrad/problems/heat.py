@@ -81,15 +81,22 @@ def soft_box(n: int, centre: jax.Array, half_size: jax.Array) -> jax.Array:
     return overlap(centre[0], half_size[0])[:, None] * overlap(centre[1], half_size[1])[None, :]
 
 
-def random_boxes(key, n: int, max_boxes: int = 10) -> jax.Array:
-    """One initial heat field: ⌊4 + 7u⌋ soft boxes (the authors' ``generate_heat_example``)."""
+def box_parameters(key, n: int, max_boxes: int = 10):
+    """(centres (10, 2), half-sizes (10, 2), strengths (10,)) of one sample's boxes: ⌊4 + 7u⌋
+    of them have a strength U[0, 1), the rest 0 (the authors' ``generate_heat_example``)."""
     k_count, k_pos, k_size, k_strength = jax.random.split(key, 4)
     count = jnp.floor(4 + 7 * jax.random.uniform(k_count, dtype=jnp.float64))
     size = jnp.float64(n)
     centres = (jax.random.uniform(k_pos, (max_boxes, 2), jnp.float64) - 0.5) * size * 0.8 + size * 0.5
     halves = jax.random.uniform(k_size, (max_boxes, 2), jnp.float64) * 10
-    centres = jnp.clip(centres, halves, size - halves)
+    centres = jnp.clip(centres, halves, size - halves)  # the box stays inside the domain
     strengths = jax.random.uniform(k_strength, (max_boxes,), jnp.float64) * (jnp.arange(max_boxes) < count)
+    return centres, halves, strengths
+
+
+def random_boxes(key, n: int, max_boxes: int = 10) -> jax.Array:
+    """One initial heat field (n, n): the sum of its soft boxes times their strengths."""
+    centres, halves, strengths = box_parameters(key, n, max_boxes)
     boxes = jax.vmap(lambda c, h: soft_box(n, c, h))(centres, halves)
     return jnp.einsum("b,bij->ij", strengths, boxes)
 
