@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # The SIP reproduction studies (docs/reproductions/sip.md), as `physgrad compare` commands.
-# Four independent lanes; the report ran a and b pinned to one core each, side by side,
-# then c and d the same way:
+# Four independent lanes; the report ran them pinned to one core each, two at a time
+# (a with b, then c with d):
 #   taskset -c 1 bash docs/reproductions/sip_runs.sh a &  taskset -c 0 bash docs/reproductions/sip_runs.sh b
 # Then: python docs/reproductions/sip_report.py  (tables and figures from the study CSVs).
 set -euo pipefail
@@ -15,11 +15,11 @@ lane_a() {
     --set eval_seconds=5 --out "$OUT/linear_oscillators" --quiet
   $PG compare poisson --methods adam,sip --seconds 120 --seeds 3 \
     --set eval_seconds=15 --set eval_samples=128 --out "$OUT/poisson" --quiet
-  $PG compare exp_inverse --methods sgd,adam,sip --seconds 20 --seeds 3 \
-    --set eval_seconds=1 --out "$OUT/exp_inverse" --quiet
 }
 
 lane_b() {
+  $PG compare exp_inverse --methods sgd,adam,sip --seconds 20 --seeds 3 \
+    --set eval_seconds=1 --out "$OUT/exp_inverse" --quiet
   $PG compare heat --methods adam,sgd,sip --seconds 120 --seeds 3 \
     --set eval_seconds=15 --set eval_samples=128 --out "$OUT/heat" --quiet
   for xi in 1 4 16 64; do  # the paper's xi sweep at phi = 0
@@ -38,8 +38,8 @@ lane_c() {  # longer heat and Poisson runs (the 120 s studies stop early in trai
 }
 
 lane_d() {
-  $PG compare poisson --methods adam,sip --seconds 400 --seeds 3 \
-    --set eval_seconds=40 --set eval_samples=128 --out "$OUT/poisson-400s" --quiet
+  $PG compare poisson --methods adam,sip --seconds 300 --seeds 3 \
+    --set eval_seconds=30 --set eval_samples=128 --out "$OUT/poisson-300s" --quiet
 }
 
 case $lane in
