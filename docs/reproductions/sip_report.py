@@ -25,7 +25,7 @@ PHI_SWEEP = (0, 15, 30, 45)  # at ξ = 32
 
 # figure name -> (title, study directory, metrics: the first is the table's loss)
 REPORTS = {
-    "sip_exp_inverse": ("exp inverse (SIP Fig. 2)", "exp_inverse", ["loss", "x_l1"]),
+    "sip_exp_inverse": ("exp inverse (SIP Fig. 2)", "exp_inverse", ["loss", "x_l1", "x_l1_low", "x_l1_high"]),
     "sip_linear_oscillators": ("Linear oscillators (PBDL book)", "linear_oscillators", ["loss"]),
     "sip_poisson": ("Poisson 64×64 (SIP Fig. 6a,b)", "poisson", ["loss", "x_l1"]),
     "sip_heat": ("Heat 64×64 (SIP Fig. 6c,d)", "heat", ["loss", "x_l1", "x_l1_clamped"]),
