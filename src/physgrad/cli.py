@@ -140,6 +140,11 @@ def cmd_list(args, console):
     for name in METHODS:
         console.print(f"  {name:<19} {describe(name)}", markup=False)
     console.print("  a sequence such as adam:2000,hig runs Adam for 2000 steps, then HIG from those parameters")
+    from .inverse import INVERSE_SOLVERS
+
+    console.print("[bold]SIP local inverse solvers[/bold] (--set solver=...)")
+    console.print(f"  {', '.join(INVERSE_SOLVERS)}", markup=False)
+    console.print("  --no-network optimises x itself for each test sample (direct optimisation)", markup=False)
     return 0
 
 
