@@ -42,10 +42,17 @@ lane_d() {
     --set eval_seconds=30 --set eval_samples=128 --out "$OUT/poisson-300s" --quiet
 }
 
+lane_e() {  # heat without a network (the authors' plot_heat_optim.py): GD vs the iterated inverse
+  $PG compare heat --no-network --methods sgd,sip --steps 1000 --seeds 3 --set n_train=128 \
+    --set sgd.lr=128 --set sip.optimizer=sgd --set sip.lr=128 --set eval_every=10 \
+    --out "$OUT/heat-direct" --quiet
+}
+
 case $lane in
   a) lane_a ;;
   b) lane_b ;;
   c) lane_c ;;
   d) lane_d ;;
-  *) lane_a; lane_b; lane_c; lane_d ;;
+  e) lane_e ;;
+  *) lane_a; lane_b; lane_c; lane_d; lane_e ;;
 esac
