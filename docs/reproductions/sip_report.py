@@ -28,7 +28,10 @@ REPORTS = {
     "sip_exp_inverse": ("exp inverse (SIP Fig. 2)", "exp_inverse", ["loss", "x_l1", "x_l1_low", "x_l1_high"]),
     "sip_linear_oscillators": ("Linear oscillators (PBDL book)", "linear_oscillators", ["loss"]),
     "sip_poisson": ("Poisson 64×64 (SIP Fig. 6a,b)", "poisson", ["loss", "x_l1"]),
+    "sip_poisson_300s": ("Poisson 64×64, 300 s", "poisson-300s", ["loss", "x_l1"]),
     "sip_heat": ("Heat 64×64 (SIP Fig. 6c,d)", "heat", ["loss", "x_l1", "x_l1_clamped"]),
+    "sip_heat_400s": ("Heat 64×64, 400 s", "heat-400s", ["loss", "x_l1", "x_l1_clamped"]),
+    "sip_heat_direct": ("Heat without a network (direct optimisation)", "heat-direct", ["loss", "x_l1", "x_l1_clamped"]),
     "sip_sine_xi32_phi45": ("Sine ξ = 32, φ = 45°", "sine-xi32-phi45", ["loss", "x_dist"]),
 }
 
