@@ -15,8 +15,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from physgrad.plots import loss_vs_time
-from physgrad.study import aggregate, final_metric, format_table, load_studies, markdown
+from physgrad.study import study_section
 
 FIGURES = Path(__file__).parent / "figures"
 
@@ -42,28 +41,7 @@ def main():
     root = Path(args.studies)
     FIGURES.mkdir(parents=True, exist_ok=True)
     for key, (title, parts, metrics) in REPORTS.items():
-        rows, results, order = load_studies(root, parts)
-        if not rows:
-            print(f"## {title}: no results under {root} yet\n")
-            continue
-        table = aggregate(rows, order)
-        lines = format_table(table, "adam" if "adam" in order else None)
-        for metric in metrics[1:]:
-            lines[0].append(f"final test {metric}")
-            for line in lines[1:]:
-                mean, std = final_metric(results, line[0], metric)
-                line.append(f"{mean:.3e} ± {std:.1e}")
-        seeds = len({r["seed"] for r in rows})
-        print(f"## {title} ({seeds} seeds)\n\n{markdown(lines)}\n")
-        notes = {t["method"]: f"{t['diverged']}/{t['runs']} diverged" for t in table if t["diverged"]}
-        for metric in metrics:
-            name = key if metric == "loss" else f"{key}_{metric}"
-            path = loss_vs_time(
-                results, FIGURES / f"{name}.png", order=order, metric=metric, notes=notes,
-                title=f"{title}: test {metric}, {seeds} seeds (line: geometric mean, band: min-max)",
-            )  # fmt: skip
-            print(f"![{title}](figures/{path.name})\n")
-
+        print(study_section(root, title, parts, metrics, FIGURES, key))
 
 if __name__ == "__main__":
     main()

@@ -308,3 +308,32 @@ def markdown(lines: list[list[str]]) -> str:
     out = ["| " + " | ".join(lines[0]) + " |", "|" + "---|" * len(lines[0])]
     out += ["| " + " | ".join(line) + " |" for line in lines[1:]]
     return "\n".join(out)
+
+
+def study_section(root: str | Path, title: str, parts, metrics: Sequence[str], figures: str | Path, name: str) -> str:
+    """A reproduction report's Markdown section for one problem: the table (final test loss
+    and the extra ``metrics[1:]``, mean ± std over seeds) and one figure per metric, drawn
+    into ``figures/<name>[_<metric>].png``. ``parts`` as in :func:`load_studies`."""
+    from .plots import loss_vs_time
+
+    rows, results, order = load_studies(root, parts)
+    if not rows:
+        return f"## {title}: no results under {root} yet\n"
+    table = aggregate(rows, order)
+    lines = format_table(table, "adam" if "adam" in order else None)
+    for metric in metrics[1:]:
+        lines[0].append(f"final test {metric}")
+        for line in lines[1:]:
+            mean, std = final_metric(results, line[0], metric)
+            line.append(f"{mean:.3e} ± {std:.1e}")
+    seeds = len({r["seed"] for r in rows})
+    out = [f"## {title} ({seeds} seeds)\n\n{markdown(lines)}\n"]
+    notes = {t["method"]: f"{t['diverged']}/{t['runs']} diverged" for t in table if t["diverged"]}
+    for metric in metrics:
+        figure = name if metric == "loss" else f"{name}_{metric}"
+        path = loss_vs_time(
+            results, Path(figures) / f"{figure}.png", order=order, metric=metric, notes=notes,
+            title=f"{title}: test {metric}, {seeds} seeds (line: geometric mean, band: min-max)",
+        )  # fmt: skip
+        out.append(f"![{title}](figures/{path.name})\n")
+    return "\n".join(out)
