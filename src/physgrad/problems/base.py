@@ -71,13 +71,9 @@ class AbstractProblem(eqx.Module):
 
     def initial_guess(self, sample: Sample) -> PyTree:
         """Start of direct optimisation of x for one sample (zeros shaped like the output)."""
-        network = self.make_network(jax.random.key(0))
-        shape = jax.eval_shape(self.network_output, network, sample)
+        # Only the output's shape is needed: trace the network abstractly, build no weights.
+        shape = jax.eval_shape(lambda s: self.network_output(self.make_network(jax.random.key(0)), s), sample)
         return jnp.zeros(shape.shape, shape.dtype)
-
-    def provides(self, name: str) -> bool:
-        """Whether this problem defines the optional method ``name`` (``target``, ``inverse``)."""
-        return getattr(type(self), name, None) is not None
 
     target = None  # optional: (sample) -> y*
     inverse = None  # optional: (x, y, y_target, sample) -> x̃
