@@ -8,54 +8,27 @@ the curvature methods, the per-sample Jacobian alone (vmap(jacrev) at the same b
 
 from __future__ import annotations
 
-import argparse
 import platform
-import statistics
-import time
 
 import jax
-import jax.numpy as jnp
 
 import physgrad
-from physgrad import Budget, make_config
+from common import benchmark_parser, median_seconds, settings_from, training_step
 from physgrad.jacobian import stacked_jacobian
-from physgrad.train import build, make_step
-
-
-def median_seconds(fn, args, repeats: int) -> float:
-    jax.block_until_ready(fn(*args))  # compile and warm up
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        jax.block_until_ready(fn(*args))
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times)
 
 
 def main():
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--problem", default="oscillators")
-    parser.add_argument("--batch-size", type=int, default=None, help="one batch size for every method")
-    parser.add_argument("--repeats", type=int, default=30)
-    parser.add_argument("--set", action="append", default=[], metavar="NAME=VALUE")
-    args = parser.parse_args()
-    settings = dict(s.split("=", 1) for s in args.set)
-    if args.batch_size:
-        settings["batch_size"] = str(args.batch_size)
+    args = benchmark_parser(__doc__.splitlines()[0], "oscillators").parse_args()
+    settings = settings_from(args)
 
     cases = [("adam", {}), ("gn", {"route": "gram"}), ("hig", {"route": "svd"}), ("hig", {"route": "gram"})]
     rows, jac_time = [], {}
     for method, extra in cases:
-        config = make_config(args.problem, method, budget=Budget(steps=1), settings={**settings, **extra})
-        setup = build(config)
-        state = setup.method.init(setup.params)
-        data = setup.data["train"]
-        order = jnp.arange(jax.tree.leaves(data)[0].shape[0], dtype=jnp.int32)
-        step = make_step(setup, config.phases[0].batch_size)
-        t_step = median_seconds(step, (setup.params, state, data, order, jnp.int32(0)), args.repeats)
+        config, setup, step, step_args = training_step(args.problem, method, {**settings, **extra})
+        t_step = median_seconds(step, step_args, args.repeats)
         b = config.phases[0].batch_size
         if b not in jac_time:
-            batch = jax.tree.map(lambda a: a[:b], data)
+            batch = jax.tree.map(lambda a: a[:b], setup.data["train"])
             jac = jax.jit(lambda p, x: stacked_jacobian(setup.objective.predict, p, x)[0])
             jac_time[b] = median_seconds(jac, (setup.params, batch), args.repeats)
             rows_j = jax.eval_shape(jac, setup.params, batch).shape

@@ -10,17 +10,12 @@ Adam's step measured in the same run (same batch size, same network).
 
 from __future__ import annotations
 
-import argparse
 import platform
 
 import jax
-import jax.numpy as jnp
 
-import physgrad  # noqa: F401  (float64 on)
-from hig_step import median_seconds
-from physgrad import Budget, make_config
+from common import benchmark_parser, median_seconds, settings_from, training_step
 from physgrad.config import ConfigError
-from physgrad.train import build, make_step
 
 DEFAULT_SOLVERS = {
     "sine": "saddle_free_newton,gauss_newton,lbfgs",
@@ -33,16 +28,10 @@ DEFAULT_SOLVERS = {
 
 
 def main():
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--problem", default="sine")
+    parser = benchmark_parser(__doc__.splitlines()[0], "sine")
     parser.add_argument("--solvers", help="comma-separated (default: those that apply to the problem)")
-    parser.add_argument("--batch-size", type=int, default=None, help="one batch size for every method")
-    parser.add_argument("--repeats", type=int, default=30)
-    parser.add_argument("--set", action="append", default=[], metavar="NAME=VALUE")
     args = parser.parse_args()
-    settings = dict(s.split("=", 1) for s in args.set)
-    if args.batch_size:
-        settings["batch_size"] = str(args.batch_size)
+    settings = settings_from(args)
     solvers = (args.solvers or DEFAULT_SOLVERS.get(args.problem, "auto")).split(",")
     # linear_solve on the Poisson problem: P = ∇⁻² is symmetric negative definite, and CG on
     # its condition number (≈ 1,700) stalls in float32; the oscillators' J is 4 × 24.
@@ -55,17 +44,12 @@ def main():
     rows = []
     for method, extra in cases:
         try:
-            config = make_config(args.problem, method, budget=Budget(steps=1), settings={**settings, **extra})
-            setup = build(config)
+            config, _, step, step_args = training_step(args.problem, method, {**settings, **extra})
         except ConfigError as e:
             rows.append((method, extra.get("solver", ""), None, str(e)))
             continue
-        state = setup.method.init(setup.params)
-        data = setup.data["train"]
-        order = jnp.arange(jax.tree.leaves(data)[0].shape[0], dtype=jnp.int32)
-        step = make_step(setup, config.phases[0].batch_size)
-        t = median_seconds(step, (setup.params, state, data, order, jnp.int32(0)), args.repeats)
-        stats = step(setup.params, state, data, order, jnp.int32(0))[2]
+        t = median_seconds(step, step_args, args.repeats)
+        stats = step(*step_args)[2]
         failed = f", {int(stats['inverse_failures'])} failed solves" if "inverse_failures" in stats else ""
         rows.append((method, extra.get("solver", ""), t, f"batch {config.phases[0].batch_size}{failed}"))
 
