@@ -36,7 +36,7 @@ import jax.numpy as jnp
 from .config import ConfigError, RunConfig
 from .nets import parameter_count
 from .methods import METHODS, AbstractMethod, Objective
-from .problems import PROBLEMS, AbstractProblem
+from .problems import PROBLEMS, AbstractProblem, ClosedLoopProblem
 from .problems.direct import DirectOptimisation
 from .progress import AbstractProgressMeter, NoProgressMeter
 
@@ -129,6 +129,7 @@ def build(config: RunConfig) -> Setup:
         simulate=problem.simulate,
         target=problem.target,
         inverse=problem.inverse,
+        rollout=_rollout_system(problem, static),
     )
     for stage, phase in zip(stages, config.phases):
         try:
@@ -136,6 +137,13 @@ def build(config: RunConfig) -> Setup:
         except ValueError as e:
             raise ConfigError(f"{phase.method} on {config.problem}: {e}") from None
     return Setup(problem=problem, data=data, params=params, static=static, objective=objective, stages=stages)
+
+
+def _rollout_system(problem: AbstractProblem, static):
+    """The rollout system of a closed-loop problem (None for open-loop problems)."""
+    if not isinstance(problem, ClosedLoopProblem):
+        return None
+    return problem.system(lambda p, s: problem.control(eqx.combine(p, static), s))
 
 
 def make_step(setup: Setup, batch_size: int, method: AbstractMethod | None = None):

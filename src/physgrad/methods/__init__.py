@@ -14,6 +14,7 @@ from .dp import DifferentiablePhysics, adadelta, adagrad, adam, rmsprop, sgd
 from .hig import JacobianPower, gn, hig
 from .newton import Newton, newton
 from .sip import ScaleInvariantPhysics, sip
+from .stable_bptt import RolloutGradient, bptt, no_temporal, sbptt_c, sbptt_m
 
 METHODS: dict[str, Callable[..., AbstractMethod]] = {
     "adam": adam,
@@ -25,6 +26,10 @@ METHODS: dict[str, Callable[..., AbstractMethod]] = {
     "hig": hig,
     "sip": sip,
     "newton": newton,
+    "bptt": bptt,
+    "sbptt_m": sbptt_m,
+    "sbptt_c": sbptt_c,
+    "no_temporal": no_temporal,
 }
 
 
@@ -47,6 +52,7 @@ __all__ = [
     "Newton",
     "ScaleInvariantPhysics",
     "Objective",
+    "RolloutGradient",
     "describe",
     "hyperparameters",
 ]

@@ -23,6 +23,10 @@ class Objective(NamedTuple):
     ``network_output(params, sample) -> x``, ``simulate(x, sample) -> y``,
     ``target(sample) -> y*`` (the y-space target, None if the problem has none) and
     ``inverse(x, y, y_target, sample) -> x̃`` (the problem's analytic local inverse or None).
+
+    Rollout methods (BPTT and its variants) use ``rollout``: a
+    :class:`physgrad.rollout.System` whose transition takes the trainable parameters; a
+    batch of samples is then a batch of initial states. None for open-loop problems.
     """
 
     predict: Callable[[PyTree, PyTree], Array]
@@ -31,6 +35,7 @@ class Objective(NamedTuple):
     simulate: Callable[[Array, PyTree], Array] | None = None
     target: Callable[[PyTree], Array] | None = None
     inverse: Callable | None = None
+    rollout: Any = None
 
     def sample_losses(self, params: PyTree, batch: PyTree) -> Array:
         return jax.vmap(lambda s: self.loss(self.predict(params, s), s))(batch)

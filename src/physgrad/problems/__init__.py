@@ -1,6 +1,8 @@
 """Benchmark problems, one file each, and the ``PROBLEMS`` registry (name → class)."""
 
 from .base import AbstractProblem
+from .cartpole import CartPole
+from .closed_loop import ClosedLoopProblem
 from .exp_inverse import ExpInverse
 from .heat import Heat
 from .poisson import Poisson
@@ -16,7 +18,8 @@ PROBLEMS: dict[str, type[AbstractProblem]] = {
     cls.name: cls for cls in (
         HigToy, Oscillators, QuantumDipole, PoissonHig, LinearOscillators,
         Toy2d, ExpInverse, Sine, Poisson, Heat,
+        CartPole,
     )  # fmt: skip
 }
 
-__all__ = ["PROBLEMS", "AbstractProblem", "ExpInverse", "Heat", "Poisson", "Sine", "Toy2d", "HigToy", "LinearOscillators", "Oscillators", "PoissonHig", "QuantumDipole"]
+__all__ = ["PROBLEMS", "AbstractProblem", "CartPole", "ClosedLoopProblem", "ExpInverse", "Heat", "Poisson", "Sine", "Toy2d", "HigToy", "LinearOscillators", "Oscillators", "PoissonHig", "QuantumDipole"]

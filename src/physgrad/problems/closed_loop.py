@@ -1,0 +1,117 @@
+"""Closed-loop control problems: a network steers a simulator step by step.
+
+    s_{k+1} = physics(s_k, c_k),   c_k = control(network, s_k),   k = 0 … m−1,
+    L = Σ_k w_k ℓ(s_{k+1}, c_k, k)
+
+(shared/design.md, "closed-loop and time-stepper problems"; shared/papers/stablebptt.md §1.1).
+A sample is an initial state s_0. The rollout methods (``bptt``, ``sbptt_m``, ``sbptt_c``,
+``no_temporal``) train through :meth:`ClosedLoopProblem.system`; every other method sees
+the problem through the open-loop contract as well:
+
+- ``network_output(network, s0)`` runs the closed loop and returns the controls c_0..c_{m−1};
+- ``simulate(controls, s0)`` replays them open-loop and returns y = (states s_1..s_m, controls);
+- ``loss(y, s0) = Σ_k w_k ℓ(s_{k+1}, c_k, k)``;
+
+so ``adam`` trains with plain BPTT without clipping, and ``--no-network`` optimises each
+test sample's control sequence directly.
+
+The data follow the StableBPTT protocol (§2.1): ``n_train + n_test`` initial states drawn
+once from ``data_seed`` (42), the first ``n_train`` for training, independent of the run
+seed (which only sets the network's initialisation); mini-batches of 8 in fixed order.
+"""
+
+from __future__ import annotations
+
+import abc
+from typing import ClassVar
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+
+from ..rollout import System, closed_loop
+from .base import AbstractProblem, Sample
+
+
+class ClosedLoopProblem(AbstractProblem):
+    """Base class: subclasses define the physics, the controller and the per-step loss."""
+
+    default_batch_size: ClassVar[int] = 8
+    default_methods: ClassVar[tuple[str, ...]] = ("bptt", "sbptt_m", "sbptt_c", "no_temporal")
+
+    # --- what a subclass defines -------------------------------------------------------
+    @property
+    @abc.abstractmethod
+    def num_steps(self) -> int: ...
+
+    @abc.abstractmethod
+    def initial_states(self, key, n: int) -> Sample:
+        """``n`` initial states stacked on a leading axis."""
+
+    @abc.abstractmethod
+    def control(self, network: eqx.Module, s: Sample) -> jax.Array:
+        """c = N(s) for one state."""
+
+    @abc.abstractmethod
+    def physics(self, s: Sample, c: jax.Array) -> Sample:
+        """One simulator step s' = P(s, c) for one state."""
+
+    @abc.abstractmethod
+    def step_loss(self, s_next: Sample, c: jax.Array, k) -> jax.Array:
+        """The loss term ℓ_k of step k (before its weight)."""
+
+    @abc.abstractmethod
+    def loss_weights(self) -> jax.Array:
+        """Per-step weights w, shape (num_steps,)."""
+
+    # --- the open-loop contract and the rollout system ---------------------------------
+    def make_data(self, key):
+        del key  # the protocol fixes the data; the run seed only initialises the network
+        n_train, n_test = self.n_train, self.n_test
+        states = self.initial_states(jax.random.key(self.data_seed), n_train + n_test)
+        return {
+            "train": jax.tree.map(lambda a: a[:n_train], states),
+            "test": jax.tree.map(lambda a: a[n_train:], states),
+        }
+
+    def closed_loop(self, network, s0):
+        """(states s_1..s_m, controls c_0..c_{m−1}) of the closed loop from one s0."""
+
+        def body(s, _):
+            c = self.control(network, s)
+            s_next = self.physics(s, c)
+            return s_next, (s_next, c)
+
+        _, (states, controls) = jax.lax.scan(body, s0, None, length=self.num_steps)
+        return states, controls
+
+    def network_output(self, network, sample):
+        return self.closed_loop(network, sample)[1]
+
+    def simulate(self, controls, sample):
+        def body(s, c):
+            s_next = self.physics(s, c)
+            return s_next, s_next
+
+        _, states = jax.lax.scan(body, sample, controls)
+        return states, controls
+
+    def predict(self, network, sample):
+        return self.closed_loop(network, sample)
+
+    def loss(self, y, sample):
+        states, controls = y
+        terms = jax.vmap(self.step_loss)(states, controls, jnp.arange(self.num_steps))
+        return jnp.sum(self.loss_weights().astype(terms.dtype) * terms)
+
+    def system(self, control) -> System:
+        """The rollout :class:`~physgrad.rollout.System` over a batch, with
+        ``control(params, s) -> c`` (the network with its trainable parameters split off)."""
+        return closed_loop(control, self.physics, self.step_loss, self.num_steps, self.loss_weights())
+
+
+def zero_last_kernel(network):
+    """The network with its last Dense kernel set to 0, so its initial output is 0 (the
+    authors' ``--zero`` flag, on by accident of ``argparse type=bool``: stablebptt.md §2.6.1)."""
+    last = network.layers[-1]
+    return eqx.tree_at(lambda n: n.layers[-1].weight, network, jnp.zeros_like(last.weight))

@@ -1,0 +1,178 @@
+"""The rollout engine: s_{k+1} = step(s_k, network(s_k)) over m steps with ``lax.scan``.
+
+One engine serves closed-loop control (stabilised BPTT) and neural time-steppers
+(unrolling). A rollout is described by a :class:`System` over a batch of states::
+
+    transition(params, s_network, s_physics, k) -> (s_{k+1}, ℓ_k)
+
+where ``s_network`` is the state as the network sees it and ``s_physics`` as the physics
+sees it (the same values; a :class:`~physgrad.rollout.GradientFlow` policy decides which
+of them carry gradient), and ℓ_k is the batch-mean loss term of step k. The rollout loss is
+
+    L = Σ_{k<m} w_k · mask_k · ℓ_k,
+
+with per-step weights w (a final-state loss has w = (0, …, 0, 1)) and the policy's mask
+(0 inside a warm-up).
+
+Gradients:
+
+- :func:`value_and_grad`: ``jax.value_and_grad`` of L under one policy. With
+  ``checkpoint=True`` the scan is rematerialised in two levels (segments of ≈ √m steps):
+  the backward pass stores ≈ 2√m states instead of every step's intermediates.
+- :func:`joint_gradients`: the gradients of two policies (stabilised BPTT's M and R) from
+  **one** forward rollout and **one** backward scan that carries both adjoints,
+
+      λ^P_k = keep_net^P(k) · λ^P_{k+1}·∂T/∂s_net + keep_phys^P(k) · λ^P_{k+1}·∂T/∂s_phys
+              + w_k mask^P_k ∂ℓ_k/∂s,
+      g^P  = Σ_k (λ^P_{k+1}·∂T/∂θ + w_k mask^P_k ∂ℓ_k/∂θ),
+
+  where each step's linearisation (the VJP of T at (θ, s_k, s_k)) is computed once and
+  applied to both cotangents (``vmap`` over the pair). The forward pass keeps each step's
+  VJP residuals; with ``checkpoint=True`` it keeps only the states and the backward scan
+  recomputes each step's VJP.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, PyTree
+
+from .policy import GradientFlow, R
+
+Transition = Callable[[PyTree, PyTree, PyTree, Array], tuple[PyTree, Array]]
+
+
+class System(NamedTuple):
+    """A rollout over a batch: ``transition``, its number of steps and per-step weights (m,)."""
+
+    transition: Transition
+    num_steps: int
+    weights: Array
+
+
+def closed_loop(
+    control: Callable[[PyTree, PyTree], PyTree],
+    physics: Callable[[PyTree, PyTree], PyTree],
+    step_loss: Callable[[PyTree, PyTree, Array], Array],
+    num_steps: int,
+    weights: Array,
+) -> System:
+    """A closed-loop control system from per-sample pieces (vmapped over the batch here):
+
+    ``control(params, s) -> c``, ``physics(s, c) -> s'`` and ``step_loss(s', c, k) -> ℓ``;
+    the transition is c_k = control(θ, s_net), s_{k+1} = physics(s_phys, c_k) and ℓ_k the
+    batch mean of ``step_loss(s_{k+1}, c_k, k)``.
+    """
+
+    def transition(params, s_network, s_physics, k):
+        c = jax.vmap(control, in_axes=(None, 0))(params, s_network)
+        s_next = jax.vmap(physics)(s_physics, c)
+        return s_next, jnp.mean(jax.vmap(step_loss, in_axes=(0, 0, None))(s_next, c, k))
+
+    return System(transition, num_steps, jnp.asarray(weights))
+
+
+def _segment_length(m: int) -> int:
+    """The divisor of m closest to √m (two-level checkpointing needs equal segments)."""
+    divisors = [d for d in range(1, m + 1) if m % d == 0]
+    return min(divisors, key=lambda d: abs(d - math.sqrt(m)))
+
+
+def _scan(body, carry, steps: Array, checkpoint: bool):
+    """``lax.scan(body, carry, steps)``, rematerialised in segments of ≈ √m when asked."""
+    if not checkpoint:
+        return jax.lax.scan(body, carry, steps)
+    m = steps.shape[0]
+    length = _segment_length(m)
+    inner = jax.checkpoint(body)
+
+    @jax.checkpoint
+    def segment(c, ks):
+        return jax.lax.scan(inner, c, ks)
+
+    carry, ys = jax.lax.scan(segment, carry, steps.reshape(m // length, length))
+    return carry, jax.tree.map(lambda y: y.reshape(m, *y.shape[2:]), ys)
+
+
+def rollout(
+    system: System,
+    params: PyTree,
+    s0: PyTree,
+    policy: GradientFlow | None = None,
+    *,
+    checkpoint: bool = False,
+    keep_states: bool = False,
+) -> tuple[Array, Any]:
+    """The rollout loss L (and, with ``keep_states``, the states s_1..s_m stacked on a
+    leading time axis) from a batch of initial states ``s0``, under ``policy`` (default R)."""
+    policy = policy or R()
+    steps = jnp.arange(system.num_steps)
+
+    def body(carry, k):
+        s, total = carry
+        s_network, s_physics = policy.inputs(s, k)
+        s_next, step_loss = system.transition(params, s_network, s_physics, k)
+        total = total + (system.weights[k] * policy.loss_mask(k) * step_loss).astype(total.dtype)
+        return (s_next, total), (s_next if keep_states else None)
+
+    (_, loss), states = _scan(body, (s0, jnp.zeros((), system.weights.dtype)), steps, checkpoint)
+    return loss, states
+
+
+def value_and_grad(system: System, params, s0, policy: GradientFlow | None = None, *, checkpoint: bool = False):
+    """``(L, ∂L/∂θ)`` under one gradient-flow policy (the forward value is the same for all)."""
+    return jax.value_and_grad(lambda p: rollout(system, p, s0, policy, checkpoint=checkpoint)[0])(params)
+
+
+def joint_gradients(
+    system: System,
+    params,
+    s0,
+    base: GradientFlow,
+    comparison: GradientFlow,
+    *,
+    checkpoint: bool = False,
+):
+    """``(L, g_base, g_comparison)`` from one forward rollout and one backward scan that
+    carries both adjoints (see the module docstring). L is the comparison policy's loss."""
+    steps = jnp.arange(system.num_steps)
+
+    def linearise(s, k):
+        return jax.vjp(lambda p, a, b: system.transition(p, a, b, k), params, s, s)
+
+    def forward(s, k):
+        (s_next, step_loss), pullback = linearise(s, k)
+        return s_next, (step_loss, s if checkpoint else pullback)
+
+    _, (step_losses, saved) = jax.lax.scan(forward, s0, steps)
+    masks = jax.vmap(lambda k: jnp.stack([base.loss_mask(k) * jnp.ones(()), comparison.loss_mask(k) * jnp.ones(())]))(steps)
+    # (m, 2): w_k · mask_k for (base, comparison), in the dtype of the step losses
+    weights = (system.weights[:, None] * masks).astype(step_losses.dtype)
+    loss = jnp.sum(weights[:, 1] * step_losses).astype(system.weights.dtype)
+
+    def backward(carry, inputs):
+        adjoints, grads = carry  # both stacked on a leading axis of 2: (base, comparison)
+        k, w, step_saved = inputs
+        pullback = linearise(step_saved, k)[1] if checkpoint else step_saved
+        g_params, g_network, g_physics = jax.vmap(pullback)((adjoints, w))
+        keep = jnp.array([base.keeps(k), comparison.keeps(k)], jnp.float32)  # (2, [net, phys])
+
+        def propagate(a, b):
+            shape = (2,) + (1,) * (a.ndim - 1)
+            return keep[:, 0].reshape(shape) * a + keep[:, 1].reshape(shape) * b
+
+        adjoints = jax.tree.map(propagate, g_network, g_physics)
+        grads = jax.tree.map(jnp.add, grads, g_params)
+        return (adjoints, grads), None
+
+    pair = lambda tree: jax.tree.map(lambda a: jnp.zeros((2,) + a.shape, a.dtype), tree)  # noqa: E731
+    init = (pair(s0), pair(params))
+    (_, grads), _ = jax.lax.scan(backward, init, (steps, weights, saved), reverse=True)
+    g_base = jax.tree.map(lambda g: g[0], grads)
+    g_comparison = jax.tree.map(lambda g: g[1], grads)
+    return loss, g_base, g_comparison
