@@ -3,6 +3,8 @@
 from .base import AbstractProblem
 from .cartpole import CartPole
 from .closed_loop import ClosedLoopProblem
+from .guidance import Guidance
+from .quantum_control import QuantumControl
 from .exp_inverse import ExpInverse
 from .heat import Heat
 from .poisson import Poisson
@@ -18,8 +20,8 @@ PROBLEMS: dict[str, type[AbstractProblem]] = {
     cls.name: cls for cls in (
         HigToy, Oscillators, QuantumDipole, PoissonHig, LinearOscillators,
         Toy2d, ExpInverse, Sine, Poisson, Heat,
-        CartPole,
+        CartPole, Guidance, QuantumControl,
     )  # fmt: skip
 }
 
-__all__ = ["PROBLEMS", "AbstractProblem", "CartPole", "ClosedLoopProblem", "ExpInverse", "Heat", "Poisson", "Sine", "Toy2d", "HigToy", "LinearOscillators", "Oscillators", "PoissonHig", "QuantumDipole"]
+__all__ = ["PROBLEMS", "AbstractProblem", "CartPole", "ClosedLoopProblem", "Guidance", "QuantumControl", "ExpInverse", "Heat", "Poisson", "Sine", "Toy2d", "HigToy", "LinearOscillators", "Oscillators", "PoissonHig", "QuantumDipole"]
