@@ -4,6 +4,7 @@
     physgrad train PROBLEM --method M|M1:N,M2 [--seconds S | --steps N | --epochs E] [--seed K]
                    [--set name=value ...] [--out DIR] [--resume]
     physgrad compare PROBLEM [--methods a,b,...] [--seeds N] [budget] [--set ...] [--out DIR]
+                     (--set name=a,b,c sweeps: every cell of the grid is a study)
     physgrad report DIR
     physgrad demo
 
@@ -110,8 +111,10 @@ def build_parser() -> Parser:
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     _add_budget(p)
 
-    p = sub.add_parser("report", help="re-draw a study's table and figure from its files")
+    p = sub.add_parser("report", help="re-draw a study's (or a sweep's) table and figure from its files")
     p.add_argument("dir")
+    p.add_argument("--panel", help="sweeps: the swept setting with one panel per value (default: the first)")
+    p.add_argument("--metric", default="loss", help="sweeps: the test metric to draw (default loss)")
 
     p = sub.add_parser("demo", help="adam vs gn vs hig on the oscillators in about two minutes")
     p.add_argument("--out", default="studies/demo")
@@ -193,13 +196,41 @@ def cmd_compare(args, console):
     if args.seeds < 1:
         raise UsageError("--seeds must be at least 1")
     out = args.out or f"studies/{args.problem}"
-    _run_compare(console, args.problem, methods, range(args.seeds), _budget(args), _run_settings(args), out, args.quiet)
+    settings = _run_settings(args)
+    from .study import split_grid
+
+    if split_grid(settings)[1]:
+        _run_grid(console, args.problem, methods, range(args.seeds), _budget(args), settings, out, args.quiet)
+    else:
+        _run_compare(console, args.problem, methods, range(args.seeds), _budget(args), settings, out, args.quiet)
     return 0
 
 
-def cmd_report(args, console):
-    from .study import report
+def _run_grid(console, problem, methods, seeds, budget, settings, out, quiet=False):
+    """A sweep: ``--set a=1,2 --set b=x,y`` runs every cell of the grid as its own study."""
+    from .progress import RichProgressMeter
+    from .study import compare_grid, grid_cells, grid_report, split_grid
 
+    fixed, grid = split_grid(settings)
+    console.print(
+        f"sweeping {problem} over {' x '.join(f'{k} in {{{chr(44).join(v)}}}' for k, v in grid.items())} "
+        f"({len(grid_cells(grid))} cells): budget {budget} per run, seeds {list(seeds)}, fixed settings {fixed or 'paper defaults'}"
+    )
+    meter = None if quiet or not console.is_terminal else RichProgressMeter
+    compare_grid(problem, methods, seeds, budget, out, settings=settings, progress=meter, echo=console.print)
+    result = grid_report(out)
+    _print_table(console, result.lines, title=f"{problem}: {budget} per run")
+    console.print(f"wrote {Path(out) / 'grid_summary.csv'}, {result.figure}")
+
+
+def cmd_report(args, console):
+    from .study import grid_report, report
+
+    if (Path(args.dir) / "grid.json").exists():
+        result = grid_report(args.dir, panel=args.panel, metric=args.metric)
+        _print_table(console, result.lines, title=str(args.dir))
+        console.print(f"wrote {result.figure}")
+        return 0
     result = report(args.dir)
     _print_table(console, result.lines, title=str(args.dir))
     console.print(f"wrote {result.figure}")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -69,6 +70,65 @@ def loss_vs_time(
     ax.grid(True, which="both", alpha=0.3)
     ax.legend()
     fig.tight_layout()
+    path = Path(path)
+    fig.savefig(path)
+    plt.close(fig)
+    return path
+
+
+LINE_STYLES = ("-", "--", ":", "-.")
+
+
+def grid_panels(
+    curves: list[tuple[dict[str, str], list[dict[str, Any]]]],
+    path: str | Path,
+    *,
+    panel: str,
+    methods: Sequence[str],
+    metric: str = "loss",
+    title: str = "",
+) -> Path:
+    """One panel per value of the ``panel`` setting (the StableBPTT figure layout): test
+    ``metric`` against epochs, log y; colour = method, line style = the cell's other swept
+    settings. Each line is the geometric mean over seeds (on the epochs all seeds reached).
+    ``curves`` holds (cell, metric rows with an ``epoch`` field) per grid cell."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    values = list(dict.fromkeys(cell[panel] for cell, _ in curves))
+    others = list(dict.fromkeys(tuple((k, v) for k, v in cell.items() if k != panel) for cell, _ in curves))
+    colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    fig, axes = plt.subplots(1, max(len(values), 1), figsize=(4.2 * max(len(values), 1), 3.8), dpi=120, squeeze=False)
+    for ax, value in zip(axes[0], values):
+        for cell, rows in curves:
+            if cell[panel] != value:
+                continue
+            rest = tuple((k, v) for k, v in cell.items() if k != panel)
+            style = LINE_STYLES[others.index(rest) % len(LINE_STYLES)]
+            for i, method in enumerate(methods):
+                by_seed: dict[str, list[tuple[float, float]]] = {}
+                for r in rows:
+                    if r["method"] == method:
+                        by_seed.setdefault(r["seed"], []).append((r["epoch"], float(r["value"])))
+                series = [np.array(sorted(p)).T for p in by_seed.values() if p]
+                if not series:
+                    continue
+                n = min(s.shape[1] for s in series)
+                epochs = series[0][0][:n]
+                logs = np.stack([np.log10(np.maximum(s[1][:n], 1e-30)) for s in series])
+                label = method + (f" ({', '.join(f'{k}={v}' for k, v in rest)})" if rest else "")
+                ax.plot(epochs, 10 ** logs.mean(0), style, color=colours[i % len(colours)], lw=1.2, label=label)
+        ax.set_yscale("log")
+        ax.set_title(f"{panel} = {value}", fontsize=9)
+        ax.set_xlabel("epoch")
+        ax.grid(True, which="both", alpha=0.3)
+    axes[0][0].set_ylabel(f"test {metric}")
+    handles, labels = axes[0][0].get_legend_handles_labels()
+    fig.legend(handles, labels, loc="lower center", ncol=min(len(labels), 4), fontsize=7, frameon=False)
+    fig.suptitle(title, fontsize=10)
+    fig.tight_layout(rect=(0, 0.04 + 0.035 * math.ceil(len(labels) / 4), 1, 0.95))
     path = Path(path)
     fig.savefig(path)
     plt.close(fig)

@@ -337,3 +337,124 @@ def study_section(root: str | Path, title: str, parts, metrics: Sequence[str], f
         )  # fmt: skip
         out.append(f"![{title}](figures/{path.name})\n")
     return "\n".join(out)
+
+
+# --- sweeps: a grid of settings, one study per cell ---------------------------------------
+#
+# ``--set poles=1,2,3,4 --set clip=value,norm,none`` expands to the 12 cells of the grid;
+# each cell is an ordinary study in ``OUT/<cell>/`` (e.g. ``OUT/poles2_clipnorm/``), so a
+# grid resumes cell by cell and run by run, and ``OUT/grid.json`` records the grid.
+
+
+def split_grid(settings: dict[str, Any]) -> tuple[dict[str, Any], dict[str, list[str]]]:
+    """(fixed settings, swept settings): a value with commas, ``a,b,c``, is swept."""
+    fixed, grid = {}, {}
+    for key, value in settings.items():
+        if isinstance(value, str) and "," in value:
+            values = [v.strip() for v in value.split(",") if v.strip()]
+            if len(values) != len(set(values)):
+                raise ConfigError(f"setting {key!r} lists a value twice: {value!r}")
+            grid[key] = values
+        else:
+            fixed[key] = value
+    return fixed, grid
+
+
+def grid_cells(grid: dict[str, list[str]]) -> list[dict[str, str]]:
+    """Every combination of the swept values, the first setting varying slowest."""
+    import itertools
+
+    names = list(grid)
+    return [dict(zip(names, values)) for values in itertools.product(*(grid[n] for n in names))]
+
+
+def cell_name(cell: dict[str, str]) -> str:
+    """A cell's directory name: ``{"poles": "2", "clip": "norm"}`` → ``poles2_clipnorm``."""
+    return "_".join(f"{k.replace('.', '-')}{v}" for k, v in cell.items())
+
+
+def compare_grid(
+    problem: str,
+    methods: Sequence[str] | None,
+    seeds: Sequence[int],
+    budget: Budget,
+    out: str | Path,
+    *,
+    settings: dict[str, Any],
+    progress: Callable[[], AbstractProgressMeter] | None = None,
+    echo: Callable[[str], None] = print,
+) -> None:
+    """Every cell of a settings grid as its own study under ``out`` (validated first)."""
+    fixed, grid = split_grid(settings)
+    cells = grid_cells(grid)
+    for cell in cells:  # every name and value is checked before anything runs
+        plan(problem, methods, seeds, budget, {**fixed, **cell})
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "grid.json").write_text(
+        json.dumps(
+            {"problem": problem, "methods": list(methods or PROBLEMS[problem].default_methods), "seeds": list(seeds),
+             "budget": budget.to_dict(), "settings": fixed, "grid": grid},
+            indent=2,
+        )  # fmt: skip
+        + "\n"
+    )
+    for i, cell in enumerate(cells, 1):
+        echo(f"cell {i}/{len(cells)}: {', '.join(f'{k}={v}' for k, v in cell.items())}")
+        compare(problem, methods, seeds, budget, out / cell_name(cell), settings={**fixed, **cell}, progress=progress,
+                echo=echo)  # fmt: skip
+        report(out / cell_name(cell))
+
+
+class GridReport(NamedTuple):
+    """A grid's table (one row per cell × method), its printable lines and the panel figure."""
+
+    rows: list[dict[str, Any]]
+    lines: list[list[str]]
+    figure: Path
+
+
+def grid_report(out: str | Path, *, panel: str | None = None, metric: str = "loss") -> GridReport:
+    """Table and panel figure of a grid from its cells' files: one panel per value of
+    ``panel`` (default: the first swept setting), one colour per method and one line style
+    per value of the other swept settings; x = epochs, y = test ``metric`` (log)."""
+    from .plots import grid_panels
+
+    out = Path(out)
+    if not (out / "grid.json").exists():
+        raise ConfigError(f"{out} is not a grid directory: grid.json is missing")
+    info = json.loads((out / "grid.json").read_text())
+    grid = info["grid"]
+    panel = panel or next(iter(grid))
+    choose("panel setting", panel, grid)
+    rows, curves, lines = [], [], [["cell", "method", "runs", "final test loss", "best test loss", "ms/step"]]
+    for cell in grid_cells(grid):
+        study = out / cell_name(cell)
+        if not (study / "summary.csv").exists():
+            collect(study) if (study / "runs").exists() else None
+        if not (study / "summary.csv").exists():
+            continue
+        summary = read_csv(study / "summary.csv")
+        per_epoch = {(r["method"], r["seed"]): _float(r["epochs"]) / max(_float(r["steps"]), 1.0) for r in summary}
+        results = [r for r in read_csv(study / "results.csv") if r["split"] == "test" and r["metric"] == metric]
+        for r in results:
+            r["epoch"] = float(r["step"]) * per_epoch.get((r["method"], r["seed"]), math.nan)
+        for t in aggregate(summary, method_order(summary, info)):
+            fm, fs = t["final_test_loss"]
+            bm, bs = t["best_test_loss"]
+            label = ", ".join(f"{k}={v}" for k, v in cell.items())
+            rows.append({**cell, "method": t["method"], "runs": t["runs"], "diverged": t["diverged"],
+                         "final_test_loss": fm, "final_test_loss_std": fs, "best_test_loss": bm,
+                         "ms_per_step": t["ms_per_step"]})  # fmt: skip
+            runs = f"{t['runs']}" + (f" ({t['diverged']} diverged)" if t["diverged"] else "")
+            final = f"{fm:.3e} ± {fs:.1e}" if math.isfinite(fm) else "all diverged"
+            lines.append([label, t["method"], runs, final, f"{bm:.3e} ± {bs:.1e}", f"{t['ms_per_step']:.2f}"])
+        curves.append((cell, results))
+    columns = list(grid) + ["method", "runs", "diverged", "final_test_loss", "final_test_loss_std", "best_test_loss", "ms_per_step"]
+    _write_csv(out / "grid_summary.csv", columns, rows)
+    suffix = "" if metric == "loss" else f"_{metric}"
+    figure = grid_panels(
+        curves, out / f"grid{suffix}.png", panel=panel, methods=info["methods"], metric=metric,
+        title=f"{info['problem']}: test {metric} per epoch ({len(info['seeds'])} seeds, line: geometric mean)",
+    )  # fmt: skip
+    return GridReport(rows, lines, figure)
