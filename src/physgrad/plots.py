@@ -79,19 +79,29 @@ def loss_vs_time(
 LINE_STYLES = ("-", "--", ":", "-.")
 
 
+def _moving_average(values: np.ndarray, window: int) -> np.ndarray:
+    """Trailing mean over ``window`` points, left-padded with the first value."""
+    if window <= 1 or values.size == 0:
+        return values
+    padded = np.concatenate([np.full(window - 1, values[0]), values])
+    return np.convolve(padded, np.ones(window) / window, mode="valid")
+
+
 def grid_panels(
     curves: list[tuple[dict[str, str], list[dict[str, Any]]]],
     path: str | Path,
     *,
     panel: str,
     methods: Sequence[str],
-    metric: str = "loss",
+    metric: str = "test loss",
     title: str = "",
+    smooth: int = 1,
 ) -> Path:
-    """One panel per value of the ``panel`` setting (the StableBPTT figure layout): test
+    """One panel per value of the ``panel`` setting (the StableBPTT figure layout): the
     ``metric`` against epochs, log y; colour = method, line style = the cell's other swept
-    settings. Each line is the geometric mean over seeds (on the epochs all seeds reached).
-    ``curves`` holds (cell, metric rows with an ``epoch`` field) per grid cell."""
+    settings. Each line is the geometric mean over seeds (on the epochs all seeds reached),
+    after a ``smooth``-point moving average left-padded with the first value (as the
+    authors' plots). ``curves`` holds (cell, metric rows with an ``epoch`` field) per cell."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -117,14 +127,14 @@ def grid_panels(
                     continue
                 n = min(s.shape[1] for s in series)
                 epochs = series[0][0][:n]
-                logs = np.stack([np.log10(np.maximum(s[1][:n], 1e-30)) for s in series])
+                logs = np.stack([np.log10(np.maximum(_moving_average(s[1][:n], smooth), 1e-30)) for s in series])
                 label = method + (f" ({', '.join(f'{k}={v}' for k, v in rest)})" if rest else "")
                 ax.plot(epochs, 10 ** logs.mean(0), style, color=colours[i % len(colours)], lw=1.2, label=label)
         ax.set_yscale("log")
         ax.set_title(f"{panel} = {value}", fontsize=9)
         ax.set_xlabel("epoch")
         ax.grid(True, which="both", alpha=0.3)
-    axes[0][0].set_ylabel(f"test {metric}")
+    axes[0][0].set_ylabel(metric)
     handles, labels = axes[0][0].get_legend_handles_labels()
     fig.legend(handles, labels, loc="lower center", ncol=min(len(labels), 4), fontsize=7, frameon=False)
     fig.suptitle(title, fontsize=10)

@@ -414,10 +414,20 @@ class GridReport(NamedTuple):
     figure: Path
 
 
-def grid_report(out: str | Path, *, panel: str | None = None, metric: str = "loss") -> GridReport:
+def grid_report(
+    out: str | Path,
+    *,
+    panel: str | None = None,
+    metric: str = "loss",
+    split: str = "test",
+    smooth: int = 1,
+    figure: str | Path | None = None,
+) -> GridReport:
     """Table and panel figure of a grid from its cells' files: one panel per value of
     ``panel`` (default: the first swept setting), one colour per method and one line style
-    per value of the other swept settings; x = epochs, y = test ``metric`` (log)."""
+    per value of the other swept settings; x = epochs, y = ``split`` ``metric`` (log),
+    optionally a ``smooth``-epoch moving average (the StableBPTT plots use 30). The figure
+    goes to ``figure`` (default ``OUT/grid[_metric].png``)."""
     from .plots import grid_panels
 
     out = Path(out)
@@ -436,7 +446,7 @@ def grid_report(out: str | Path, *, panel: str | None = None, metric: str = "los
             continue
         summary = read_csv(study / "summary.csv")
         per_epoch = {(r["method"], r["seed"]): _float(r["epochs"]) / max(_float(r["steps"]), 1.0) for r in summary}
-        results = [r for r in read_csv(study / "results.csv") if r["split"] == "test" and r["metric"] == metric]
+        results = [r for r in read_csv(study / "results.csv") if r["split"] == split and r["metric"] == metric]
         for r in results:
             r["epoch"] = float(r["step"]) * per_epoch.get((r["method"], r["seed"]), math.nan)
         for t in aggregate(summary, method_order(summary, info)):
@@ -453,8 +463,10 @@ def grid_report(out: str | Path, *, panel: str | None = None, metric: str = "los
     columns = list(grid) + ["method", "runs", "diverged", "final_test_loss", "final_test_loss_std", "best_test_loss", "ms_per_step"]
     _write_csv(out / "grid_summary.csv", columns, rows)
     suffix = "" if metric == "loss" else f"_{metric}"
+    smoothing = f", {smooth}-epoch moving average" if smooth > 1 else ""
     figure = grid_panels(
-        curves, out / f"grid{suffix}.png", panel=panel, methods=info["methods"], metric=metric,
-        title=f"{info['problem']}: test {metric} per epoch ({len(info['seeds'])} seeds, line: geometric mean)",
+        curves, figure or out / f"grid{suffix}.png", panel=panel, methods=info["methods"], metric=f"{split} {metric}",
+        smooth=smooth,
+        title=f"{info['problem']}: {split} {metric} per epoch ({len(info['seeds'])} seeds, line: geometric mean{smoothing})",
     )  # fmt: skip
     return GridReport(rows, lines, figure)
