@@ -24,3 +24,16 @@ def test_readme_example_trains():
 
 def test_readme_sip_example_trains():
     run_example("SIP on your own simulator", 10)
+
+
+def test_readme_bptt_example_trains():
+    text = (Path(__file__).parents[1] / "README.md").read_text()
+    code = re.search(r"## Back-propagation through time.*?```python\n(.*?)```", text, re.S).group(1)
+    namespace = {}
+    exec(compile(code, "README.md", "exec"), namespace)
+    from physgrad.rollout import rollout
+
+    system, batch = namespace["system"], namespace["batch"]
+    initial = float(namespace["loss"])
+    final = float(rollout(system, namespace["params"], batch)[0])
+    assert final < initial / 5, (initial, final)
