@@ -175,7 +175,7 @@ def test_quantum_controller_equals_equinox_convolutions():
 
 
 def test_quantum_data_are_normalised_superpositions_of_the_two_lowest_states():
-    problem = QuantumControl(target=5)
+    problem = QuantumControl(eigenstate=5)
     psi = np.asarray(problem.make_data(None)["train"])
     assert psi.shape == (256, 32) and psi.dtype == np.complex64
     np.testing.assert_allclose(np.linalg.norm(psi, axis=1), 1.0, atol=1e-5)

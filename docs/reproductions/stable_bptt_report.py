@@ -24,7 +24,7 @@ FIGURES = Path(__file__).parent / "figures"
 TASKS = {  # directory: (title, the complexity setting)
     "cartpole": ("Cart-pole swing-up (paper Fig. 4)", "poles"),
     "guidance": ("Guidance by repulsion (paper Fig. 3)", "rc"),
-    "quantum_control": ("Quantum control (paper Fig. 5)", "target"),
+    "quantum_control": ("Quantum control (paper Fig. 5)", "eigenstate"),
 }
 LABELS = {"bptt": "R (bptt)", "sbptt_m": "M (sbptt_m)", "sbptt_c": "C (sbptt_c)", "no_temporal": "S (no_temporal)"}
 

@@ -25,9 +25,9 @@ EPOCHS_QUANTUM=${EPOCHS_QUANTUM:-60}
 METHODS=bptt,sbptt_m,sbptt_c,no_temporal
 CLIPS=value,norm,none
 
-quantum() {  # $1: the targets, $2: the clip modes to sweep
+quantum() {  # $1: the eigenstates, $2: the clip modes to sweep
   $PG compare quantum_control --methods $METHODS --seeds 3 --epochs "$EPOCHS_QUANTUM" \
-    --set target="$1" --set clip="$2" --out "$OUT/quantum_control" --quiet
+    --set eigenstate="$1" --set clip="$2" --out "$OUT/quantum_control" --quiet
 }
 
 case "${1:-all}" in

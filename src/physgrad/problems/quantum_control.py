@@ -13,7 +13,7 @@ is conserved.
 
 Initial states ψ₀ = (c₁ e^{iα₁} φ₁ + c₂ e^{iα₂} φ₂)/√(c₁² + c₂²), c_k ~ N(0, 1), α_k ~
 U(0, 2π) (weighting 1-1), φ_n the discrete Dirichlet eigenvectors sin(π n j/33)
-normalised. Target φ_TS, TS ∈ {3, 4, 5} (setting ``target``; the authors' plots count
+normalised. Target φ_TS, TS ∈ {3, 4, 5} (setting ``eigenstate``; the authors' plots count
 from 0 and title these 2, 3, 4). Loss (continuous, summed over time):
 
     L = Σ_{t=1}^{128} (1 − |⟨ψ_t, φ_TS⟩|²)      ∈ [0, 128].
@@ -87,7 +87,7 @@ class QuantumController(eqx.Module):
 class QuantumControl(ClosedLoopProblem):
     """Feedback control of the 1-D Schrödinger equation to eigenstate 3, 4 or 5 (summed infidelity)."""
 
-    target: int = eqx.field(static=True, default=3)
+    eigenstate: int = eqx.field(static=True, default=3)
     nx: int = eqx.field(static=True, default=32)
     dt: float = eqx.field(static=True, default=0.0625)
     n_steps: int = eqx.field(static=True, default=128)
@@ -99,13 +99,13 @@ class QuantumControl(ClosedLoopProblem):
     name: ClassVar[str] = "quantum_control"
     description: ClassVar[str] = (
         "StableBPTT: closed-loop CNN control of the 1-D Schroedinger equation, Crank-Nicolson Nx 32, "
-        "0.0625 x 128, to eigenstate 3-5 (setting target), summed infidelity"
+        "0.0625 x 128, to eigenstate 3-5 (setting eigenstate), summed infidelity"
     )
     source: ClassVar[str] = "Schnell & Thuerey, ICLR 2024, quantum control; stablebptt.md §2.4"
 
     def __check_init__(self):
-        if not 1 <= self.target <= self.nx:
-            raise ValueError(f"target must be an eigenstate 1..{self.nx}, got {self.target}")
+        if not 1 <= self.eigenstate <= self.nx:
+            raise ValueError(f"eigenstate must be an eigenstate 1..{self.nx}, got {self.eigenstate}")
 
     @property
     def num_steps(self) -> int:
@@ -136,7 +136,7 @@ class QuantumControl(ClosedLoopProblem):
 
     def fidelity(self, psi):
         """|⟨ψ, φ_TS⟩|²."""
-        return jnp.abs(jnp.vdot(self.box.eigenstate(self.target).astype(psi.dtype), psi)) ** 2
+        return jnp.abs(jnp.vdot(self.box.eigenstate(self.eigenstate).astype(psi.dtype), psi)) ** 2
 
     def step_loss(self, s_next, c, k):
         return 1.0 - self.fidelity(s_next)
