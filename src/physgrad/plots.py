@@ -110,7 +110,9 @@ def grid_panels(
     values = list(dict.fromkeys(cell[panel] for cell, _ in curves))
     others = list(dict.fromkeys(tuple((k, v) for k, v in cell.items() if k != panel) for cell, _ in curves))
     colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
-    fig, axes = plt.subplots(1, max(len(values), 1), figsize=(4.2 * max(len(values), 1), 3.8), dpi=120, squeeze=False)
+    fig, axes = plt.subplots(
+        1, max(len(values), 1), figsize=(4.2 * max(len(values), 1), 3.8), dpi=120, squeeze=False, sharey=True
+    )
     for ax, value in zip(axes[0], values):
         for cell, rows in curves:
             if cell[panel] != value:
