@@ -37,8 +37,9 @@ case "${1:-all}" in
   guidance)
     $PG compare guidance --methods $METHODS --seeds 3 --epochs "$EPOCHS_GUIDANCE" \
       --set rc=1.0,0.1,0.01,0.001 --set clip=$CLIPS --out "$OUT/guidance" --quiet ;;
+  # (a trailing comma sweeps one value, so the cell keeps both names: eigenstate5_clipnone)
   quantum_a) quantum 3,4 value,norm ;;  # 4 of the 9 cells
-  quantum_b) quantum 5 $CLIPS; quantum 3,4 none ;;  # the other 5
+  quantum_b) quantum 5, $CLIPS; quantum 3,4 none, ;;  # the other 5
   quantum) quantum 3,4,5 $CLIPS ;;
   all) for lane in cartpole guidance quantum; do bash "$0" "$lane"; done ;;
   *) echo "unknown lane $1; valid: cartpole, guidance, quantum_a, quantum_b, quantum, all" >&2; exit 2 ;;

@@ -114,7 +114,9 @@ def build_parser() -> Parser:
     p = sub.add_parser("report", help="re-draw a study's (or a sweep's) table and figure from its files")
     p.add_argument("dir")
     p.add_argument("--panel", help="sweeps: the swept setting with one panel per value (default: the first)")
-    p.add_argument("--metric", default="loss", help="sweeps: the test metric to draw (default loss)")
+    p.add_argument("--metric", default="loss", help="sweeps: the metric to draw (default loss; e.g. step_grad_norm2 with --split train)")
+    p.add_argument("--split", default="test", help="sweeps: the split of --metric (default test)")
+    p.add_argument("--smooth", type=int, default=1, help="sweeps: moving average over this many epochs (the paper: 30)")
 
     p = sub.add_parser("demo", help="adam vs gn vs hig on the oscillators in about two minutes")
     p.add_argument("--out", default="studies/demo")
@@ -227,7 +229,7 @@ def cmd_report(args, console):
     from .study import grid_report, report
 
     if (Path(args.dir) / "grid.json").exists():
-        result = grid_report(args.dir, panel=args.panel, metric=args.metric)
+        result = grid_report(args.dir, panel=args.panel, metric=args.metric, split=args.split, smooth=args.smooth)
         _print_table(console, result.lines, title=str(args.dir))
         console.print(f"wrote {result.figure}")
         return 0

@@ -137,8 +137,13 @@ def grid_panels(
         ax.set_xlabel("epoch")
         ax.grid(True, which="both", alpha=0.3)
     axes[0][0].set_ylabel(metric)
-    handles, labels = axes[0][0].get_legend_handles_labels()
-    fig.legend(handles, labels, loc="lower center", ncol=min(len(labels), 4), fontsize=7, frameon=False)
+    legend = {}  # every panel's lines (a panel of a partly finished grid may have none)
+    for ax in axes[0]:
+        for handle, label in zip(*ax.get_legend_handles_labels()):
+            legend.setdefault(label, handle)
+    labels = list(legend)
+    if labels:
+        fig.legend(list(legend.values()), labels, loc="lower center", ncol=min(len(labels), 4), fontsize=7, frameon=False)
     fig.suptitle(title, fontsize=10)
     fig.tight_layout(rect=(0, 0.04 + 0.035 * math.ceil(len(labels) / 4), 1, 0.95))
     path = Path(path)

@@ -104,6 +104,7 @@ def compare(
                 "seeds": list(seeds),
                 "budget": budget.to_dict(),
                 "settings": settings or {},
+                "runs": [run_name(c) for c in configs],
             },
             indent=2,
         )
@@ -133,10 +134,16 @@ def describe_run(summary: dict[str, Any]) -> str:
 
 
 def collect(out: str | Path) -> list[dict[str, Any]]:
-    """Gather the runs of a study into ``results.csv`` and ``summary.csv``."""
+    """Gather the runs of a study into ``results.csv`` and ``summary.csv`` (only the runs
+    that ``study.json`` plans, when it lists them: a directory reused with another budget or
+    setting keeps the old runs' directories, which must not mix into the tables)."""
     out = Path(out)
     rows, results = [], []
+    study = json.loads((out / "study.json").read_text()) if (out / "study.json").exists() else {}
+    planned = set(study.get("runs", [])) or None  # a reused directory keeps other plans' runs
     for run_dir in sorted((out / "runs").glob("*")):
+        if planned is not None and run_dir.name not in planned:
+            continue
         summary, config_path = read_summary(run_dir), run_dir / "config.json"
         if summary is None or summary.get("status") not in ("finished", "diverged") or not config_path.exists():
             continue
@@ -440,8 +447,8 @@ def grid_report(
     rows, curves, lines = [], [], [["cell", "method", "runs", "final test loss", "best test loss", "ms/step"]]
     for cell in grid_cells(grid):
         study = out / cell_name(cell)
-        if not (study / "summary.csv").exists():
-            collect(study) if (study / "runs").exists() else None
+        if (study / "runs").exists():
+            collect(study)  # the cell's files may predate runs finished since
         if not (study / "summary.csv").exists():
             continue
         summary = read_csv(study / "summary.csv")

@@ -21,8 +21,8 @@ name               network input          physics input           gradient
 =================  =====================  ======================  ===========================
 
 Two cuts combine with any of them (List et al. 2025, shared/papers/unrolling.md §1.2):
-``truncate=k`` stops both paths at every k-th step (truncated BPTT: gradients live within
-windows of k steps), ``warmup=W`` runs the first W steps without gradient and drops their
+``truncate=k`` stops both paths at every k-th step, counted from step 0 (truncated BPTT:
+gradients live within windows of k steps; with a warm-up the windows are not shifted), ``warmup=W`` runs the first W steps without gradient and drops their
 losses (the "pushforward" trick): both paths are stopped at step W and the losses of
 steps 0..W−1 are masked.
 """
