@@ -16,6 +16,8 @@
 #   taskset -c 0 bash docs/reproductions/stable_bptt_runs.sh quantum_b
 # then `bash docs/reproductions/stable_bptt_runs.sh quantum` (skips every finished run,
 # records the whole grid) and `python docs/reproductions/stable_bptt_report.py`.
+# `cartpole_long` re-runs the hardest cart-pole setting (4 poles) at the paper's 1000
+# epochs for R and C (it ran beside the quantum lanes on core 1).
 set -euo pipefail
 PG=${PHYSGRAD:-physgrad}
 OUT=${OUT:-studies/stable_bptt}
@@ -41,6 +43,9 @@ case "${1:-all}" in
   quantum_a) quantum 3,4 value,norm ;;  # 4 of the 9 cells
   quantum_b) quantum 5, $CLIPS; quantum 3,4 none, ;;  # the other 5
   quantum) quantum 3,4,5 $CLIPS ;;
-  all) for lane in cartpole guidance quantum; do bash "$0" "$lane"; done ;;
-  *) echo "unknown lane $1; valid: cartpole, guidance, quantum_a, quantum_b, quantum, all" >&2; exit 2 ;;
+  cartpole_long)  # the hardest cart-pole setting at the paper's 1000 epochs, R vs C
+    $PG compare cartpole --methods bptt,sbptt_c --seeds 3 --epochs 1000 \
+      --set poles=4, --set clip=value,norm --out "$OUT/cartpole-1000ep" --quiet ;;
+  all) for lane in cartpole guidance quantum cartpole_long; do bash "$0" "$lane"; done ;;
+  *) echo "unknown lane $1; valid: cartpole, guidance, quantum_a, quantum_b, quantum, cartpole_long, all" >&2; exit 2 ;;
 esac
