@@ -26,6 +26,7 @@ from physgrad.study import cell_name, grid_cells, grid_report, markdown, read_cs
 FIGURES = Path(__file__).parent / "figures"
 TASKS = {  # directory: (title, the complexity setting)
     "cartpole": ("Cart-pole swing-up (paper Fig. 4)", "poles"),
+    "cartpole-1000ep": ("Cart-pole, 4 poles, R vs C at the paper's 1000 epochs", "poles"),
     "guidance": ("Guidance by repulsion (paper Fig. 3)", "rc"),
     "quantum_control": ("Quantum control (paper Fig. 5)", "eigenstate"),
 }
@@ -82,9 +83,9 @@ def task_section(root: Path, task: str, smooth: int) -> str:
     if not (out / "grid.json").exists():
         return f"## {title}: no sweep under {out} yet\n"
     info = json.loads((out / "grid.json").read_text())
-    report = grid_report(out, panel=setting, smooth=smooth, figure=FIGURES / f"stable_bptt_{task}.png")
-    grid_report(out, panel=setting, metric="step_grad_norm2", split="train", smooth=smooth,
-                figure=FIGURES / f"stable_bptt_{task}_grad_norm2.png")  # fmt: skip
+    report = grid_report(out, panel=setting, smooth=smooth, methods=list(LABELS), figure=FIGURES / f"stable_bptt_{task.replace('-', '_')}.png")
+    grid_report(out, panel=setting, metric="step_grad_norm2", split="train", smooth=smooth, methods=list(LABELS),
+                figure=FIGURES / f"stable_bptt_{task.replace('-', '_')}_grad_norm2.png")  # fmt: skip
     clips = info["grid"].get("clip", [""])
     values = info["grid"][setting]
     rows = {(r[setting], r.get("clip", ""), r["method"]): r for r in report.rows}
@@ -113,8 +114,9 @@ def task_section(root: Path, task: str, smooth: int) -> str:
         best_lines.append([value, f"{LABELS.get(ranking[0], ranking[0])} ({best[ranking[0]][1]})",
                            " < ".join(f"{LABELS.get(m, m).split()[0]} {best[m][0]:.2e}" for m in ranking)])  # fmt: skip
     budget = ", ".join(f"{v:g} {k}" for k, v in info["budget"].items())
-    figures = [f"![{title}: test loss](figures/stable_bptt_{task}.png)",
-               f"![{title}: squared gradient norm](figures/stable_bptt_{task}_grad_norm2.png)"]  # fmt: skip
+    name = task.replace("-", "_")
+    figures = [f"![{title}: test loss](figures/stable_bptt_{name}.png)",
+               f"![{title}: squared gradient norm](figures/stable_bptt_{name}_grad_norm2.png)"]  # fmt: skip
     return "\n".join([
         f"## {title}: {budget} per run, {len(info['seeds'])} seeds",
         "",
@@ -125,7 +127,8 @@ def task_section(root: Path, task: str, smooth: int) -> str:
         "",
         markdown(best_lines),
         "",
-        "All clip modes and seeds pooled (9 runs per cell): median [min, max] of the finished runs' final test loss:",
+        f"All clip modes and seeds pooled ({len(clips) * len(info['seeds'])} runs per cell): median [min, max] "
+        "of the finished runs' final test loss:",
         "",
         markdown(pooled),
         "",

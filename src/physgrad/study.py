@@ -429,12 +429,14 @@ def grid_report(
     split: str = "test",
     smooth: int = 1,
     figure: str | Path | None = None,
+    methods: Sequence[str] | None = None,
 ) -> GridReport:
     """Table and panel figure of a grid from its cells' files: one panel per value of
     ``panel`` (default: the first swept setting), one colour per method and one line style
     per value of the other swept settings; x = epochs, y = ``split`` ``metric`` (log),
     optionally a ``smooth``-epoch moving average (the StableBPTT plots use 30). The figure
-    goes to ``figure`` (default ``OUT/grid[_metric].png``)."""
+    goes to ``figure`` (default ``OUT/grid[_metric].png``); ``methods`` fixes the colour
+    order (default: the grid's methods), so several reports can share colours."""
     from .plots import grid_panels
 
     out = Path(out)
@@ -472,7 +474,7 @@ def grid_report(
     suffix = "" if metric == "loss" else f"_{metric}"
     smoothing = f", {smooth}-epoch moving average" if smooth > 1 else ""
     figure = grid_panels(
-        curves, figure or out / f"grid{suffix}.png", panel=panel, methods=info["methods"], metric=f"{split} {metric}",
+        curves, figure or out / f"grid{suffix}.png", panel=panel, methods=methods or info["methods"], metric=f"{split} {metric}",
         smooth=smooth,
         title=f"{info['problem']}: {split} {metric} per epoch ({len(info['seeds'])} seeds, line: geometric mean{smoothing})",
     )  # fmt: skip
