@@ -17,7 +17,9 @@
 # then `bash docs/reproductions/stable_bptt_runs.sh quantum` (skips every finished run,
 # records the whole grid) and `python docs/reproductions/stable_bptt_report.py`.
 # `cartpole_long` re-runs the hardest cart-pole setting (4 poles) at the paper's 1000
-# epochs for R and C (it ran beside the quantum lanes on core 1).
+# epochs for R and C (it ran beside the quantum lanes on core 1); `quantum_long` runs the
+# hardest quantum target for 250 epochs (it ran as two lanes, METHODS_LONG=sbptt_c and
+# METHODS_LONG=bptt,sbptt_m, then once with all three to record the study).
 set -euo pipefail
 PG=${PHYSGRAD:-physgrad}
 OUT=${OUT:-studies/stable_bptt}
@@ -46,6 +48,9 @@ case "${1:-all}" in
   cartpole_long)  # the hardest cart-pole setting at the paper's 1000 epochs, R vs C
     $PG compare cartpole --methods bptt,sbptt_c --seeds 3 --epochs 1000 \
       --set poles=4, --set clip=value,norm --out "$OUT/cartpole-1000ep" --quiet ;;
-  all) for lane in cartpole guidance quantum cartpole_long; do bash "$0" "$lane"; done ;;
-  *) echo "unknown lane $1; valid: cartpole, guidance, quantum_a, quantum_b, quantum, cartpole_long, all" >&2; exit 2 ;;
+  all) for lane in cartpole guidance quantum cartpole_long quantum_long; do bash "$0" "$lane"; done ;;
+  quantum_long)  # the hardest quantum target for longer: does C overtake M? (R, M, C; norm clipping)
+    $PG compare quantum_control --methods "${METHODS_LONG:-bptt,sbptt_m,sbptt_c}" --seeds 3 --epochs 250 \
+      --set eigenstate=5, --set clip=norm, --out "$OUT/quantum_control-250ep" --quiet ;;
+  *) echo "unknown lane $1; valid: cartpole, guidance, quantum_a, quantum_b, quantum, cartpole_long, quantum_long, all" >&2; exit 2 ;;
 esac
