@@ -29,6 +29,7 @@ TASKS = {  # directory: (title, the complexity setting)
     "cartpole-1000ep": ("Cart-pole, 4 poles, R vs C at the paper's 1000 epochs", "poles"),
     "guidance": ("Guidance by repulsion (paper Fig. 3)", "rc"),
     "quantum_control": ("Quantum control (paper Fig. 5)", "eigenstate"),
+    "quantum_control-250ep": ("Quantum control, eigenstate 5, R vs M vs C at 250 epochs", "eigenstate"),
 }
 LABELS = {"bptt": "R (bptt)", "sbptt_m": "M (sbptt_m)", "sbptt_c": "C (sbptt_c)", "no_temporal": "S (no_temporal)"}
 
