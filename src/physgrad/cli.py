@@ -150,6 +150,8 @@ def cmd_list(args, console):
     console.print("[bold]SIP local inverse solvers[/bold] (--set solver=...)")
     console.print(f"  {', '.join(INVERSE_SOLVERS)}", markup=False)
     console.print("  --no-network optimises x itself for each test sample (direct optimisation)", markup=False)
+    console.print("  a comma-separated --set value sweeps a grid in compare: --set poles=1,2,3,4 --set clip=value,norm,none",
+                  markup=False)  # fmt: skip
     return 0
 
 
