@@ -85,28 +85,22 @@ def _method(policy, clip, clip_threshold, lr, eps, checkpoint):
     return RolloutGradient(policy, optimizer, checkpoint)
 
 
-def _cuts(truncate, warmup):
-    if truncate < 0 or warmup < 0:
-        raise ValueError(f"truncate and warmup must be >= 0, got {truncate} and {warmup}")
-    return {"truncate": truncate, "warmup": warmup}
-
-
 def bptt(*, clip: str = "value", clip_threshold: float = 1.0, lr: float = 1e-3, eps: float = 1e-7,
          truncate: int = 0, warmup: int = 0, checkpoint: bool = False):  # fmt: skip
     """Full BPTT (R): the true rollout gradient, clipped, Adam; truncate=k cuts every k steps."""
-    return _method(R(**_cuts(truncate, warmup)), clip, clip_threshold, lr, eps, checkpoint)
+    return _method(R(truncate=truncate, warmup=warmup), clip, clip_threshold, lr, eps, checkpoint)
 
 
 def sbptt_m(*, clip: str = "value", clip_threshold: float = 1.0, lr: float = 1e-3, eps: float = 1e-7,
             truncate: int = 0, warmup: int = 0, checkpoint: bool = False):  # fmt: skip
     """Stabilised BPTT's modified gradient (M): stop-gradient on the network's input only."""
-    return _method(M(**_cuts(truncate, warmup)), clip, clip_threshold, lr, eps, checkpoint)
+    return _method(M(truncate=truncate, warmup=warmup), clip, clip_threshold, lr, eps, checkpoint)
 
 
 def no_temporal(*, clip: str = "value", clip_threshold: float = 1.0, lr: float = 1e-3, eps: float = 1e-7,
                 warmup: int = 0, checkpoint: bool = False):  # fmt: skip
     """No temporal gradient (S): stop-gradient on network and physics inputs (one-step gradients)."""
-    return _method(S(**_cuts(0, warmup)), clip, clip_threshold, lr, eps, checkpoint)
+    return _method(S(warmup=warmup), clip, clip_threshold, lr, eps, checkpoint)
 
 
 def sbptt_c(*, clip: str = "value", clip_threshold: float = 1.0, lr: float = 1e-3, eps: float = 1e-7,

@@ -47,9 +47,6 @@ class CartPole(ClosedLoopProblem):
     half_length: float = eqx.field(static=True, default=0.5)
     width: int = eqx.field(static=True, default=100)
     zero_init: bool = eqx.field(static=True, default=True)
-    n_train: int = eqx.field(static=True, default=256)
-    n_test: int = eqx.field(static=True, default=256)
-    data_seed: int = eqx.field(static=True, default=42)
 
     name: ClassVar[str] = "cartpole"
     description: ClassVar[str] = (
@@ -61,10 +58,6 @@ class CartPole(ClosedLoopProblem):
     def __check_init__(self):
         if self.poles < 1:
             raise ValueError(f"poles must be at least 1, got {self.poles}")
-
-    @property
-    def num_steps(self) -> int:
-        return self.n_steps
 
     def initial_states(self, key, n):
         kx, kv, kt, kw = jax.random.split(key, 4)

@@ -39,10 +39,15 @@ class ClosedLoopProblem(AbstractProblem):
     default_batch_size: ClassVar[int] = 8
     default_methods: ClassVar[tuple[str, ...]] = ("bptt", "sbptt_m", "sbptt_c", "no_temporal")
 
-    # --- what a subclass defines -------------------------------------------------------
+    # The protocol's data (§2.1): 256 train + 256 test initial states from one fixed seed.
+    n_train: int = eqx.field(static=True, default=256)
+    n_test: int = eqx.field(static=True, default=256)
+    data_seed: int = eqx.field(static=True, default=42)
+
+    # --- what a subclass defines (and a setting ``n_steps``, the rollout length) ---------
     @property
-    @abc.abstractmethod
-    def num_steps(self) -> int: ...
+    def num_steps(self) -> int:
+        return self.n_steps
 
     @abc.abstractmethod
     def initial_states(self, key, n: int) -> Sample:

@@ -70,9 +70,6 @@ class Guidance(ClosedLoopProblem):
     c_spread: float = eqx.field(static=True, default=0.2)
     width: int = eqx.field(static=True, default=100)
     zero_init: bool = eqx.field(static=True, default=True)
-    n_train: int = eqx.field(static=True, default=256)
-    n_test: int = eqx.field(static=True, default=256)
-    data_seed: int = eqx.field(static=True, default=42)
 
     name: ClassVar[str] = "guidance"
     description: ClassVar[str] = (
@@ -86,10 +83,6 @@ class Guidance(ClosedLoopProblem):
             raise ValueError("guidance needs at least one driver and one evader")
         if self.rc < 0:
             raise ValueError(f"rc must be >= 0, got {self.rc}")
-
-    @property
-    def num_steps(self) -> int:
-        return self.n_steps
 
     @property
     def dt(self) -> float:

@@ -92,9 +92,6 @@ class QuantumControl(ClosedLoopProblem):
     dt: float = eqx.field(static=True, default=0.0625)
     n_steps: int = eqx.field(static=True, default=128)
     width: int = eqx.field(static=True, default=60)
-    n_train: int = eqx.field(static=True, default=256)
-    n_test: int = eqx.field(static=True, default=256)
-    data_seed: int = eqx.field(static=True, default=42)
 
     name: ClassVar[str] = "quantum_control"
     description: ClassVar[str] = (
@@ -106,10 +103,6 @@ class QuantumControl(ClosedLoopProblem):
     def __check_init__(self):
         if not 1 <= self.eigenstate <= self.nx:
             raise ValueError(f"eigenstate must be an eigenstate 1..{self.nx}, got {self.eigenstate}")
-
-    @property
-    def num_steps(self) -> int:
-        return self.n_steps
 
     @property
     def box(self) -> QuantumDipole:

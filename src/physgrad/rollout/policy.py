@@ -51,16 +51,6 @@ class GradientFlow(eqx.Module):
         if self.truncate < 0 or self.warmup < 0:
             raise ValueError(f"truncate and warmup must be >= 0, got {self.truncate} and {self.warmup}")
 
-    @property
-    def name(self) -> str:
-        base = {(False, False): "R", (True, False): "M", (False, True): "N", (True, True): "S"}
-        text = base[(self.stop_network, self.stop_physics)]
-        if self.truncate:
-            text += f", truncated every {self.truncate}"
-        if self.warmup:
-            text += f", warm-up {self.warmup}"
-        return text
-
     def cut(self, k) -> jax.Array | bool:
         """Whether both paths are stopped at step ``k`` (a traced bool, or False)."""
         cut = False
@@ -126,10 +116,6 @@ class Combined(eqx.Module):
     base: GradientFlow = GradientFlow(stop_network=True)
     comparison: GradientFlow = GradientFlow()
     one_pass: bool = eqx.field(static=True, default=True)
-
-    @property
-    def name(self) -> str:
-        return f"C ({self.base.name} masked by sign of {self.comparison.name})"
 
 
 def sign_mask(base, comparison):
