@@ -36,7 +36,7 @@ import jax.numpy as jnp
 from .config import ConfigError, RunConfig
 from .nets import parameter_count
 from .methods import METHODS, AbstractMethod, Objective
-from .problems import PROBLEMS, AbstractProblem, ClosedLoopProblem
+from .problems import PROBLEMS, AbstractProblem, ClosedLoopProblem, TimeStepperProblem
 from .problems.direct import DirectOptimisation
 from .progress import AbstractProgressMeter, NoProgressMeter
 
@@ -53,6 +53,7 @@ class Stage:
     steps_per_epoch: int
     start: int
     steps: int | None  # None: until the budget is spent
+    label: str = ""  # the method's name (with the unroll length in a curriculum)
 
     def contains(self, step: int) -> bool:
         return step >= self.start and (self.steps is None or step < self.start + self.steps)
@@ -95,9 +96,16 @@ class Setup:
         return eqx.combine(self.params if params is None else params, self.static)
 
 
-def build(config: RunConfig) -> Setup:
-    """Problem, data, network and method(s) for a configuration (deterministic per seed)."""
-    problem = PROBLEMS[config.problem](**config.problem_settings)
+def build(config: RunConfig, overrides: dict[str, Any] | None = None) -> Setup:
+    """Problem, data, network and method(s) for a configuration (deterministic per seed).
+
+    ``overrides`` replaces problem settings (a fidelity schedule such as PRDP changes the
+    solver's iteration count during a run). A method with a curriculum (``stages()``)
+    expands into one stage per curriculum step."""
+    try:
+        problem = PROBLEMS[config.problem](**{**config.problem_settings, **(overrides or {})})
+    except ValueError as e:
+        raise ConfigError(f"{config.problem}: {e}") from None
     key = jax.random.key(config.seed)
     if config.no_network:
         problem = DirectOptimisation(problem)
@@ -113,8 +121,19 @@ def build(config: RunConfig) -> Setup:
         if phase.batch_size > n_train:
             raise ConfigError(f"batch_size {phase.batch_size} exceeds the {n_train} training samples")
         method = METHODS[phase.method](**phase.hyperparameters)
-        stages.append(Stage(method, phase.batch_size, n_train // phase.batch_size, start, phase.steps))
-        start += phase.steps or 0
+        per_epoch = n_train // phase.batch_size
+        expanded = method.stages() if hasattr(method, "stages") else [(method, None)]
+        phase_start = start
+        for i, (stage_method, epochs) in enumerate(expanded):
+            if epochs is not None:  # a curriculum stage before the last
+                steps = max(1, round(epochs * per_epoch))
+            elif phase.steps is not None:  # the phase's remaining steps
+                steps = max(1, phase.steps - (start - phase_start))
+            else:
+                steps = None
+            label = phase.method + (f"[m={stage_method.m}]" if len(expanded) > 1 else "")
+            stages.append(Stage(stage_method, phase.batch_size, per_epoch, start, steps, label))
+            start += steps or 0
 
     def predict(p, sample):
         return problem.predict(eqx.combine(p, static), sample)
@@ -130,20 +149,34 @@ def build(config: RunConfig) -> Setup:
         target=problem.target,
         inverse=problem.inverse,
         rollout=_rollout_system(problem, static),
+        unrolled=_unrolled_system(problem, static),
     )
-    for stage, phase in zip(stages, config.phases):
+    for phase in config.phases:
         try:
-            stage.method.check(objective)
+            METHODS[phase.method](**phase.hyperparameters).check(objective)
         except ValueError as e:
             raise ConfigError(f"{phase.method} on {config.problem}: {e}") from None
     return Setup(problem=problem, data=data, params=params, static=static, objective=objective, stages=stages)
 
 
 def _rollout_system(problem: AbstractProblem, static):
-    """The rollout system of a closed-loop problem (None for open-loop problems)."""
-    if not isinstance(problem, ClosedLoopProblem):
+    """The rollout system of a closed-loop or time-stepper problem (None for open-loop ones)."""
+    if isinstance(problem, ClosedLoopProblem):
+        return problem.system(lambda p, s: problem.control(eqx.combine(p, static), s))
+    if isinstance(problem, TimeStepperProblem):
+        return _unrolled_system(problem, static)(None, False)
+    return None
+
+
+def _unrolled_system(problem: AbstractProblem, static):
+    """``(m, teacher_forcing) -> System`` of a time-stepper problem (None otherwise)."""
+    if not isinstance(problem, TimeStepperProblem):
         return None
-    return problem.system(lambda p, s: problem.control(eqx.combine(p, static), s))
+
+    def apply(p, u, cond):
+        return problem.apply(eqx.combine(p, static), u, cond)
+
+    return lambda m=None, teacher_forcing=False: problem.system(apply, m, teacher_forcing)
 
 
 def make_step(setup: Setup, batch_size: int, method: AbstractMethod | None = None):
@@ -163,20 +196,21 @@ def make_step(setup: Setup, batch_size: int, method: AbstractMethod | None = Non
     return jax.jit(step)
 
 
-def make_evaluate(setup: Setup, chunk: int = 1024):
+def make_evaluate(setup: Setup, chunk: int = 1024, per_sample: bool = False):
     """Mean per-sample loss and the problem's extra metrics over a data split (jitted, in
-    chunks of ``chunk``): ``{"loss": ..., **problem.metrics}``."""
+    chunks of ``chunk``): ``{"loss": ..., **problem.metrics}``; with ``per_sample`` the
+    values of every sample instead of their means (for paired tests across methods)."""
     problem = setup.problem
 
-    def per_sample(params, sample):
+    def one(params, sample):
         x = problem.network_output(setup.network(params), sample)
         y = problem.simulate(x, sample)
         return {"loss": problem.loss(y, sample), **problem.metrics(x, y, sample)}
 
     def evaluate(params, data):
         n = jax.tree.leaves(data)[0].shape[0]
-        values = jax.lax.map(lambda s: per_sample(params, s), data, batch_size=min(chunk, n))
-        return jax.tree.map(jnp.mean, values)
+        values = jax.lax.map(lambda s: one(params, s), data, batch_size=min(chunk, n))
+        return values if per_sample else jax.tree.map(jnp.mean, values)
 
     return jax.jit(evaluate)
 
@@ -384,7 +418,7 @@ def train(
     window: dict[str, tuple[float, int]] = {}
     # The train-split evaluation may be limited to its first eval_samples samples (large
     # image datasets would otherwise cost more per evaluation than many training steps).
-    n_eval = config.eval_samples or None
+    n_eval = config.eval_samples or getattr(setup.problem, "default_eval_samples", 0) or None
     eval_train = jax.tree.map(lambda a: a[:n_eval], train_data)
 
     def record(step: int, train_time: float) -> bool:
@@ -434,10 +468,11 @@ def train(
             new_params, new_state, stats = compiled(params, state, train_data, order, jnp.int32(batch))
             loss = float(stats["loss"])  # waits for the step: the timing is honest
             train_time += time.perf_counter() - t_start
-            if not math.isfinite(loss):
+            if not math.isfinite(loss) and not float(stats.get("skipped", 0.0)):
                 status, diverged_step = "diverged", step
                 break
-            params, state, last_finite = new_params, new_state, loss
+            params, state = new_params, new_state
+            last_finite = loss if math.isfinite(loss) else last_finite
             for name, value in stats.items():
                 if name != "loss":
                     value = float(value)
@@ -464,6 +499,9 @@ def train(
         status = "finished"
     checkpoint()
     eqx.tree_serialise_leaves(run_dir / "params.eqx", setup.network(params))
+    # Every test case's final metrics, for paired tests between methods (same seeds and cases).
+    cases = make_evaluate(setup, per_sample=True)(params, test_data)
+    _write_json(run_dir / "test_cases.json", {k: [float(v) for v in vals] for k, vals in cases.items()})
     summary = {
         "status": status,
         "problem": config.problem,
@@ -473,8 +511,8 @@ def train(
         "steps": step,
         "epochs": setup.epochs(step),
         "stage_steps": {
-            p.method if len(config.phases) == 1 else f"{i}:{p.method}": s.steps_done(step)
-            for i, (p, s) in enumerate(zip(config.phases, setup.stages))
+            s.label if len(setup.stages) == 1 else f"{i}:{s.label}": s.steps_done(step)
+            for i, s in enumerate(setup.stages)
         },
         "train_seconds": train_time,
         "compile_seconds": counters["compile_seconds"],

@@ -15,6 +15,7 @@ from .hig import JacobianPower, gn, hig
 from .newton import Newton, newton
 from .sip import ScaleInvariantPhysics, sip
 from .stable_bptt import RolloutGradient, bptt, no_temporal, sbptt_c, sbptt_m
+from .unrolling import Unrolled, nog, one, wig
 
 METHODS: dict[str, Callable[..., AbstractMethod]] = {
     "adam": adam,
@@ -30,6 +31,9 @@ METHODS: dict[str, Callable[..., AbstractMethod]] = {
     "sbptt_m": sbptt_m,
     "sbptt_c": sbptt_c,
     "no_temporal": no_temporal,
+    "one": one,
+    "nog": nog,
+    "wig": wig,
 }
 
 
@@ -53,6 +57,7 @@ __all__ = [
     "ScaleInvariantPhysics",
     "Objective",
     "RolloutGradient",
+    "Unrolled",
     "describe",
     "hyperparameters",
 ]

@@ -27,6 +27,9 @@ class Objective(NamedTuple):
     Rollout methods (BPTT and its variants) use ``rollout``: a
     :class:`physgrad.rollout.System` whose transition takes the trainable parameters; a
     batch of samples is then a batch of initial states. None for open-loop problems.
+    Time-stepper problems also give ``unrolled(m, teacher_forcing) -> System``: the rollout
+    over the first m steps of each window (None: the problem's m), teacher-forced for the
+    one-step modality.
     """
 
     predict: Callable[[PyTree, PyTree], Array]
@@ -36,6 +39,7 @@ class Objective(NamedTuple):
     target: Callable[[PyTree], Array] | None = None
     inverse: Callable | None = None
     rollout: Any = None
+    unrolled: Callable[[int | None, bool], Any] | None = None
 
     def sample_losses(self, params: PyTree, batch: PyTree) -> Array:
         return jax.vmap(lambda s: self.loss(self.predict(params, s), s))(batch)

@@ -57,6 +57,9 @@ class RolloutGradient(AbstractMethod):
                 "this method back-propagates through a rollout; use a closed-loop problem "
                 "(cartpole, guidance, quantum_control)"
             )
+        differentiates_physics = isinstance(self.policy, Combined) or not self.policy.stop_physics
+        if differentiates_physics and not objective.rollout.differentiable_physics:
+            raise ValueError("this method differentiates through the solver, which is not differentiable; use no_temporal")
 
     def gradient(self, system, params, s0):
         """(loss, gradient, extra statistics) of one batch of initial states."""
@@ -74,7 +77,8 @@ class RolloutGradient(AbstractMethod):
         return loss, sign_mask(g_base, g_comparison), {"cos_mr": cosine(g_base, g_comparison)}
 
     def step(self, objective, params, state, batch):
-        loss, grads, stats = self.gradient(objective.rollout, params, batch)
+        system = objective.rollout
+        loss, grads, stats = self.gradient(system, params, system.initial_state(batch))
         norm2 = sum(jnp.vdot(g, g).real for g in jax.tree.leaves(grads))
         updates, state = self.optimizer.update(grads, state, params)
         return optax.apply_updates(params, updates), state, {"loss": loss, "grad_norm2": norm2, **stats}

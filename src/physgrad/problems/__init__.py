@@ -15,13 +15,16 @@ from .linear_oscillators import LinearOscillators
 from .oscillators import Oscillators
 from .poisson_hig import PoissonHig
 from .quantum_dipole import QuantumDipole
+from .time_stepper import TimeStepperProblem
+from .ks import KuramotoSivashinsky
 
 PROBLEMS: dict[str, type[AbstractProblem]] = {
     cls.name: cls for cls in (
         HigToy, Oscillators, QuantumDipole, PoissonHig, LinearOscillators,
         Toy2d, ExpInverse, Sine, Poisson, Heat,
         CartPole, Guidance, QuantumControl,
+        KuramotoSivashinsky,
     )  # fmt: skip
 }
 
-__all__ = ["PROBLEMS", "AbstractProblem", "CartPole", "ClosedLoopProblem", "Guidance", "QuantumControl", "ExpInverse", "Heat", "Poisson", "Sine", "Toy2d", "HigToy", "LinearOscillators", "Oscillators", "PoissonHig", "QuantumDipole"]
+__all__ = ["PROBLEMS", "TimeStepperProblem", "KuramotoSivashinsky", "AbstractProblem", "CartPole", "ClosedLoopProblem", "Guidance", "QuantumControl", "ExpInverse", "Heat", "Poisson", "Sine", "Toy2d", "HigToy", "LinearOscillators", "Oscillators", "PoissonHig", "QuantumDipole"]

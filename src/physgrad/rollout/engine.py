@@ -50,11 +50,21 @@ Transition = Callable[[PyTree, PyTree, PyTree, Array], tuple[PyTree, Array]]
 
 
 class System(NamedTuple):
-    """A rollout over a batch: ``transition``, its number of steps and per-step weights (m,)."""
+    """A rollout over a batch: ``transition``, its number of steps and per-step weights (m,).
+
+    ``init(batch) -> s0`` turns a batch of samples into the initial state (None: the batch
+    is the state). ``differentiable_physics`` is False when the physics inside the
+    transition cannot be differentiated (a policy must then stop its input statically).
+    """
 
     transition: Transition
     num_steps: int
     weights: Array
+    init: Callable[[PyTree], PyTree] | None = None
+    differentiable_physics: bool = True
+
+    def initial_state(self, batch):
+        return batch if self.init is None else self.init(batch)
 
 
 def closed_loop(
@@ -109,9 +119,11 @@ def rollout(
     *,
     checkpoint: bool = False,
     keep_states: bool = False,
+    keep_final: bool = False,
 ) -> tuple[Array, Any]:
     """The rollout loss L (and, with ``keep_states``, the states s_1..s_m stacked on a
-    leading time axis) from a batch of initial states ``s0``, under ``policy`` (default R)."""
+    leading time axis; with ``keep_final`` also the final state as a third value) from a
+    batch of initial states ``s0``, under ``policy`` (default R)."""
     policy = policy or R()
     steps = jnp.arange(system.num_steps)
 
@@ -122,13 +134,29 @@ def rollout(
         total = total + (system.weights[k] * policy.loss_mask(k) * step_loss).astype(total.dtype)
         return (s_next, total), (s_next if keep_states else None)
 
-    (_, loss), states = _scan(body, (s0, jnp.zeros((), system.weights.dtype)), steps, checkpoint)
-    return loss, states
+    (final, loss), states = _scan(body, (s0, jnp.zeros((), system.weights.dtype)), steps, checkpoint)
+    return (loss, states, final) if keep_final else (loss, states)
 
 
-def value_and_grad(system: System, params, s0, policy: GradientFlow | None = None, *, checkpoint: bool = False):
-    """``(L, ∂L/∂θ)`` under one gradient-flow policy (the forward value is the same for all)."""
-    return jax.value_and_grad(lambda p: rollout(system, p, s0, policy, checkpoint=checkpoint)[0])(params)
+def value_and_grad(
+    system: System,
+    params,
+    s0,
+    policy: GradientFlow | None = None,
+    *,
+    checkpoint: bool = False,
+    has_aux: bool = False,
+):
+    """``(L, ∂L/∂θ)`` under one gradient-flow policy (the forward value is the same for all).
+
+    With ``has_aux`` the value is ``(L, s_m)``, the final state (e.g. to read solver-failure
+    flags carried in it)."""
+
+    def loss(p):
+        value, _, final = rollout(system, p, s0, policy, checkpoint=checkpoint, keep_final=True)
+        return (value, jax.lax.stop_gradient(final)) if has_aux else value
+
+    return jax.value_and_grad(loss, has_aux=has_aux)(params)
 
 
 def joint_gradients(

@@ -1,0 +1,273 @@
+"""Neural time-stepper problems: learn u^{k+1} = S_θ(u^k) from reference trajectories.
+
+List, Chen, Bali & Thuerey, CMAME 2025 (shared/papers/unrolling.md §1.2–1.5). A training
+sample is a window of m+1 reference frames ũ⁰…ũᵐ with its conditioning value; the stepper
+S_θ (:mod:`physgrad.steppers`: prediction, or a correction of a coarse solver) is rolled
+out from ũ⁰ and scored by
+
+    L = (1/m) Σ_{k=1..m} ℓ_k,      ℓ_k = MSE(uᵏ, ũᵏ)
+
+(the KS code's ``MSELoss`` over the stacked outputs). The training modalities differ only
+in the gradient-flow policy of the shared rollout engine (:mod:`physgrad.methods.unrolling`):
+``one`` teacher-forces every step (inputs are reference frames), ``nog`` stops the gradient
+on each state after its loss, ``wig`` differentiates through network and solver.
+
+Data are generated from ``data_seed`` by the problem's reference solver and cached on disk
+(``$PHYSGRAD_CACHE``, default ``~/.cache/physgrad``), keyed by every setting that changes
+them and by the exponax version; no downloads. Splits: ``train`` (all overlapping windows of
+m+1 frames, materialised), ``val`` (short trajectories for schedule decisions such as PRDP)
+and ``test`` (trajectories of ``long_horizon`` frames from held-out conditions or seeds).
+
+Open-loop contract (so ``adam`` & co. run too, as plain BPTT): ``network_output`` rolls the
+stepper out over the whole sample, ``simulate`` is the identity, ``loss`` is L on the first
+m steps. Metrics on trajectories at least ``eval_horizon`` long (§1.5):
+
+- ``rel_error``: mean over t ≤ eval_horizon and x of (u − ũ)² / max_{t,x} ũ², clipped at 30
+  (the KS code's ``rellinf``);
+- ``nrmse``: the same horizon's mean of ‖u − ũ‖ / ‖ũ‖ per frame;
+- ``corr_time``: steps until the correlation with the reference first drops below 0.2,
+  over the whole test trajectory (the decorrelation time; the horizon if it never does);
+- ``diverged``: 1 if the rollout became non-finite or exceeded 100× the reference's
+  maximum within the trajectory.
+"""
+
+from __future__ import annotations
+
+import abc
+import hashlib
+import json
+import os
+from pathlib import Path
+from typing import ClassVar
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..rollout import System
+from ..steppers import check_composition, select, stepper_step
+from .base import AbstractProblem
+
+DATA_VERSION = 1  # bump when a generator changes, so cached data are regenerated
+
+
+def cache_dir() -> Path:
+    """Where generated datasets are cached (``$PHYSGRAD_CACHE`` or ``~/.cache/physgrad``)."""
+    return Path(os.environ.get("PHYSGRAD_CACHE", Path.home() / ".cache" / "physgrad"))
+
+
+def _exponax_version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("exponax")
+    except PackageNotFoundError:
+        return "none"
+
+
+def windows(u: np.ndarray, m: int) -> np.ndarray:
+    """All overlapping windows of m+1 frames: (S, T+1, …) → (S·(T+1−m), m+1, …)."""
+    s, t1 = u.shape[:2]
+    starts = np.arange(t1 - m)
+    index = starts[:, None] + np.arange(m + 1)[None, :]  # (T+1−m, m+1)
+    return u[:, index].reshape(s * len(starts), m + 1, *u.shape[2:])
+
+
+@eqx.filter_jit
+def solver_rollout(solver, u0, n: int):
+    """``(u_n, frames (n, B, …))``: ``n`` steps of ``solver(u, cond)`` from a batch u0
+    (data generation)."""
+
+    def body(u, _):
+        u = jax.vmap(lambda v: solver(v, None))(u)
+        return u, u
+
+    return jax.lax.scan(body, u0, None, length=n)
+
+
+class TimeStepperProblem(AbstractProblem):
+    """Base class: subclasses define the reference data, the coarse solver and the network."""
+
+    default_batch_size: ClassVar[int] = 16
+    default_methods: ClassVar[tuple[str, ...]] = ("one", "nog", "wig")
+    default_eval_samples: ClassVar[int] = 512
+    state_channels: ClassVar[int] = 1
+
+    setup: str = eqx.field(static=True, default="correction")
+    composition: str = eqx.field(static=True, default="")  # "": the setup's default
+    m: int = eqx.field(static=True, default=3)
+    eval_horizon: int = eqx.field(static=True, default=12)
+    data_seed: int = eqx.field(static=True, default=0)
+
+    default_composition: ClassVar[str] = "parallel"  # of the correction setup
+
+    @property
+    def stepper_composition(self) -> str:
+        """The composition in use: the setting, or ``full`` (prediction) / the problem's
+        default (correction)."""
+        if self.composition:
+            return self.composition
+        return "full" if self.setup == "prediction" else self.default_composition
+
+    def __check_init__(self):
+        check_composition(self.setup, self.stepper_composition)
+        if self.m < 1:
+            raise ValueError(f"m must be >= 1, got {self.m}")
+
+    # --- what a subclass defines ---------------------------------------------------------
+    @abc.abstractmethod
+    def generate(self, split: str) -> dict[str, np.ndarray]:
+        """Reference trajectories of a split: ``{"u": (S, T+1, C, *N), "cond": (S,),
+        "index": (S,)}`` (float32, float32, int32), ``index`` selecting the solver."""
+
+    @abc.abstractmethod
+    def solvers(self):
+        """The coarse solver, stacked over conditions (:func:`physgrad.steppers.stack_solvers`),
+        or a single :class:`~physgrad.steppers.Solver` used for every sample."""
+
+    @abc.abstractmethod
+    def apply(self, network, u, cond):
+        """The network's output for one state and its conditioning value (state-shaped)."""
+
+    network_scale: ClassVar[float] = 1.0  # α in the parallel and bypass compositions
+
+    @property
+    def solver_differentiable(self) -> bool:
+        return self.solver_class().differentiable
+
+    def solver_class(self):
+        """The class of the coarse solver (for its ``differentiable`` declaration)."""
+        solvers = self.solvers()
+        return type(solvers[1] if isinstance(solvers, tuple) else solvers)
+
+    def data_settings(self) -> dict:
+        """The settings that change the generated data (the cache key); default: all but
+        the training-only ones."""
+        skip = {"setup", "composition", "m", "eval_horizon"} | set(self.training_only_settings)
+        return {k: getattr(self, k) for k in self.settings() if k not in skip}
+
+    training_only_settings: ClassVar[tuple[str, ...]] = ()
+
+    # --- data ------------------------------------------------------------------------------
+    def trajectories(self, split: str) -> dict[str, np.ndarray]:
+        """A split's reference trajectories, generated once and cached on disk."""
+        key = json.dumps(
+            {"problem": self.name, "split": split, "version": DATA_VERSION, "exponax": _exponax_version(),
+             **self.data_settings()}, sort_keys=True, default=str,
+        )  # fmt: skip
+        path = cache_dir() / f"{self.name}-{split}-{hashlib.sha256(key.encode()).hexdigest()[:12]}.npz"
+        if path.exists():
+            with np.load(path) as f:
+                return {k: f[k] for k in f.files}
+        data = {k: np.asarray(v) for k, v in self.generate(split).items()}
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(path.name + f".{os.getpid()}.tmp.npz")
+        np.savez(tmp, **data)
+        os.replace(tmp, path)
+        return data
+
+    def make_data(self, key):
+        del key  # the data are fixed by data_seed; the run seed initialises the network
+        train = self.trajectories("train")
+        n_windows = train["u"].shape[1] - self.m
+        if n_windows < 1:
+            raise ValueError(f"training trajectories of {train['u'].shape[1]} frames are too short for m = {self.m}")
+        out = {
+            "train": {
+                "u": jnp.asarray(windows(train["u"], self.m)),
+                "cond": jnp.asarray(np.repeat(train["cond"], n_windows)),
+                "index": jnp.asarray(np.repeat(train["index"], n_windows)),
+            }
+        }
+        for split in ("val", "test"):
+            out[split] = {k: jnp.asarray(v) for k, v in self.trajectories(split).items()}
+        return out
+
+    # --- the stepper and the rollout system -----------------------------------------------
+    def step(self, network_fn, u_net, u_phys, cond, index, solvers=None):
+        """One stepper step of one sample: ``(u⁺, ok)``; ``network_fn(u, cond)``."""
+        solver = None
+        if self.setup == "correction":
+            solvers = self.solvers() if solvers is None else solvers
+            solver = select(solvers, index) if isinstance(solvers, tuple) else solvers
+        return stepper_step(self.setup, self.stepper_composition, solver, network_fn, u_net, u_phys, cond, self.network_scale)
+
+    def system(self, apply, m: int | None = None, teacher_forcing: bool = False) -> System:
+        """The rollout :class:`~physgrad.rollout.System` over a batch of windows, with
+        ``apply(params, u, cond)`` the network on its trainable parameters. The state is
+        ``{"u", "traj", "cond", "index", "ok"}``; with ``teacher_forcing`` every step starts
+        from the reference frame ũᵏ (the one-step modality)."""
+        m = self.m if m is None else m
+        if not 1 <= m <= self.m:
+            raise ValueError(f"a rollout of {m} steps does not fit the problem's windows of m = {self.m}")
+        solvers = self.solvers() if self.setup == "correction" else None
+
+        def transition(params, s_net, s_phys, k):
+            u_net = s_net["traj"][:, k] if teacher_forcing else s_net["u"]
+            u_phys = s_phys["traj"][:, k] if teacher_forcing else s_phys["u"]
+
+            def one(un, up, cond, index):
+                return self.step(lambda u, c: apply(params, u, c), un, up, cond, index, solvers)
+
+            u_next, ok = jax.vmap(one)(u_net, u_phys, s_phys["cond"], s_phys["index"])
+            target = s_phys["traj"][:, k + 1]
+            loss = jnp.mean((u_next - target) ** 2)
+            return {**s_phys, "u": u_next, "ok": s_phys["ok"] & ok}, loss
+
+        def init(batch):
+            b = batch["u"].shape[0]
+            return {"u": batch["u"][:, 0], "traj": batch["u"], "cond": batch["cond"], "index": batch["index"],
+                    "ok": jnp.ones((b,), bool)}  # fmt: skip
+
+        weights = jnp.full((m,), 1.0 / m, jnp.float32)
+        differentiable = self.setup == "prediction" or self.solver_differentiable
+        return System(transition, m, weights, init, differentiable)
+
+    # --- the open-loop contract and the metrics -------------------------------------------
+    def network_output(self, network, sample):
+        """The autoregressive rollout u¹…u^T from ũ⁰ over the whole sample (T, C, *N)."""
+        solvers = self.solvers() if self.setup == "correction" else None
+        fn = lambda u, c: self.apply(network, u, c)  # noqa: E731
+
+        def body(u, _):
+            u_next, _ = self.step(fn, u, u, sample["cond"], sample["index"], solvers)
+            return u_next, u_next
+
+        _, states = jax.lax.scan(body, sample["u"][0], None, length=sample["u"].shape[0] - 1)
+        return states
+
+    def simulate(self, x, sample):
+        return x
+
+    def loss(self, y, sample):
+        m = min(self.m, y.shape[0])
+        return jnp.mean((y[:m] - sample["u"][1 : m + 1]) ** 2)
+
+    def metrics(self, x, y, sample):
+        steps = y.shape[0]
+        if steps < self.eval_horizon:
+            return {}
+        h = self.eval_horizon
+        ref = sample["u"][1:]
+        err = (y[:h] - ref[:h]) ** 2
+        rel = jnp.minimum(jnp.mean(err) / jnp.max(ref[:h] ** 2), 30.0)
+        axes = tuple(range(1, y.ndim))
+        nrmse = jnp.mean(jnp.sqrt(jnp.sum(err, axis=axes) / jnp.sum(ref[:h] ** 2, axis=axes)))
+        centred = lambda a: a - jnp.mean(a, axis=axes, keepdims=True)  # noqa: E731
+        yc, rc = centred(y), centred(ref)
+        corr = jnp.sum(yc * rc, axis=axes) / jnp.sqrt(jnp.sum(yc**2, axis=axes) * jnp.sum(rc**2, axis=axes) + 1e-30)
+        corr = jnp.where(jnp.isfinite(corr), corr, -1.0)
+        below = corr < 0.2
+        corr_time = jnp.where(jnp.any(below), jnp.argmax(below), steps)
+        blown = ~jnp.isfinite(y) | (jnp.abs(y) > 100 * jnp.max(jnp.abs(ref)))
+        return {
+            "rel_error": jnp.where(jnp.isfinite(rel), rel, 30.0),
+            "nrmse": nrmse,
+            "corr_time": corr_time.astype(jnp.float32),
+            "diverged": jnp.any(blown).astype(jnp.float32),
+        }
+
+    def with_cond_channel(self, u, cond):
+        """The state with its conditioning value appended as a constant channel."""
+        return jnp.concatenate([u, jnp.full_like(u[:1], cond)], axis=0)
