@@ -15,6 +15,7 @@ and exits with status 2.
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 from pathlib import Path
 
@@ -189,6 +190,7 @@ def _run_compare(console, problem, methods, seeds, budget, settings, out, quiet=
     compare(problem, methods, seeds, budget, out, settings=settings, progress=meter, echo=console.print)
     result = report(out)
     _print_table(console, result.lines, title=f"{problem}: {budget} per run")
+    _print_paired_tests(console, out)
     console.print(f"wrote {Path(out) / 'results.csv'}, {Path(out) / 'summary.csv'}, {result.figure}")
     return result
 
@@ -224,7 +226,24 @@ def _run_grid(console, problem, methods, seeds, budget, settings, out, quiet=Fal
     compare_grid(problem, methods, seeds, budget, out, settings=settings, progress=meter, echo=console.print)
     result = grid_report(out)
     _print_table(console, result.lines, title=f"{problem}: {budget} per run")
+    _print_paired_tests(console, out)
     console.print(f"wrote {Path(out) / 'grid_summary.csv'}, {result.figure}")
+
+
+def _print_paired_tests(console, out):
+    """Paired Wilcoxon tests between the methods of a study or of each cell of a sweep."""
+    from .stats import format_tests, paired_tests
+
+    out = Path(out)
+    cells = [(c.name, c) for c in sorted(out.iterdir()) if (c / "study.json").exists()] if (out / "grid.json").exists() else [("", out)]
+    lines = []
+    for name, directory in cells:
+        study = json.loads((directory / "study.json").read_text()) if (directory / "study.json").exists() else {}
+        rows = paired_tests(directory, order=study.get("methods"))
+        table = format_tests(rows, cell=name or "")
+        lines += table if not lines else table[1:]
+    if len(lines) > 1:
+        _print_table(console, lines, title="paired tests over seeds x test cases (two-sided Wilcoxon signed-rank)")
 
 
 def cmd_report(args, console):
@@ -233,10 +252,12 @@ def cmd_report(args, console):
     if (Path(args.dir) / "grid.json").exists():
         result = grid_report(args.dir, panel=args.panel, metric=args.metric, split=args.split, smooth=args.smooth)
         _print_table(console, result.lines, title=str(args.dir))
+        _print_paired_tests(console, args.dir)
         console.print(f"wrote {result.figure}")
         return 0
     result = report(args.dir)
     _print_table(console, result.lines, title=str(args.dir))
+    _print_paired_tests(console, args.dir)
     console.print(f"wrote {result.figure}")
     return 0
 

@@ -24,6 +24,11 @@ TRAIN_SETTINGS: dict[str, Any] = {
     "checkpoint_seconds": 60.0,  # training seconds between checkpoints (and one at the end)
     "eval_samples": 0,  # evaluate the train split on its first N samples only; 0 = all
     "no_network": False,  # optimise x itself for each test sample instead of training a network
+    "prdp": False,  # refine the solver's iteration count on validation plateaus (physgrad.prdp)
+    "prdp_start": 1,  # PRDP's first iteration count
+    "prdp_increment": 1,  # iterations added per refinement
+    "prdp_tau_step": 0.98,  # plateau: EMA_now / EMA_3-checks-ago above this
+    "prdp_tau_stop": 0.9,  # refine only if EMA_now / E_at-last-refinement below this
 }
 
 
@@ -173,6 +178,11 @@ class RunConfig:
     checkpoint_seconds: float = 60.0
     eval_samples: int = 0
     no_network: bool = False
+    prdp: bool = False
+    prdp_start: int = 1
+    prdp_increment: int = 1
+    prdp_tau_step: float = 0.98
+    prdp_tau_stop: float = 0.9
 
     def to_dict(self) -> dict[str, Any]:
         out = dataclasses.asdict(self)

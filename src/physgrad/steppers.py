@@ -73,7 +73,7 @@ class NonDifferentiable(Solver):
     solver: Solver
 
     def __call__(self, u, cond):
-        return _no_vjp(self.solver, u, cond)
+        return _no_vjp(u, self.solver, cond)
 
     def step(self, u, cond):
         u_next = self(u, cond)
@@ -81,17 +81,17 @@ class NonDifferentiable(Solver):
 
 
 @eqx.filter_custom_vjp
-def _no_vjp(solver, u, cond):
+def _no_vjp(u, solver, cond):
     return solver(u, cond)
 
 
 @_no_vjp.def_fwd
-def _no_vjp_fwd(perturbed, solver, u, cond):
+def _no_vjp_fwd(perturbed, u, solver, cond):
     return solver(u, cond), None
 
 
 @_no_vjp.def_bwd
-def _no_vjp_bwd(residuals, g, perturbed, solver, u, cond):
+def _no_vjp_bwd(residuals, g, perturbed, u, solver, cond):
     raise NotDifferentiableError(
         f"{type(solver).__name__} is not differentiable: train with a method that never "
         "differentiates the solver (one, nog)"

@@ -33,6 +33,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
+from . import prdp as prdp_control
 from .config import ConfigError, RunConfig
 from .nets import parameter_count
 from .methods import METHODS, AbstractMethod, Objective
@@ -151,9 +152,13 @@ def build(config: RunConfig, overrides: dict[str, Any] | None = None) -> Setup:
         rollout=_rollout_system(problem, static),
         unrolled=_unrolled_system(problem, static),
     )
+    opaque = isinstance(problem, TimeStepperProblem) and objective.unrolled(None, False).differentiable_physics is False
     for phase in config.phases:
+        method = METHODS[phase.method](**phase.hyperparameters)
         try:
-            METHODS[phase.method](**phase.hyperparameters).check(objective)
+            method.check(objective)
+            if opaque and not hasattr(method, "policy"):  # open-loop methods back-propagate through everything
+                raise ValueError("this method differentiates through the solver, which is not differentiable; use nog or one")
         except ValueError as e:
             raise ConfigError(f"{phase.method} on {config.problem}: {e}") from None
     return Setup(problem=problem, data=data, params=params, static=static, objective=objective, stages=stages)
@@ -177,6 +182,22 @@ def _unrolled_system(problem: AbstractProblem, static):
         return problem.apply(eqx.combine(p, static), u, cond)
 
     return lambda m=None, teacher_forcing=False: problem.system(apply, m, teacher_forcing)
+
+
+def _refinable(config: RunConfig) -> str | None:
+    """The problem setting a fidelity schedule refines (None if the problem has none);
+    a one-line error if PRDP is asked for on a problem without one."""
+    name = getattr(PROBLEMS[config.problem], "refinable_setting", None)
+    if config.prdp and name is None:
+        valid = [n for n, c in PROBLEMS.items() if getattr(c, "refinable_setting", None)]
+        raise ConfigError(f"prdp needs a problem with an iterative solver; valid choices: {', '.join(valid)}")
+    return name
+
+
+def _refine(setup: Setup, rebuilt: Setup) -> Setup:
+    """``setup`` with the problem and objective of ``rebuilt`` (another solver fidelity);
+    the network, data and stages stay."""
+    return dataclasses.replace(setup, problem=rebuilt.problem, objective=rebuilt.objective)
 
 
 def make_step(setup: Setup, batch_size: int, method: AbstractMethod | None = None):
@@ -345,17 +366,24 @@ def train(
     ):
         return done
 
+    refinable = _refinable(config)
     setup = build(config)
+    full_fidelity = getattr(setup.problem, refinable) if refinable else None
     counters = {
         "step": 0, "stage": 0, "train_time": 0.0, "compile_seconds": 0.0, "best_test_loss": math.inf,
         "stat_totals": {},  # sums over all steps of the methods' extra step statistics
+        "solver_iterations": 0,  # Σ over steps of the solver's inner iteration count
     }  # fmt: skip
+    if config.prdp:
+        counters["prdp"] = prdp_control.initial_state(min(config.prdp_start, full_fidelity))
     params = setup.params
     if has_ckpt:
         like = lambda c: (params, setup.stages[c["stage"]].method.init(params))  # noqa: E731
         params, state, counters = _load_checkpoint(run_dir, like)
     else:
         state = setup.stages[0].method.init(params)
+    if config.prdp:
+        setup = _refine(setup, build(config, {refinable: counters["prdp"]["K"]}))
     _write_json(config_path, config.to_dict())
     _write_json(run_dir / "env.json", environment())
     log = MetricsLog(run_dir / "metrics.csv", keep_until_step=counters["step"] if has_ckpt else None)
@@ -434,11 +462,24 @@ def train(
                 values[(split, metric)] = float(value)
         if step > 0:
             values[("train", "time_per_step")] = train_time / step
+        if refinable:
+            values[("train", "solver_iterations")] = iterations_now()
+        if config.prdp:
+            val = evaluate(params, setup.data["val"])
+            error = float(val.get("rel_error", val["loss"]))
+            values[("val", "rel_error" if "rel_error" in val else "loss")] = error
+            counters["prdp"] = prdp_control.update(
+                counters["prdp"], error, step, increment=config.prdp_increment, maximum=full_fidelity,
+                tau_step=config.prdp_tau_step, tau_stop=config.prdp_tau_stop,
+            )  # fmt: skip
         log.write(step, train_time, values)
         last_eval.update({f"{split}_{metric}": v for (split, metric), v in values.items()})
         if math.isfinite(last_eval["test_loss"]):
             counters["best_test_loss"] = min(counters["best_test_loss"], last_eval["test_loss"])
         return math.isfinite(last_eval["train_loss"]) and math.isfinite(last_eval["test_loss"])
+
+    def iterations_now() -> int:
+        return counters["prdp"]["K"] if config.prdp else full_fidelity
 
     def checkpoint():
         counters.update(step=step, train_time=train_time)
@@ -473,6 +514,8 @@ def train(
                 break
             params, state = new_params, new_state
             last_finite = loss if math.isfinite(loss) else last_finite
+            if refinable:
+                counters["solver_iterations"] += iterations_now()
             for name, value in stats.items():
                 if name != "loss":
                     value = float(value)
@@ -481,9 +524,14 @@ def train(
                     counters["stat_totals"][name] = counters["stat_totals"].get(name, 0.0) + value
             step += 1
             if eval_due(step, train_time):
+                k_before = iterations_now() if refinable else None
                 if not record(step, train_time):
                     status, diverged_step = "diverged", step
                     break
+                if config.prdp and iterations_now() != k_before:  # PRDP refined: rebuild the solver
+                    setup = _refine(setup, build(config, {refinable: iterations_now()}))
+                    evaluate = make_evaluate(setup)
+                    compiled = compile_stage(counters["stage"])
             if train_time - last_ckpt_time >= config.checkpoint_seconds:
                 checkpoint()
                 last_ckpt_time = train_time
@@ -524,6 +572,8 @@ def train(
         "diverged_step": diverged_step,
         "last_finite_loss": last_finite if status == "diverged" else None,
         "n_params": parameter_count(setup.params),
+        "solver_iterations": counters["solver_iterations"] if refinable else None,
+        "prdp": counters.get("prdp"),
         "step_stat_totals": counters["stat_totals"],
     }
     _write_json(run_dir / "summary.json", summary)

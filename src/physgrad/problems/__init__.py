@@ -17,14 +17,16 @@ from .poisson_hig import PoissonHig
 from .quantum_dipole import QuantumDipole
 from .time_stepper import TimeStepperProblem
 from .ks import KuramotoSivashinsky
+from .kolmogorov import Kolmogorov
+from .advection_1d import Advection1d
 
 PROBLEMS: dict[str, type[AbstractProblem]] = {
     cls.name: cls for cls in (
         HigToy, Oscillators, QuantumDipole, PoissonHig, LinearOscillators,
         Toy2d, ExpInverse, Sine, Poisson, Heat,
         CartPole, Guidance, QuantumControl,
-        KuramotoSivashinsky,
+        KuramotoSivashinsky, Kolmogorov, Advection1d,
     )  # fmt: skip
 }
 
-__all__ = ["PROBLEMS", "TimeStepperProblem", "KuramotoSivashinsky", "AbstractProblem", "CartPole", "ClosedLoopProblem", "Guidance", "QuantumControl", "ExpInverse", "Heat", "Poisson", "Sine", "Toy2d", "HigToy", "LinearOscillators", "Oscillators", "PoissonHig", "QuantumDipole"]
+__all__ = ["PROBLEMS", "TimeStepperProblem", "KuramotoSivashinsky", "Kolmogorov", "Advection1d", "AbstractProblem", "CartPole", "ClosedLoopProblem", "Guidance", "QuantumControl", "ExpInverse", "Heat", "Poisson", "Sine", "Toy2d", "HigToy", "LinearOscillators", "Oscillators", "PoissonHig", "QuantumDipole"]

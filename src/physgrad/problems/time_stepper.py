@@ -46,7 +46,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..rollout import System
-from ..steppers import check_composition, select, stepper_step
+from ..steppers import NonDifferentiable, check_composition, select, stepper_step
 from .base import AbstractProblem
 
 DATA_VERSION = 1  # bump when a generator changes, so cached data are regenerated
@@ -99,6 +99,8 @@ class TimeStepperProblem(AbstractProblem):
     m: int = eqx.field(static=True, default=3)
     eval_horizon: int = eqx.field(static=True, default=12)
     data_seed: int = eqx.field(static=True, default=0)
+    # false: treat the solver as an external code without derivatives (NonDifferentiable)
+    differentiable_solver: bool = eqx.field(static=True, default=True)
 
     default_composition: ClassVar[str] = "parallel"  # of the correction setup
 
@@ -134,17 +136,15 @@ class TimeStepperProblem(AbstractProblem):
 
     @property
     def solver_differentiable(self) -> bool:
-        return self.solver_class().differentiable
-
-    def solver_class(self):
-        """The class of the coarse solver (for its ``differentiable`` declaration)."""
+        """The coarse solver's declaration (False when ``differentiable_solver=false``)."""
         solvers = self.solvers()
-        return type(solvers[1] if isinstance(solvers, tuple) else solvers)
+        declared = type(solvers[1] if isinstance(solvers, tuple) else solvers).differentiable
+        return declared and self.differentiable_solver
 
     def data_settings(self) -> dict:
         """The settings that change the generated data (the cache key); default: all but
         the training-only ones."""
-        skip = {"setup", "composition", "m", "eval_horizon"} | set(self.training_only_settings)
+        skip = {"setup", "composition", "m", "eval_horizon", "differentiable_solver"} | set(self.training_only_settings)
         return {k: getattr(self, k) for k in self.settings() if k not in skip}
 
     training_only_settings: ClassVar[tuple[str, ...]] = ()
@@ -191,6 +191,8 @@ class TimeStepperProblem(AbstractProblem):
         if self.setup == "correction":
             solvers = self.solvers() if solvers is None else solvers
             solver = select(solvers, index) if isinstance(solvers, tuple) else solvers
+            if not self.differentiable_solver:
+                solver = NonDifferentiable(solver)
         return stepper_step(self.setup, self.stepper_composition, solver, network_fn, u_net, u_phys, cond, self.network_scale)
 
     def system(self, apply, m: int | None = None, teacher_forcing: bool = False) -> System:
