@@ -60,6 +60,7 @@ def test_jacobian_power_step_against_numpy(method, exponent, route):
 
 
 ROLLOUT_METHODS = ("bptt", "sbptt_m", "sbptt_c", "no_temporal")
+STEPPER_METHODS = ("one", "nog", "wig")
 
 
 @pytest.mark.parametrize("method", sorted(METHODS))
@@ -75,6 +76,8 @@ def test_every_method_lowers_the_loss_in_float32_without_recompiling(method):
     problem = "oscillators"
     if method in ROLLOUT_METHODS:  # these need a closed loop
         problem, settings = "cartpole", {"n_train": "64", "n_test": "16", "batch_size": "16", "dt": "0.1", "n_steps": "10"}
+    if method in STEPPER_METHODS:  # these need a time-stepper: 4 trajectories x 16 windows
+        problem, settings = "advection_1d", {"n_train": "4", "n_test": "2", "horizon": "20", "batch_size": "16", "iterations": "4"}
     config = make_config(problem, method, budget=Budget(steps=1), settings=settings)
     setup = build(config)
     step = make_step(setup, config.phases[0].batch_size)

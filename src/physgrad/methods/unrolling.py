@@ -33,6 +33,8 @@ Logged per step: ``loss``, ``grad_norm`` and the skip counters.
 
 from __future__ import annotations
 
+import dataclasses
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -87,7 +89,7 @@ class Unrolled(AbstractMethod):
         lrs = self.stage_lr or (self.lr,) * len(self.curriculum)
         out = []
         for i, (m, lr) in enumerate(zip(self.curriculum, lrs)):
-            stage = eqx.tree_at(lambda u: (u.m, u.lr, u.curriculum, u.stage_lr), self, (m, lr, (), ()))
+            stage = dataclasses.replace(self, m=m, lr=lr, curriculum=(), stage_lr=())
             out.append((stage, None if i == len(self.curriculum) - 1 else self.stage_epochs))
         return out
 
@@ -125,7 +127,7 @@ class Unrolled(AbstractMethod):
         s0 = system.initial_state(batch)
         policy = S() if self.teacher_forcing else self.policy  # inputs are data: nothing to stop
         (loss, final), grads = value_and_grad(system, params, s0, policy, checkpoint=self.checkpoint, has_aux=True)
-        norm = optax.global_norm(grads)
+        norm = optax.tree.norm(grads)
         finite = jnp.isfinite(norm)
         solver_ok = jnp.all(final["ok"])
         within = (cutoff == 0) | (norm <= cutoff)
