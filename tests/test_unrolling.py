@@ -454,3 +454,40 @@ def test_problem_and_setting_errors_are_one_line(capsys, tmp_path):
     assert main(["train", "ks", "--method", "wig", "--steps", "1", "--set", "composition=bypass", "--set",
                  "setup=prediction", "--out", str(tmp_path / "y")]) == 2  # fmt: skip
     assert "valid choices: full, residual" in capsys.readouterr().err
+
+
+def test_cache_key_follows_the_settings_that_shape_the_splits(tmp_path, monkeypatch):
+    monkeypatch.setenv("PHYSGRAD_CACHE", str(tmp_path))
+    short = Advection1d(**SMALL_ADV, eval_horizon=5).trajectories("val")
+    longer = Advection1d(**SMALL_ADV, eval_horizon=8).trajectories("val")
+    assert short["u"].shape[1] == 6 and longer["u"].shape[1] == 9
+    Advection1d(**{**SMALL_ADV, "iterations": 3}, setup="prediction", eval_horizon=5).trajectories("val")  # cached
+    assert len(list(tmp_path.glob("advection_1d-val-*.npz"))) == 2
+
+
+def test_nondifferentiable_wrapper_keeps_the_solver_failure_flag():
+    u_next, ok = NonDifferentiable(Failing()).step(jnp.ones((1, 4)), 0.0)
+    assert not bool(ok)
+
+
+def test_prdp_rebuild_trains_with_the_new_iteration_count(tmp_path):
+    """After a refinement the compiled step uses the new K: its loss equals a fresh setup's at K."""
+    from physgrad.train import _refine
+
+    config = adv_config("wig", setup="correction", iterations=10)
+    low, high = build(config, {"iterations": 1}), build(config, {"iterations": 10})
+    refined = _refine(low, build(config, {"iterations": 4}))
+    reference = build(config, {"iterations": 4})
+    args = lambda s: (s.params, s.method.init(s.params), s.data["train"], jnp.arange(52, dtype=jnp.int32), jnp.int32(0))  # noqa: E731
+    loss = lambda s: float(make_step(s, 32)(*args(s))[2]["loss"])  # noqa: E731
+    assert loss(refined) == pytest.approx(loss(reference), rel=1e-6)
+    assert loss(refined) != pytest.approx(loss(low), rel=1e-3) and loss(refined) != pytest.approx(loss(high), rel=1e-3)
+    with pytest.raises(ConfigError, match="setup=correction"):
+        train(adv_config("wig", setup="prediction", prdp=True), tmp_path / "p")
+
+
+def test_too_short_trajectories_are_a_one_line_error(capsys, tmp_path):
+    assert main(["train", "advection_1d", "--method", "nog", "--steps", "1", "--set", "horizon=3",
+                 "--out", str(tmp_path / "x")]) == 2  # fmt: skip
+    err = capsys.readouterr().err.strip()
+    assert "too short for m = 5" in err and "\n" not in err

@@ -73,15 +73,15 @@ def modality_section(root: Path, problem: str, title: str) -> str:
                           str(int(np.mean([float(r['steps']) for r in mine]))),
                           f"{1e3 * np.mean([float(r['time_per_step']) for r in mine]):.1f}"])  # fmt: skip
     out = [f"## {title}\n", markdown(lines), ""]
-    tests = [["setup", "pair", "pairs", "first lower", "mean ratio", "Wilcoxon p"]]
+    tests = [["setup", "pair", "pairs", "first lower", "seeds lower", "mean ratio", "Wilcoxon p"]]
     for setup, cell in cells.items():
         for t in paired_tests(cell, "rel_error", list(METHODS)) if runs(cell) else []:
             tests.append([setup, f"{t['method_a']} vs {t['method_b']}", str(t["pairs"]), f"{100 * t['a_lower']:.0f}%",
-                          f"{t['ratio']:.3g}", f"{t['p_value']:.2g}"])  # fmt: skip
+                          f"{t['seeds_a_lower']}/{t['seeds']}", f"{t['ratio']:.3g}", f"{t['p_value']:.2g}"])  # fmt: skip
     cross = cross_test(cells["correction"], "nog", cells["prediction"], "wig")
     if cross:
         tests.append(["NOG-correction vs WIG-prediction", "nog vs wig", str(cross["pairs"]),
-                      f"{100 * cross['a_lower']:.0f}%", f"{cross['ratio']:.3g}", f"{cross['p_value']:.2g}"])  # fmt: skip
+                      f"{100 * cross['a_lower']:.0f}%", cross["seeds"], f"{cross['ratio']:.3g}", f"{cross['p_value']:.2g}"])  # fmt: skip
     out += ["Paired tests on rel_error (two-sided Wilcoxon signed-rank over seeds × test cases):\n", markdown(tests), ""]
 
     fig, axes = plt.subplots(1, 2, figsize=(11, 4), sharey=True)
@@ -115,8 +115,9 @@ def cross_test(cell_a: Path, method_a: str, cell_b: Path, method_b: str):
     seeds = sorted(set(a[method_a]) & set(b[method_b]))
     x = np.concatenate([a[method_a][s] for s in seeds])
     y = np.concatenate([b[method_b][s] for s in seeds])
+    lower = sum(np.mean(a[method_a][s]) < np.mean(b[method_b][s]) for s in seeds)
     return {"pairs": len(x), "a_lower": float(np.mean(x < y)), "ratio": float(np.mean(x) / np.mean(y)),
-            "p_value": float(wilcoxon(x, y).pvalue)}  # fmt: skip
+            "seeds": f"{lower}/{len(seeds)}", "p_value": float(wilcoxon(x, y).pvalue)}  # fmt: skip
 
 
 def advection_section(root: Path) -> str:

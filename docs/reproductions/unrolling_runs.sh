@@ -15,6 +15,7 @@ EPOCHS_KOLM=${EPOCHS_KOLM:-4}
 # the 2/3 dealiasing at 16²), a 16 x 3 ResNet; the paper's size is KOLM="n=32 forcing_mode=6".
 KOLM=${KOLM:-"n=16 forcing_mode=4 width=16 blocks=3 frames=400"}
 PRDP_STEPS=${PRDP_STEPS:-3000}
+PRDP_N=${PRDP_N:-128}  # grid points: large enough that the Jacobi sweeps weigh in the step time
 lane=${1:-all}
 
 run_ks() {  # $1: setup
@@ -41,9 +42,9 @@ run_advection() {
 run_prdp() {
   # WIG correction through the implicit-upwind solver: PRDP (from K = 1) against fixed K
   $PHYSGRAD compare advection_1d --methods wig --seeds "$SEEDS" --steps "$PRDP_STEPS" --quiet \
-    --set setup=correction --set eval_every=20 --set iterations=20 --set prdp=true --out "$OUT/prdp"
+    --set n="$PRDP_N" --set setup=correction --set eval_every=20 --set iterations=20 --set prdp=true --out "$OUT/prdp"
   $PHYSGRAD compare advection_1d --methods wig --seeds "$SEEDS" --steps "$PRDP_STEPS" --quiet \
-    --set setup=correction --set eval_every=20 --set iterations=1,2,5,20 --out "$OUT/prdp_fixed"
+    --set n="$PRDP_N" --set setup=correction --set eval_every=20 --set iterations=1,2,5,20 --out "$OUT/prdp_fixed"
 }
 
 case "$lane" in

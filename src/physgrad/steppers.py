@@ -73,21 +73,21 @@ class NonDifferentiable(Solver):
     solver: Solver
 
     def __call__(self, u, cond):
-        return _no_vjp(u, self.solver, cond)
+        return self.step(u, cond)[0]
 
     def step(self, u, cond):
-        u_next = self(u, cond)
-        return u_next, jnp.all(jnp.isfinite(u_next))
+        """The wrapped solver's step and its failure flag; differentiating it raises."""
+        return _no_vjp(u, self.solver, cond)
 
 
 @eqx.filter_custom_vjp
 def _no_vjp(u, solver, cond):
-    return solver(u, cond)
+    return solver.step(u, cond)
 
 
 @_no_vjp.def_fwd
 def _no_vjp_fwd(perturbed, u, solver, cond):
-    return solver(u, cond), None
+    return solver.step(u, cond), None
 
 
 @_no_vjp.def_bwd

@@ -110,7 +110,10 @@ def build(config: RunConfig, overrides: dict[str, Any] | None = None) -> Setup:
     key = jax.random.key(config.seed)
     if config.no_network:
         problem = DirectOptimisation(problem)
-    data = problem.make_data(jax.random.fold_in(key, 0))
+    try:
+        data = problem.make_data(jax.random.fold_in(key, 0))
+    except ValueError as e:
+        raise ConfigError(f"{config.problem}: {e}") from None
     if config.no_network:
         network = problem.initial_network(data["train"])
     else:
@@ -191,6 +194,12 @@ def _refinable(config: RunConfig) -> str | None:
     if config.prdp and name is None:
         valid = [n for n, c in PROBLEMS.items() if getattr(c, "refinable_setting", None)]
         raise ConfigError(f"prdp needs a problem with an iterative solver; valid choices: {', '.join(valid)}")
+    if config.prdp and config.problem_settings.get("setup") == "prediction":
+        raise ConfigError("prdp refines the solver of a correction setup; use setup=correction")
+    if config.prdp and (config.prdp_start < 1 or config.prdp_increment < 1):
+        raise ConfigError("prdp_start and prdp_increment must be >= 1")
+    if config.prdp and not (0 < config.prdp_tau_stop <= 1 and 0 < config.prdp_tau_step <= 1):
+        raise ConfigError("prdp_tau_step and prdp_tau_stop must be in (0, 1]")
     return name
 
 
@@ -447,7 +456,10 @@ def train(
     # The train-split evaluation may be limited to its first eval_samples samples (large
     # image datasets would otherwise cost more per evaluation than many training steps).
     n_eval = config.eval_samples or getattr(setup.problem, "default_eval_samples", 0) or None
-    eval_train = jax.tree.map(lambda a: a[:n_eval], train_data)
+    # A problem's own default takes a strided subset: its windows are stored trajectory by
+    # trajectory, so the first N would all come from one trajectory.
+    stride = max(1, n_train // n_eval) if n_eval and not config.eval_samples else 1
+    eval_train = jax.tree.map(lambda a: a[::stride][:n_eval], train_data)
 
     def record(step: int, train_time: float) -> bool:
         """Full-set losses and metrics at this step; returns False if a loss is not finite."""
@@ -464,10 +476,12 @@ def train(
             values[("train", "time_per_step")] = train_time / step
         if refinable:
             values[("train", "solver_iterations")] = iterations_now()
-        if config.prdp:
+        if "val" in setup.data:  # the validation split (PRDP's decisions, and its baselines)
             val = evaluate(params, setup.data["val"])
             error = float(val.get("rel_error", val["loss"]))
-            values[("val", "rel_error" if "rel_error" in val else "loss")] = error
+            for metric, value in val.items():
+                values[("val", metric)] = float(value)
+        if config.prdp and not budget_met(step, train_time):
             counters["prdp"] = prdp_control.update(
                 counters["prdp"], error, step, increment=config.prdp_increment, maximum=full_fidelity,
                 tau_step=config.prdp_tau_step, tau_stop=config.prdp_tau_stop,
@@ -519,6 +533,8 @@ def train(
             for name, value in stats.items():
                 if name != "loss":
                     value = float(value)
+                    if not math.isfinite(value):  # e.g. the norm of a skipped NaN gradient
+                        continue
                     total, count = window.get(name, (0.0, 0))
                     window[name] = (total + value, count + 1)
                     counters["stat_totals"][name] = counters["stat_totals"].get(name, 0.0) + value
