@@ -162,7 +162,7 @@ def prdp_section(root: Path) -> str:
         its = [d["solver_iterations"] for d in details]
         secs = [d["train_seconds"] for d in details]
         rel = seed_means(cell, "rel_error").get("wig", (math.nan, math.nan))
-        val = [c[-1][1] for c in curve(cell, "wig", "rel_error", "val").values()]
+        val = [ys[-1] for _, ys in curve(cell, "wig", "rel_error", "val").values()]
         lines.append([label, str(len(rs)), "/".join(str(k) for k in ks), f"{np.mean(its):.0f}",
                       f"{np.mean(secs):.2f} ± {np.std(secs, ddof=1):.2f}", fmt(*rel[:2]),
                       f"{np.mean(val):.2e}" if val else "—"])  # fmt: skip
