@@ -12,13 +12,25 @@ from physgrad.config import phase_methods
 from physgrad.train import build
 
 
+# The time-stepper problems generate their data; these keep it to seconds (the paper sizes
+# are exercised by the reproduction runs, not by the tests).
+SMALL_DATA = {
+    "ks": {"frames": "40", "warmup_frames": "20", "n_ics": "1", "n_test": "1", "long_horizon": "12",
+           "dataset_fraction": "1.0"},
+    "kolmogorov": {"n": "16", "refinement": "2", "forcing_mode": "4", "frames": "10", "warmup_frames": "10",
+                   "n_test": "1", "long_horizon": "12"},
+    "advection_1d": {"n_train": "4", "n_test": "2", "horizon": "16"},
+}  # fmt: skip
+
+
 @pytest.mark.parametrize("name", sorted(PROBLEMS))
-def test_registered_problem_contract(name):
+def test_registered_problem_contract(name, tmp_path, monkeypatch):
+    monkeypatch.setenv("PHYSGRAD_CACHE", str(tmp_path))
     cls = PROBLEMS[name]
     assert cls.name == name and cls.description and cls.source and cls.__doc__
     for method in cls.default_methods:
         assert set(phase_methods(method)) <= set(physgrad.METHODS)
-    small = {k: "32" for k in ("n_train", "n_test") if k in cls.settings()}
+    small = SMALL_DATA.get(name) or {k: "32" for k in ("n_train", "n_test") if k in cls.settings()}
     b = str(min(8, cls.default_batch_size))  # toy2d optimises one x
     setup = build(make_config(name, "hig", budget=Budget(steps=1), settings={**small, "batch_size": b}))
     batch = jax.tree.map(lambda a: a[: int(b)], setup.data["train"])
