@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from physgrad.stats import case_values, paired_tests, seed_means
-from physgrad.study import markdown, read_csv
+from physgrad.study import collect, markdown, read_csv
 
 FIGURES = Path(__file__).parent / "figures"
 METHODS = ("one", "nog", "wig")
@@ -32,6 +32,10 @@ def fmt(mean: float, std: float) -> str:
 
 
 def runs(cell: Path) -> list[dict]:
+    """The finished runs of a study (re-collected, so a study still running counts its
+    finished runs)."""
+    if (cell / "study.json").exists():
+        collect(cell)
     return read_csv(cell / "summary.csv") if (cell / "summary.csv").exists() else []
 
 
