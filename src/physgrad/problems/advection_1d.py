@@ -45,10 +45,6 @@ class ImplicitUpwind(Solver):
 
         return jax.lax.fori_loop(0, self.iterations, sweep, u)
 
-    def step(self, u, cond):
-        u_next = self(u, cond)
-        return u_next, jnp.all(jnp.isfinite(u_next))
-
 
 def fou_distance(network, cfl: float = -0.75) -> float:
     """‖w − [1 + CFL, −CFL]‖ of a trained 2-tap stencil (trainax's quick-start metric)."""

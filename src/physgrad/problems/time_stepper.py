@@ -138,7 +138,11 @@ class TimeStepperProblem(AbstractProblem):
     @property
     def solver_differentiable(self) -> bool:
         """The coarse solver's declaration (False when ``differentiable_solver=false``)."""
-        solvers = self.solvers()
+        return self._differentiable(self.solvers())
+
+    def _differentiable(self, solvers) -> bool:
+        """``solver_differentiable`` for solvers already built (building KS's costs ten
+        exponax constructions, so :meth:`system` does not build them twice)."""
         declared = type(solvers[1] if isinstance(solvers, tuple) else solvers).differentiable
         return declared and self.differentiable_solver
 
@@ -225,7 +229,7 @@ class TimeStepperProblem(AbstractProblem):
                     "ok": jnp.ones((b,), bool)}  # fmt: skip
 
         weights = jnp.full((m,), 1.0 / m, jnp.float32)
-        differentiable = self.setup == "prediction" or self.solver_differentiable
+        differentiable = self.setup == "prediction" or self._differentiable(solvers)
         return System(transition, m, weights, init, differentiable)
 
     # --- the open-loop contract and the metrics -------------------------------------------
