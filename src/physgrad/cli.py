@@ -102,6 +102,12 @@ def build_parser() -> Parser:
     p.add_argument("--out", help="run directory (default runs/PROBLEM-METHOD-seedK)")
     p.add_argument("--resume", action="store_true", help="continue the run in --out from its last checkpoint")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    g = p.add_argument_group("devices and hosts (data parallel: the batch is split, the update is the single-device one)")
+    g.add_argument("--devices", default=None, metavar="N|all",
+                   help="devices to split each batch over (default 1; all of them in a multi-process run)")
+    g.add_argument("--coordinator", metavar="HOST:PORT", help="multi-process run: address of process 0 (jax.distributed)")
+    g.add_argument("--num-processes", type=int, metavar="P", help="multi-process run: number of processes")
+    g.add_argument("--process-id", type=int, metavar="I", help="multi-process run: this process's index 0..P-1")
     _add_budget(p)
 
     p = sub.add_parser("compare", help="every method x seed on the same budget; table and figure")
@@ -162,11 +168,25 @@ def _progress(args, console):
     return NoProgressMeter() if args.quiet or not console.is_terminal else RichProgressMeter()
 
 
+def _start_processes(args) -> str | None:
+    """Join a multi-process run if asked (before any JAX work); the default --devices."""
+    multi = (args.coordinator, args.num_processes, args.process_id)
+    if all(v is None for v in multi):
+        return args.devices or "1"
+    if any(v is None for v in multi):
+        raise UsageError("a multi-process run needs all of --coordinator, --num-processes and --process-id")
+    from .distributed import initialize
+
+    initialize(args.coordinator, args.num_processes, args.process_id)
+    return args.devices or "all"
+
+
 def cmd_train(args, console):
     from .config import make_config, method_slug
     from .study import describe_run
     from .train import train
 
+    devices = _start_processes(args)
     config = make_config(args.problem, args.method, budget=_budget(args), seed=args.seed, settings=_run_settings(args))
     out = Path(args.out or f"runs/{args.problem}-{method_slug(args.method)}-seed{args.seed}")
     stages = "; then ".join(
@@ -174,8 +194,14 @@ def cmd_train(args, console):
         + ", ".join(f"{k} {v}" for k, v in p.hyperparameters.items())
         for p in config.phases
     )
-    console.print(f"{config.problem} / {stages}; seed {config.seed}, budget {config.budget} -> {out}")
-    summary = train(config, out, resume=args.resume, progress=_progress(args, console))
+    import jax
+
+    if jax.process_index() > 0:  # process 0 reports; the others compute alike
+        console.quiet = True
+    where = "" if devices == "1" else f" on {devices} devices" + (
+        f" of {jax.process_count()} processes" if jax.process_count() > 1 else "")
+    console.print(f"{config.problem} / {stages}; seed {config.seed}, budget {config.budget}{where} -> {out}")
+    summary = train(config, out, resume=args.resume, progress=_progress(args, console), devices=devices)
     console.print(f"{summary['status']}: {describe_run(summary)}")
     return 0
 

@@ -7,13 +7,9 @@ import hashlib
 import json
 from typing import Any
 
+from .errors import ConfigError
 from .methods import METHODS, hyperparameters
 from .problems import PROBLEMS
-
-
-class ConfigError(ValueError):
-    """A wrong problem, method, setting or budget; the message is one line with the choices."""
-
 
 # Training-engine settings, settable with --set like problem and method settings.
 TRAIN_SETTINGS: dict[str, Any] = {

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 from typing import Literal
 
+import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
@@ -107,3 +108,56 @@ def half_inverse(
         route = choose_route(jacobian.shape)
     solve = _svd_route if route == "svd" else _gram_route
     return solve(jacobian, grad, exponent, truncation).astype(jacobian.dtype)
+
+
+def sharded_gram_route(
+    jacobian: Float[Array, "r p"],
+    grad: Float[Array, " r"],
+    axis: str,
+    devices: int,
+    *,
+    exponent: float = -0.5,
+    truncation: float = 1e-6,
+) -> Float[Array, " p"]:
+    """The Gram route with the Jacobian's rows spread over ``devices`` devices.
+
+    Call inside ``jax.shard_map`` over mesh axis ``axis``: each device passes its own
+    block ``J_i`` (r × P, the rows of the samples it owns, in sample order over the
+    devices) and the matching entries ``g_i`` of the output gradient. ``J`` is never
+    gathered; memory per device is two r × P blocks.
+
+    Wide ``J`` (m = devices·r ≤ P): the blocks travel once around a ring
+    (``ppermute``, devices − 1 hops) so device i forms its strip ``G[i, :] = J_i Jᵀ``;
+    the strips are all-gathered into ``G = J Jᵀ`` (m × m, float64), every device runs the
+    same small ``eigh`` ``G = U Λ Uᵀ``, takes ``w = U Λ^{(κ−1)/2} Uᵀ g`` and applies
+    ``Jᵀ w = Σ_i J_iᵀ w_i`` shard-wise with one ``psum`` of a P-vector.
+    Tall ``J``: ``JᵀJ = Σ_i J_iᵀ J_i`` and ``Jᵀ g`` by ``psum``, then as the serial route.
+
+    Returns the direction ``J^κ g`` (P,), replicated, in the Jacobian's dtype. Equal to
+    :func:`half_inverse` with ``route="gram"`` on the stacked rows up to the order of
+    floating-point sums.
+    """
+    j = jacobian.astype(jnp.float64)
+    g = grad.astype(jnp.float64)
+    r, p = j.shape
+    m = r * devices
+    if m > p:  # tall: the P × P Gram matrix is a sum over devices
+        eigenvalues, vectors = jnp.linalg.eigh(jax.lax.psum(j.T @ j, axis))
+        powers = _kept_powers(jnp.sqrt(jnp.clip(eigenvalues, 0.0, None)), exponent - 1.0, truncation)
+        jtg = jax.lax.psum(j.T @ g, axis)
+        return (vectors @ (powers * (vectors.T @ jtg))).astype(jacobian.dtype)
+    me = jax.lax.axis_index(axis)
+    ring = [(k, (k + 1) % devices) for k in range(devices)]
+    strip = jnp.zeros((r, m), jnp.float64)
+    block = j
+    for hop in range(devices):  # after `hop` hops this device holds the block of device me − hop
+        owner = (me - hop) % devices
+        strip = jax.lax.dynamic_update_slice_in_dim(strip, j @ block.T, owner * r, axis=1)
+        if hop < devices - 1:
+            block = jax.lax.ppermute(block, axis, ring)
+    gram = jax.lax.all_gather(strip, axis, tiled=True)
+    eigenvalues, vectors = jnp.linalg.eigh(gram)
+    powers = _kept_powers(jnp.sqrt(jnp.clip(eigenvalues, 0.0, None)), exponent - 1.0, truncation)
+    w = vectors @ (powers * (vectors.T @ jax.lax.all_gather(g, axis, tiled=True)))
+    own = jax.lax.dynamic_slice_in_dim(w, me * r, r)
+    return jax.lax.psum(j.T @ own, axis).astype(jacobian.dtype)

@@ -32,7 +32,9 @@ from typing import Any
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 
+from . import distributed
 from . import prdp as prdp_control
 from .config import ConfigError, RunConfig
 from .nets import parameter_count
@@ -215,13 +217,18 @@ def make_step(setup: Setup, batch_size: int, method: AbstractMethod | None = Non
     The mini-batch is gathered inside the jit (``order`` is the epoch's sample order,
     ``index`` the batch number), so a step is a single dispatch with no host work.
     ``method`` defaults to the first stage's.
+
+    Traced under a mesh (``jax.set_mesh``, see :mod:`physgrad.distributed`), the batch
+    is split over the mesh's ``"data"`` axis and parameters and state stay replicated:
+    data-parallel training with the single-device update.
     """
     method = method or setup.method
 
     def step(params, state, data, order, index):
         rows = jax.lax.dynamic_slice_in_dim(order, index * batch_size, batch_size)
-        batch = jax.tree.map(lambda a: a[rows], data)
-        return method.step(setup.objective, params, state, batch)
+        batch = distributed.shard_batch(jax.tree.map(lambda a: a[rows], data))
+        params, state, stats = method.step(setup.objective, params, state, batch)
+        return distributed.replicated(params), distributed.replicated(state), stats
 
     return jax.jit(step)
 
@@ -270,8 +277,11 @@ def environment() -> dict[str, Any]:
 class MetricsLog:
     """Appends long-format rows to ``metrics.csv``; on resume, drops rows after the checkpoint."""
 
-    def __init__(self, path: Path, keep_until_step: int | None = None):
+    def __init__(self, path: Path, keep_until_step: int | None = None, enabled: bool = True):
         self.path = path
+        self.enabled = enabled
+        if not enabled:
+            return
         rows = []
         if keep_until_step is not None and path.exists():
             with path.open() as f:
@@ -282,6 +292,8 @@ class MetricsLog:
             writer.writerows([[r[k] for k in METRICS_HEADER] for r in rows])
 
     def write(self, step: int, wall_time: float, values: dict[tuple[str, str], float]):
+        if not self.enabled:
+            return
         with self.path.open("a", newline="") as f:
             writer = csv.writer(f)
             for (split, metric), value in values.items():
@@ -348,6 +360,7 @@ def train(
     *,
     resume: bool = False,
     progress: AbstractProgressMeter | None = None,
+    devices: int | str | None = 1,
 ) -> dict[str, Any]:
     """Train one run into ``run_dir`` and return its summary (also ``summary.json``).
 
@@ -355,9 +368,17 @@ def train(
     ``config.budget`` (which may be larger than the original one); a finished run whose
     budget is already met returns its summary unchanged. A run whose loss turns NaN or
     infinite stops with status ``"diverged"``, the step and the last finite loss.
+
+    ``devices`` (a number or ``"all"``) splits every batch over that many devices
+    (:mod:`physgrad.distributed`); the updates equal the single-device ones to float
+    tolerance. In a multi-process run every process calls ``train`` alike and only
+    process 0 writes ``run_dir`` (on several hosts it must be a shared file system for
+    ``resume``).
     """
     run_dir = Path(run_dir)
     progress = progress or NoProgressMeter()
+    mesh = distributed.make_mesh(devices)
+    writer = distributed.is_writer()
     config_path = run_dir / "config.json"
     if config_path.exists():
         if not resume:
@@ -365,9 +386,14 @@ def train(
         old = RunConfig.from_dict(json.loads(config_path.read_text()))
         if not _same_run(old, config):
             raise ConfigError(f"run directory {run_dir} holds a different configuration; choose another --out")
-    run_dir.mkdir(parents=True, exist_ok=True)
-
     has_ckpt = resume and (run_dir / "checkpoint" / "counters.json").exists()
+    if jax.process_count() > 1:  # every process has looked at run_dir before process 0 writes to it
+        from jax.experimental import multihost_utils
+
+        multihost_utils.sync_global_devices(f"physgrad.train:{run_dir}")
+    if not writer:  # other processes compute alike and write nothing
+        progress = NoProgressMeter()
+    run_dir.mkdir(parents=True, exist_ok=True)
     done = read_summary(run_dir) if has_ckpt else None
     # Nothing to do (checked before building data and network): diverged, or finished on this budget.
     if done and (
@@ -377,6 +403,8 @@ def train(
 
     refinable = _refinable(config)
     setup = build(config)
+    for stage in setup.stages:
+        distributed.check_batch(stage.batch_size, mesh)
     full_fidelity = getattr(setup.problem, refinable) if refinable else None
     counters = {
         "step": 0, "stage": 0, "train_time": 0.0, "compile_seconds": 0.0, "best_test_loss": math.inf,
@@ -393,9 +421,10 @@ def train(
         state = setup.stages[0].method.init(params)
     if config.prdp:
         setup = _refine(setup, build(config, {refinable: counters["prdp"]["K"]}))
-    _write_json(config_path, config.to_dict())
-    _write_json(run_dir / "env.json", environment())
-    log = MetricsLog(run_dir / "metrics.csv", keep_until_step=counters["step"] if has_ckpt else None)
+    if writer:
+        _write_json(config_path, config.to_dict())
+        _write_json(run_dir / "env.json", {**environment(), "mesh_devices": distributed.mesh_size(mesh)})
+    log = MetricsLog(run_dir / "metrics.csv", keep_until_step=counters["step"] if has_ckpt else None, enabled=writer)
 
     budget = config.budget
     train_data, test_data = setup.data["train"], setup.data["test"]
@@ -406,8 +435,10 @@ def train(
     def order_for(stage: int, epoch: int):
         if config.shuffle:
             key = jax.random.fold_in(jax.random.fold_in(shuffle_key, stage), epoch)
-            return jax.random.permutation(key, n_train).astype(jnp.int32)
-        return jnp.arange(n_train, dtype=jnp.int32)
+            order = jax.random.permutation(key, n_train).astype(jnp.int32)
+        else:
+            order = jnp.arange(n_train, dtype=jnp.int32)
+        return distributed.replicate(order, mesh)
 
     def budget_met(step: int, train_time: float) -> bool:
         if budget.kind == "seconds":
@@ -445,7 +476,8 @@ def train(
         current = setup.stages[index]
         fn = make_step(setup, current.batch_size, current.method)
         t0 = time.perf_counter()
-        compiled = fn.lower(params, state, train_data, order_for(index, 0), jnp.int32(0)).compile()
+        with distributed.use_mesh(mesh):
+            compiled = fn.lower(params, state, train_data, order_for(index, 0), np.int32(0)).compile()
         counters["compile_seconds"] += time.perf_counter() - t0
         return compiled
 
@@ -459,7 +491,12 @@ def train(
     # A problem's own default takes a strided subset: its windows are stored trajectory by
     # trajectory, so the first N would all come from one trajectory.
     stride = max(1, n_train // n_eval) if n_eval and not config.eval_samples else 1
-    eval_train = jax.tree.map(lambda a: a[::stride][:n_eval], train_data)
+    eval_train = distributed.replicate(jax.tree.map(lambda a: a[::stride][:n_eval], train_data), mesh)
+    # Under a mesh every array a step sees lives on all its devices (every process holds
+    # the same seed-generated values).
+    train_data, test_data = distributed.replicate((train_data, test_data), mesh)
+    val_data = distributed.replicate(setup.data.get("val"), mesh)
+    params, state = distributed.replicate((params, state), mesh)
 
     def record(step: int, train_time: float) -> bool:
         """Full-set losses and metrics at this step; returns False if a loss is not finite."""
@@ -476,8 +513,8 @@ def train(
             values[("train", "time_per_step")] = train_time / step
         if refinable:
             values[("train", "solver_iterations")] = iterations_now()
-        if "val" in setup.data:  # the validation split (PRDP's decisions, and its baselines)
-            val = evaluate(params, setup.data["val"])
+        if val_data is not None:  # the validation split (PRDP's decisions, and its baselines)
+            val = evaluate(params, val_data)
             error = float(val.get("rel_error", val["loss"]))
             for metric, value in val.items():
                 values[("val", metric)] = float(value)
@@ -497,7 +534,8 @@ def train(
 
     def checkpoint():
         counters.update(step=step, train_time=train_time)
-        _save_checkpoint(run_dir, params, state, counters)
+        if writer:
+            _save_checkpoint(run_dir, *distributed.to_host((params, state)), counters)
 
     if step == 0:
         record(0, 0.0)
@@ -513,14 +551,14 @@ def train(
             if index != counters["stage"]:
                 # Switch method: the parameters carry over exactly, the new method starts fresh.
                 counters["stage"] = index
-                state = setup.stages[index].method.init(params)
+                state = distributed.replicate(setup.stages[index].method.init(distributed.to_host(params)), mesh)
                 compiled = compile_stage(index)
             current = setup.stages[index]
             epoch, batch = divmod(step - current.start, current.steps_per_epoch)
             if (index, epoch) != order_epoch:
                 order, order_epoch = order_for(index, epoch), (index, epoch)
             t_start = time.perf_counter()
-            new_params, new_state, stats = compiled(params, state, train_data, order, jnp.int32(batch))
+            new_params, new_state, stats = compiled(params, state, train_data, order, np.int32(batch))
             loss = float(stats["loss"])  # waits for the step: the timing is honest
             train_time += time.perf_counter() - t_start
             if not math.isfinite(loss) and not float(stats.get("skipped", 0.0)):
@@ -554,7 +592,8 @@ def train(
             progress.update(step=step, train_time=train_time, loss=loss)
     except KeyboardInterrupt:
         checkpoint()
-        _write_json(run_dir / "summary.json", {"status": "interrupted", "steps": step, "train_seconds": train_time})
+        if writer:
+            _write_json(run_dir / "summary.json", {"status": "interrupted", "steps": step, "train_seconds": train_time})
         raise
     finally:
         progress.close()
@@ -562,10 +601,12 @@ def train(
     if status == "running":
         status = "finished"
     checkpoint()
-    eqx.tree_serialise_leaves(run_dir / "params.eqx", setup.network(params))
+    if writer:
+        eqx.tree_serialise_leaves(run_dir / "params.eqx", setup.network(distributed.to_host(params)))
     # Every test case's final metrics, for paired tests between methods (same seeds and cases).
-    cases = make_evaluate(setup, per_sample=True)(params, test_data)
-    _write_json(run_dir / "test_cases.json", {k: [float(v) for v in vals] for k, vals in cases.items()})
+    cases = distributed.to_host(make_evaluate(setup, per_sample=True)(params, test_data))
+    if writer:
+        _write_json(run_dir / "test_cases.json", {k: [float(v) for v in vals] for k, vals in cases.items()})
     summary = {
         "status": status,
         "problem": config.problem,
@@ -588,11 +629,13 @@ def train(
         "diverged_step": diverged_step,
         "last_finite_loss": last_finite if status == "diverged" else None,
         "n_params": parameter_count(setup.params),
+        "devices": distributed.mesh_size(mesh),
         "solver_iterations": counters["solver_iterations"] if refinable else None,
         "prdp": counters.get("prdp"),
         "step_stat_totals": counters["stat_totals"],
     }
-    _write_json(run_dir / "summary.json", summary)
+    if writer:
+        _write_json(run_dir / "summary.json", summary)
     return summary
 
 

@@ -15,13 +15,17 @@ no momentum). The step is an optax transformation, so clipping or schedules comp
 
 from __future__ import annotations
 
+import functools
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import optax
 from jax.flatten_util import ravel_pytree
+from jax.sharding import PartitionSpec
 
-from ..half_inverse import ROUTES, half_inverse
+from ..distributed import AXIS, data_axis_size
+from ..half_inverse import ROUTES, half_inverse, sharded_gram_route
 from ..jacobian import stacked_jacobian
 from .base import AbstractMethod
 
@@ -44,20 +48,46 @@ class JacobianPower(AbstractMethod):
         return self.optimizer.init(params)
 
     def step(self, objective, params, state, batch):
+        devices = data_axis_size()
+        if devices > 1 and self.route != "svd":
+            # Data parallel: each device forms the Jacobian rows of its own samples and
+            # the Gram matrix is assembled by collectives (half_inverse.sharded_gram_route).
+            spec = PartitionSpec(AXIS)
+            local = functools.partial(self._sharded_direction, objective, devices=devices)
+            direction, loss = jax.shard_map(local, in_specs=(PartitionSpec(), spec), out_specs=PartitionSpec())(
+                params, batch
+            )
+        else:  # one device, or the SVD route (XLA gathers J for it)
+            jac, g, loss = self._jacobian_and_gradient(objective, params, batch, 1)
+            direction = half_inverse(jac, g, exponent=self.exponent, truncation=self.truncation, route=self.route)
+        _, unravel = ravel_pytree(params)
+        updates, state = self.optimizer.update(unravel(direction), state, params)
+        return optax.apply_updates(params, updates), state, {"loss": loss}
+
+    @staticmethod
+    def _jacobian_and_gradient(objective, params, batch, devices):
+        """``J`` (rows, P), ``g = ∂L/∂y`` (rows,) and this batch's share of the loss
+        ``L = mean over the global batch`` (the batch is 1/devices of it)."""
         jac, y = stacked_jacobian(objective.predict, params, batch)
         unflatten_y = _output_unflattener(objective, params, batch)
 
         def mean_loss(y_flat):
             # y_flat holds the flattened outputs; losses see them in the predict shape.
-            return jnp.mean(jax.vmap(objective.loss)(unflatten_y(y_flat), batch))
+            return jnp.mean(jax.vmap(objective.loss)(unflatten_y(y_flat), batch)) / devices
 
         loss, g = jax.value_and_grad(mean_loss)(y)
-        direction = half_inverse(
-            jac, g.ravel(), exponent=self.exponent, truncation=self.truncation, route=self.route
+        return jac, g.ravel(), loss
+
+    def _sharded_direction(self, objective, params, batch, *, devices):
+        # Mark the replicated parameters as varying over the devices: differentiating
+        # w.r.t. an invariant input would psum the per-device Jacobians (shard_map's
+        # transpose of the implicit broadcast), and each device must keep its own rows.
+        params = jax.lax.pcast(params, AXIS, to="varying")
+        jac, g, loss = self._jacobian_and_gradient(objective, params, batch, devices)
+        direction = sharded_gram_route(
+            jac, g, AXIS, devices, exponent=self.exponent, truncation=self.truncation
         )
-        _, unravel = ravel_pytree(params)
-        updates, state = self.optimizer.update(unravel(direction), state, params)
-        return optax.apply_updates(params, updates), state, {"loss": loss}
+        return direction, jax.lax.psum(loss, AXIS)
 
 
 def _output_unflattener(objective, params, batch):
