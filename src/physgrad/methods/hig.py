@@ -26,8 +26,13 @@ from jax.sharding import PartitionSpec
 
 from ..distributed import AXIS, data_axis_size
 from ..half_inverse import ROUTES, half_inverse, sharded_gram_route
+from ..half_inverse_large import batch_output_map, blockgram_half_inverse, lanczos_half_inverse
 from ..jacobian import stacked_jacobian
 from .base import AbstractMethod
+
+
+MATRIX_FREE = ("blockgram", "lanczos")
+METHOD_ROUTES = ROUTES + MATRIX_FREE
 
 
 class JacobianPower(AbstractMethod):
@@ -37,19 +42,36 @@ class JacobianPower(AbstractMethod):
     truncation: float = eqx.field(static=True)
     route: str = eqx.field(static=True)
     optimizer: optax.GradientTransformation = eqx.field(static=True)
+    blocks: int = eqx.field(static=True, default=8)
+    lanczos_steps: int = eqx.field(static=True, default=64)
 
     def __check_init__(self):
-        if self.route not in ROUTES:
-            raise ValueError(f"unknown route {self.route!r}; valid choices: {', '.join(ROUTES)}")
+        if self.route not in METHOD_ROUTES:
+            raise ValueError(f"unknown route {self.route!r}; valid choices: {', '.join(METHOD_ROUTES)}")
         if not self.truncation >= 0:
             raise ValueError(f"truncation must be >= 0, got {self.truncation}")
+        if self.blocks < 1 or self.lanczos_steps < 1:
+            raise ValueError(f"blocks and lanczos_steps must be >= 1, got {self.blocks} and {self.lanczos_steps}")
 
     def init(self, params):
         return self.optimizer.init(params)
 
     def step(self, objective, params, state, batch):
         devices = data_axis_size()
-        if devices > 1 and self.route != "svd":
+        stats = {}
+        if self.route in MATRIX_FREE:  # never forms J (under a mesh: partitioned by XLA)
+            n = jax.tree.leaves(batch)[0].shape[0]
+            if self.route == "blockgram" and n % self.blocks:
+                raise ValueError(f"blocks={self.blocks} must divide the batch size {n}")
+            y, g, loss = self._outputs_and_gradient(objective, params, batch)
+            settings = dict(exponent=self.exponent, truncation=self.truncation)
+            if self.route == "blockgram":
+                direction = blockgram_half_inverse(objective.predict, params, batch, g, blocks=self.blocks, **settings)
+            else:
+                direction, stats["lanczos_change"] = lanczos_half_inverse(
+                    objective.predict, params, batch, g, steps=self.lanczos_steps, **settings
+                )
+        elif devices > 1 and self.route != "svd":
             # Data parallel: each device forms the Jacobian rows of its own samples and
             # the Gram matrix is assembled by collectives (half_inverse.sharded_gram_route).
             spec = PartitionSpec(AXIS)
@@ -62,7 +84,21 @@ class JacobianPower(AbstractMethod):
             direction = half_inverse(jac, g, exponent=self.exponent, truncation=self.truncation, route=self.route)
         _, unravel = ravel_pytree(params)
         updates, state = self.optimizer.update(unravel(direction), state, params)
-        return optax.apply_updates(params, updates), state, {"loss": loss}
+        return optax.apply_updates(params, updates), state, {"loss": loss, **stats}
+
+    @staticmethod
+    def _outputs_and_gradient(objective, params, batch):
+        """The flat outputs ``y`` (rows,), ``g = ∂L/∂y`` and the batch-mean loss, without J."""
+        outputs, flat = batch_output_map(objective.predict, params, batch)
+        unflatten_y = _output_unflattener(objective, params, batch)
+        b = jax.tree.leaves(batch)[0].shape[0]
+        y = outputs(flat)
+
+        def mean_loss(y_flat):
+            return jnp.mean(jax.vmap(objective.loss)(unflatten_y(y_flat.reshape(b, -1)), batch))
+
+        loss, g = jax.value_and_grad(mean_loss)(y)
+        return y, g, loss
 
     @staticmethod
     def _jacobian_and_gradient(objective, params, batch, devices):
@@ -104,11 +140,18 @@ def _output_unflattener(objective, params, batch):
     return unflatten
 
 
-def hig(*, lr: float = 1.0, truncation: float = 1e-6, route: str = "auto"):
-    """Half-inverse gradients: −η V Σ^{-1/2} Uᵀ g, applied by SGD (Schnell et al. 2022)."""
-    return JacobianPower(-0.5, truncation, route, optax.sgd(lr))
+def hig(
+    *, lr: float = 1.0, truncation: float = 1e-6, route: str = "auto", blocks: int = 8, lanczos_steps: int = 64
+):
+    """Half-inverse gradients: −η V Σ^{-1/2} Uᵀ g, applied by SGD (Schnell et al. 2022).
+
+    ``route``: ``auto``/``svd``/``gram`` hold J; ``blockgram`` (exact, ``blocks`` sample
+    groups) and ``lanczos`` (approximate, ``lanczos_steps``) never form it."""
+    return JacobianPower(-0.5, truncation, route, optax.sgd(lr), blocks, lanczos_steps)
 
 
-def gn(*, lr: float = 1.0, truncation: float = 1e-6, route: str = "auto"):
+def gn(
+    *, lr: float = 1.0, truncation: float = 1e-6, route: str = "auto", blocks: int = 8, lanczos_steps: int = 64
+):
     """Gauss–Newton: −η J⁺ g (pseudo-inverse, κ = −1) with the same truncation, by SGD."""
-    return JacobianPower(-1.0, truncation, route, optax.sgd(lr))
+    return JacobianPower(-1.0, truncation, route, optax.sgd(lr), blocks, lanczos_steps)

@@ -1,0 +1,243 @@
+"""Data parallelism: on 4 (forced) CPU devices every method's update equals the
+single-device one; the distributed and matrix-free half-inverse routes equal the Gram
+route; a two-process run over loopback matches a single-process run.
+
+The 4 CPU devices come from ``XLA_FLAGS=--xla_force_host_platform_device_count=4``,
+set in conftest.py before JAX starts (the other tests use device 0 only).
+"""
+
+import functools
+import json
+import os
+import socket
+import subprocess
+import sys
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from jax.flatten_util import ravel_pytree
+from jax.sharding import PartitionSpec
+
+from physgrad import METHODS, Budget, ConfigError, make_config
+from physgrad.distributed import make_mesh, replicate, use_mesh
+from physgrad.half_inverse import half_inverse, sharded_gram_route
+from physgrad.half_inverse_large import blockgram_half_inverse, lanczos_half_inverse
+from physgrad.jacobian import stacked_jacobian
+from physgrad.methods.hig import JacobianPower
+from physgrad.train import build, make_step, train
+
+DEVICES = 4
+needs_devices = pytest.mark.skipif(jax.device_count() < DEVICES, reason="needs 4 (forced host) devices")
+
+OSC = {"n_steps": "8", "hidden": "6", "n_train": "64", "n_test": "64", "dtype": "float64", "batch_size": "16"}
+CARTPOLE = {"n_train": "32", "n_test": "8", "batch_size": "8", "dt": "0.1", "n_steps": "10"}
+ADVECTION = {"n_train": "4", "n_test": "2", "horizon": "20", "batch_size": "16", "iterations": "4"}
+POISSON = {"resolution": "16", "n_train": "16", "n_test": "8", "batch_size": "8", "levels": "2"}
+
+
+def problem_for(method):
+    """A small problem each method runs on (float64 where the problem has a dtype)."""
+    if method in ("bptt", "sbptt_m", "sbptt_c", "no_temporal"):
+        return "cartpole", CARTPOLE
+    if method in ("one", "nog", "wig"):
+        return "advection_1d", ADVECTION
+    if method == "sip":
+        return "poisson", POISSON
+    # This tiny ReLU net's J has singular values down to 1e-10 σ_max: with τ = 1e-6 the
+    # σ^κ of the smallest kept ones amplify rounding differences to ~1e-6 of the update.
+    extra = {"truncation": "1e-3"} if method in ("gn", "hig") else {"damping": "10.0"} if method == "newton" else {}
+    return "oscillators", {**OSC, **extra}
+
+
+def one_step(problem, method, settings, devices):
+    """Parameters and loss after the first training step on ``devices`` devices."""
+    setup = build(make_config(problem, method, budget=Budget(steps=1), settings=settings))
+    stage = setup.stages[0]
+    data = setup.data["train"]
+    order = jnp.arange(jax.tree.leaves(data)[0].shape[0], dtype=jnp.int32)
+    inputs = (setup.params, stage.method.init(setup.params), data, order)
+    mesh = make_mesh(devices)
+    with use_mesh(mesh):
+        step = make_step(setup, stage.batch_size, stage.method)
+        params, _, stats = step(*replicate(inputs, mesh), np.int32(0))
+    return setup.params, params, float(stats["loss"])
+
+
+def relative_update_difference(start, a, b):
+    ua = ravel_pytree(jax.tree.map(lambda x, y: np.asarray(x) - np.asarray(y), a, start))[0]
+    ub = ravel_pytree(jax.tree.map(lambda x, y: np.asarray(x) - np.asarray(y), b, start))[0]
+    return float(np.linalg.norm(ua - ub) / max(np.linalg.norm(ua), 1e-300))
+
+
+@needs_devices
+@pytest.mark.parametrize("method", sorted(METHODS))
+def test_every_method_sharded_over_4_devices_gives_the_single_device_update(method):
+    problem, settings = problem_for(method)
+    start, single, loss1 = one_step(problem, method, settings, 1)
+    _, sharded, loss4 = one_step(problem, method, settings, DEVICES)
+    # float64 problems: rounding of reordered sums only; float32 ones (poisson, cartpole,
+    # advection): float32 rounding.
+    tol = 1e-9 if settings.get("dtype") == "float64" else 1e-4
+    assert relative_update_difference(start, single, sharded) < tol
+    assert loss4 == pytest.approx(loss1, rel=tol)
+
+
+@needs_devices
+@pytest.mark.parametrize("route", ["gram", "svd", "blockgram", "lanczos"])
+def test_hig_routes_sharded_over_4_devices(route):
+    settings = {**OSC, "route": route, "blocks": "4", "lanczos_steps": "200", "truncation": "1e-3"}
+    start, single, _ = one_step("oscillators", "hig", settings, 1)
+    _, sharded, _ = one_step("oscillators", "hig", settings, DEVICES)
+    assert relative_update_difference(start, single, sharded) < 1e-8
+
+
+@needs_devices
+@pytest.mark.parametrize("shape", [(32, 90), (96, 20)])  # wide (ring of row blocks) and tall
+@pytest.mark.parametrize("exponent", [-0.5, -1.0, 1.0])
+def test_sharded_gram_route_equals_numpy_svd(shape, exponent):
+    rng = np.random.default_rng(1)
+    m, p = shape
+    # singular values spread over 4 decades, one dropped by τ = 1e-5
+    u, _ = np.linalg.qr(rng.normal(size=(m, min(m, p))))
+    v, _ = np.linalg.qr(rng.normal(size=(p, min(m, p))))
+    s = np.logspace(0, -4, min(m, p))
+    s[-1] = 1e-7
+    jac = (u * s) @ v.T
+    g = rng.normal(size=m)
+    keep = s > 1e-5 * s.max()
+    want = v[:, keep] @ (s[keep] ** exponent * (u[:, keep].T @ g))
+    mesh = make_mesh(DEVICES)
+    spec = PartitionSpec("data")
+    route = functools.partial(sharded_gram_route, axis="data", devices=DEVICES, exponent=exponent, truncation=1e-5)
+    with use_mesh(mesh):
+        got = jax.jit(jax.shard_map(route, in_specs=(spec, spec), out_specs=PartitionSpec()))(jnp.asarray(jac), jnp.asarray(g))
+    np.testing.assert_allclose(np.asarray(got), want, rtol=1e-7, atol=1e-9 * np.abs(want).max())
+
+
+def hig_pieces(batch_size=32):
+    setup = build(make_config("oscillators", "hig", budget=Budget(steps=1), settings={**OSC, "batch_size": str(batch_size)}))
+    batch = jax.tree.map(lambda a: a[:batch_size], setup.data["train"])
+    jac, g, _ = JacobianPower._jacobian_and_gradient(setup.objective, setup.params, batch, 1)
+    return setup, batch, np.asarray(jac), np.asarray(g)
+
+
+def test_blockgram_route_equals_the_gram_route_without_forming_j():
+    setup, batch, jac, g = hig_pieces()
+    # τ = 1e-3: this ReLU net's J has singular values down to 1e-10 σ_max, whose σ^κ
+    # would amplify the rounding differences of the two summation orders.
+    want = np.asarray(half_inverse(jnp.asarray(jac), jnp.asarray(g), route="gram", truncation=1e-3))
+    for blocks in (1, 4, 32):
+        route = functools.partial(blockgram_half_inverse, setup.objective.predict, blocks=blocks, truncation=1e-3)
+        got = jax.jit(route)(
+            setup.params, batch, jnp.asarray(g)
+        )
+        np.testing.assert_allclose(np.asarray(got), want, rtol=1e-8, atol=1e-10 * np.abs(want).max())
+    with pytest.raises(ValueError, match="must divide"):
+        blockgram_half_inverse(setup.objective.predict, setup.params, batch, jnp.asarray(g), blocks=5)
+
+
+def two_layer_net(seed=0, batch_size=8):
+    """A tanh net with a well-conditioned Gram matrix (λ_max/λ_min ≈ 500): m = 24, P = 112."""
+    rng = np.random.default_rng(seed)
+    params = {"w1": jnp.asarray(rng.normal(size=(16, 4))), "w2": jnp.asarray(rng.normal(size=(3, 16)) / 4)}
+    batch = jnp.asarray(rng.normal(size=(batch_size, 4)))
+
+    def predict(p, x):
+        return p["w2"] @ jnp.tanh(p["w1"] @ x)
+
+    jac = np.asarray(stacked_jacobian(predict, params, batch)[0])
+    return predict, params, batch, jac, rng.normal(size=jac.shape[0])
+
+
+def test_lanczos_route_is_exact_at_full_krylov_dimension_and_within_its_bound_before():
+    predict, params, batch, jac, g = two_layer_net()
+    m = g.size
+    lam, u = np.linalg.eigh(jac @ jac.T)
+    f = lam**-0.75  # every eigenvalue is far above τ² λ_max: nothing truncated
+    exact_x = u @ (f * (u.T @ g))
+    want = jac.T @ exact_x
+    run = jax.jit(lambda k: lanczos_half_inverse(predict, params, batch, jnp.asarray(g), steps=k), static_argnums=0)
+    got, _ = run(m)
+    np.testing.assert_allclose(np.asarray(ravel_pytree(got)[0]), want, rtol=1e-8, atol=1e-10 * np.abs(want).max())
+    # Before: ‖f(G)g − x_k‖ ≤ 2‖g‖ max_λ |f(λ) − p(λ)| for any p of degree < k; p = the
+    # Chebyshev interpolant of f on [λ_min, λ_max] (computed here in NumPy).
+    errors = []
+    for k in (2, 4, 8, 12):
+        direction, _ = run(k)
+        x_k = np.linalg.lstsq(jac.T, np.asarray(ravel_pytree(direction)[0]), rcond=None)[0]  # J has full row rank
+        cheb = np.polynomial.chebyshev.Chebyshev.interpolate(lambda t: t**-0.75, k - 1, domain=[lam.min(), lam.max()])
+        bound = 2 * np.linalg.norm(g) * np.abs(f - cheb(lam)).max()
+        errors.append(np.linalg.norm(exact_x - x_k))
+        assert errors[-1] <= bound
+    assert errors == sorted(errors, reverse=True) and errors[-1] < 0.1 * errors[0]
+
+
+def test_lanczos_and_blockgram_inside_the_hig_method_match_the_gram_route():
+    setup, batch, jac, g = hig_pieces(batch_size=8)
+    m = g.size
+    steps = {}
+    for route in ("gram", "blockgram", "lanczos"):
+        method = METHODS["hig"](route=route, blocks=2, lanczos_steps=m, truncation=1e-3)
+        params, _, stats = jax.jit(method.step, static_argnums=0)(setup.objective, setup.params, method.init(setup.params), batch)
+        steps[route] = (ravel_pytree(params)[0], stats)
+    ref = np.asarray(steps["gram"][0])
+    np.testing.assert_allclose(np.asarray(steps["blockgram"][0]), ref, rtol=1e-9)
+    # The Krylov space is all of R^m, but Ritz values below τ²θ_max are dropped as the Gram
+    # route drops eigenvalues: equal to the rounding of the matrix-free products.
+    np.testing.assert_allclose(np.asarray(steps["lanczos"][0]), ref, rtol=1e-6)
+    assert "lanczos_change" in steps["lanczos"][1]
+
+
+def test_devices_setting_errors_are_one_line():
+    with pytest.raises(ConfigError, match="devices"):
+        make_mesh(jax.device_count() + 1)
+    with pytest.raises(ConfigError, match="a number or 'all'"):
+        make_mesh("many")
+
+
+@needs_devices
+def test_training_on_4_devices_matches_one_device(tmp_path):
+    settings = {**OSC, "eval_every": "5", "truncation": "1e-3"}  # τ: see problem_for
+    config = make_config("oscillators", "hig", budget=Budget(steps=5), settings=settings)
+    one = train(config, tmp_path / "one")
+    four = train(config, tmp_path / "four", devices=DEVICES)
+    assert four["devices"] == DEVICES and one["devices"] == 1
+    assert four["final_test_loss"] == pytest.approx(one["final_test_loss"], rel=1e-9)
+    with pytest.raises(ConfigError, match="does not split over 4 devices"):
+        train(make_config("oscillators", "adam", budget=Budget(steps=1), settings={**OSC, "batch_size": "6"}),
+              tmp_path / "odd", devices=DEVICES)  # fmt: skip
+
+
+def free_port():
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_two_process_loopback_run_matches_a_single_process_run(tmp_path):
+    """The README's example: two `physgrad train` processes (1 CPU device each) over
+    127.0.0.1 train one run; process 0 writes it; it equals the single-process run."""
+    args = ["oscillators", "--method", "hig", "--steps", "4", "--quiet",
+            *[f"--set={k}={v}" for k, v in OSC.items()], "--set=eval_every=4", "--set=truncation=1e-3"]  # fmt: skip
+    env = {**os.environ, "XLA_FLAGS": "--xla_force_host_platform_device_count=1", "JAX_PLATFORMS": "cpu"}
+    run = [sys.executable, "-m", "physgrad", "train", *args]
+    single = subprocess.run([*run, "--out", str(tmp_path / "single")], env=env, capture_output=True, text=True, timeout=300)
+    assert single.returncode == 0, single.stderr
+    port = free_port()
+    procs = [
+        subprocess.Popen([*run, "--out", str(tmp_path / "pair"), "--coordinator", f"127.0.0.1:{port}",
+                          "--num-processes", "2", "--process-id", str(i)],
+                         env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)  # fmt: skip
+        for i in range(2)
+    ]
+    outs = [p.communicate(timeout=300) for p in procs]
+    assert [p.returncode for p in procs] == [0, 0], [o[1][-2000:] for o in outs]
+    assert "on all devices of 2 processes" in outs[0][0] and "finished" in outs[0][0]
+    assert "oscillators" not in outs[1][0]  # process 1 reports nothing (gloo's own lines aside)
+    a = json.loads(Path(tmp_path / "single" / "summary.json").read_text())
+    b = json.loads(Path(tmp_path / "pair" / "summary.json").read_text())
+    assert b["devices"] == 2 and a["devices"] == 1
+    assert b["final_test_loss"] == pytest.approx(a["final_test_loss"], rel=1e-9)
