@@ -47,7 +47,7 @@ def test_train_writes_every_documented_file(tmp_path, capsys):
     assert summary["status"] == "finished" and summary["steps"] == 6
     assert summary["final_test_loss"] == pytest.approx(float([r for r in metrics if r["step"] == "6" and r["split"] == "test" and r["metric"] == "loss"][0]["value"]))
     config = json.loads((out / "config.json").read_text())
-    assert config["phases"] == [{"method": "hig", "hyperparameters": {"lr": 1.0, "truncation": 1e-6, "route": "auto"}, "batch_size": 256, "steps": None}]
+    assert config["phases"] == [{"method": "hig", "hyperparameters": {"lr": 1.0, "truncation": 1e-6, "route": "auto", "blocks": 8, "lanczos_steps": 64}, "batch_size": 256, "steps": None}]
     assert config["budget"] == {"steps": 6}
     assert json.loads((out / "env.json").read_text())["versions"]["jax"]
     # an existing run directory is not overwritten silently
