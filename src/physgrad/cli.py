@@ -2,8 +2,9 @@
 
     physgrad list
     physgrad train PROBLEM --method M|M1:N,M2 [--seconds S | --steps N | --epochs E] [--seed K]
-                   [--set name=value ...] [--out DIR] [--resume]
-    physgrad compare PROBLEM [--methods a,b,...] [--seeds N] [budget] [--set ...] [--out DIR]
+                   [--set name=value ...] [--out DIR] [--resume] [--devices N|all]
+                   [--coordinator HOST:PORT --num-processes P --process-id I]
+    physgrad compare PROBLEM [--methods a,b,...] [--seeds N] [budget] [--set ...] [--out DIR] [--devices N]
                      (--set name=a,b,c sweeps: every cell of the grid is a study)
     physgrad report DIR
     physgrad demo
@@ -114,6 +115,7 @@ def build_parser() -> Parser:
     p.add_argument("problem")
     p.add_argument("--methods", help="comma-separated, sequences allowed: adam,hig,adam:2000,hig (default: the paper's comparison)")
     p.add_argument("--seeds", type=int, default=1, help="number of seeds 0..N-1 (default 1)")
+    p.add_argument("--devices", default="1", metavar="N|all", help="devices to split each batch over (default 1)")
     p.add_argument("--out", help="study directory (default studies/PROBLEM)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     _add_budget(p)
@@ -206,14 +208,14 @@ def cmd_train(args, console):
     return 0
 
 
-def _run_compare(console, problem, methods, seeds, budget, settings, out, quiet=False):
+def _run_compare(console, problem, methods, seeds, budget, settings, out, quiet=False, devices="1"):
     from .progress import RichProgressMeter
     from .study import compare, plan, report
 
     plan(problem, methods, seeds, budget, settings)  # validate every name before anything runs
     console.print(f"comparing on {problem}: budget {budget} per run, seeds {list(seeds)}, settings {settings or 'paper defaults'}")
     meter = None if quiet or not console.is_terminal else RichProgressMeter
-    compare(problem, methods, seeds, budget, out, settings=settings, progress=meter, echo=console.print)
+    compare(problem, methods, seeds, budget, out, settings=settings, progress=meter, echo=console.print, devices=devices)
     result = report(out)
     _print_table(console, result.lines, title=f"{problem}: {budget} per run")
     _print_paired_tests(console, out)
@@ -232,13 +234,14 @@ def cmd_compare(args, console):
     from .study import split_grid
 
     if split_grid(settings)[1]:
-        _run_grid(console, args.problem, methods, range(args.seeds), _budget(args), settings, out, args.quiet)
+        _run_grid(console, args.problem, methods, range(args.seeds), _budget(args), settings, out, args.quiet, args.devices)
     else:
-        _run_compare(console, args.problem, methods, range(args.seeds), _budget(args), settings, out, args.quiet)
+        _run_compare(console, args.problem, methods, range(args.seeds), _budget(args), settings, out, args.quiet,
+                     args.devices)  # fmt: skip
     return 0
 
 
-def _run_grid(console, problem, methods, seeds, budget, settings, out, quiet=False):
+def _run_grid(console, problem, methods, seeds, budget, settings, out, quiet=False, devices="1"):
     """A sweep: ``--set a=1,2 --set b=x,y`` runs every cell of the grid as its own study."""
     from .progress import RichProgressMeter
     from .study import compare_grid, grid_cells, grid_report, split_grid
@@ -249,7 +252,8 @@ def _run_grid(console, problem, methods, seeds, budget, settings, out, quiet=Fal
         f"({len(grid_cells(grid))} cells): budget {budget} per run, seeds {list(seeds)}, fixed settings {fixed or 'paper defaults'}"
     )
     meter = None if quiet or not console.is_terminal else RichProgressMeter
-    compare_grid(problem, methods, seeds, budget, out, settings=settings, progress=meter, echo=console.print)
+    compare_grid(problem, methods, seeds, budget, out, settings=settings, progress=meter, echo=console.print,
+                 devices=devices)  # fmt: skip
     result = grid_report(out)
     _print_table(console, result.lines, title=f"{problem}: {budget} per run")
     _print_paired_tests(console, out)

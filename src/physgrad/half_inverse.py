@@ -128,9 +128,10 @@ def sharded_gram_route(
 
     Wide ``J`` (m = devices·r ≤ P): the blocks travel once around a ring
     (``ppermute``, devices − 1 hops) so device i forms its strip ``G[i, :] = J_i Jᵀ``;
-    the strips are all-gathered into ``G = J Jᵀ`` (m × m, float64), every device runs the
-    same small ``eigh`` ``G = U Λ Uᵀ``, takes ``w = U Λ^{(κ−1)/2} Uᵀ g`` and applies
-    ``Jᵀ w = Σ_i J_iᵀ w_i`` shard-wise with one ``psum`` of a P-vector.
+    the strips are all-gathered into ``G = J Jᵀ`` (m × m, float64), device 0 runs the
+    one small ``eigh`` ``G = U Λ Uᵀ`` and ``w = U Λ^{(κ−1)/2} Uᵀ g`` (m,) is broadcast
+    by a ``psum``; ``Jᵀ w = Σ_i J_iᵀ w_i`` is applied shard-wise with one ``psum`` of a
+    P-vector.
     Tall ``J``: ``JᵀJ = Σ_i J_iᵀ J_i`` and ``Jᵀ g`` by ``psum``, then as the serial route.
 
     Returns the direction ``J^κ g`` (P,), replicated, in the Jacobian's dtype. Equal to
@@ -155,9 +156,19 @@ def sharded_gram_route(
         strip = jax.lax.dynamic_update_slice_in_dim(strip, j @ block.T, owner * r, axis=1)
         if hop < devices - 1:
             block = jax.lax.ppermute(block, axis, ring)
+    # G's strips and g meet on device 0, which alone runs the eigendecomposition; w comes
+    # back to every device by a psum (the others add zeros). Replicating the eigh instead
+    # would cost nothing on separate accelerators, but N times the work where devices
+    # share cores (forced host devices, several processes on one machine).
     gram = jax.lax.all_gather(strip, axis, tiled=True)
-    eigenvalues, vectors = jnp.linalg.eigh(gram)
-    powers = _kept_powers(jnp.sqrt(jnp.clip(eigenvalues, 0.0, None)), exponent - 1.0, truncation)
-    w = vectors @ (powers * (vectors.T @ jax.lax.all_gather(g, axis, tiled=True)))
+    g_all = jax.lax.all_gather(g, axis, tiled=True)
+
+    def weights(gram, g_all):  # w = U Λ^{(κ−1)/2} Uᵀ g
+        eigenvalues, vectors = jnp.linalg.eigh(gram)
+        powers = _kept_powers(jnp.sqrt(jnp.clip(eigenvalues, 0.0, None)), exponent - 1.0, truncation)
+        return vectors @ (powers * (vectors.T @ g_all))
+
+    w = jax.lax.cond(me == 0, weights, lambda gram, g_all: jnp.zeros_like(g_all), gram, g_all)
+    w = jax.lax.psum(w, axis)
     own = jax.lax.dynamic_slice_in_dim(w, me * r, r)
     return jax.lax.psum(j.T @ own, axis).astype(jacobian.dtype)

@@ -91,8 +91,10 @@ def compare(
     settings: dict[str, Any] | None = None,
     progress: Callable[[], AbstractProgressMeter] | None = None,
     echo: Callable[[str], None] = print,
+    devices: int | str | None = 1,
 ) -> list[dict[str, Any]]:
-    """Train every method × seed on the same budget into ``out``; return the summary rows."""
+    """Train every method × seed on the same budget into ``out``; return the summary rows.
+    ``devices``: each run's batch is split over that many devices (``train``)."""
     out = Path(out)
     configs = plan(problem, methods, seeds, budget, settings)
     out.mkdir(parents=True, exist_ok=True)
@@ -116,7 +118,7 @@ def compare(
         if is_complete(run_dir):
             echo(f"{prefix}: done already ({read_summary(run_dir)['status']}), skipped")
             continue
-        summary = train(config, run_dir, resume=True, progress=progress() if progress else None)
+        summary = train(config, run_dir, resume=True, progress=progress() if progress else None, devices=devices)
         echo(f"{prefix}: {describe_run(summary)}")
     return collect(out)
 
@@ -390,6 +392,7 @@ def compare_grid(
     settings: dict[str, Any],
     progress: Callable[[], AbstractProgressMeter] | None = None,
     echo: Callable[[str], None] = print,
+    devices: int | str | None = 1,
 ) -> None:
     """Every cell of a settings grid as its own study under ``out`` (validated first)."""
     fixed, grid = split_grid(settings)
@@ -409,7 +412,7 @@ def compare_grid(
     for i, cell in enumerate(cells, 1):
         echo(f"cell {i}/{len(cells)}: {', '.join(f'{k}={v}' for k, v in cell.items())}")
         compare(problem, methods, seeds, budget, out / cell_name(cell), settings={**fixed, **cell}, progress=progress,
-                echo=echo)  # fmt: skip
+                echo=echo, devices=devices)  # fmt: skip
         report(out / cell_name(cell))
 
 
