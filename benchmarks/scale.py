@@ -31,6 +31,8 @@ import sys
 HERE = os.path.dirname(os.path.abspath(__file__))
 
 DEVICE_CASES = [  # (label, problem, method, settings)
+    # The example: J is 4096 × 24,896 (408 MB in float32, 816 MB as float64).
+    ("poisson_hig hig (gram)", "poisson_hig", "hig", {"n_train": "256", "n_test": "64"}),
     ("oscillators hig (gram)", "oscillators", "hig", {"n_train": "1024", "n_test": "64"}),
     ("oscillators adam", "oscillators", "adam", {"n_train": "1024", "n_test": "64"}),
     ("poisson sip", "poisson", "sip", {"n_train": "256", "n_test": "16"}),
@@ -113,6 +115,8 @@ def cmd_devices(args):
     print("| case | batch | devices | ms/step | × 1 device | XLA MiB/device | peak RSS GiB |")
     print("|---|---|---|---|---|---|---|")
     for label, problem, method, settings in DEVICE_CASES:
+        if args.only and not any(word in label for word in args.only.split(",")):
+            continue
         base = None
         for n in counts:
             r = run_case(problem, method, settings, devices=n, repeats=args.repeats, forced=n if on_cpu else None)
@@ -151,6 +155,7 @@ def main():
     p = sub.add_parser("devices")
     p.add_argument("--counts", default="1,2,4,8")
     p.add_argument("--repeats", type=int, default=10)
+    p.add_argument("--only", help="comma-separated words: only the cases whose label contains one")
     p = sub.add_parser("sizes")
     p.add_argument("--rows", type=int, default=256)
     p.add_argument("--hidden", default="20,100,200,370,683")

@@ -241,3 +241,18 @@ def test_two_process_loopback_run_matches_a_single_process_run(tmp_path):
     b = json.loads(Path(tmp_path / "pair" / "summary.json").read_text())
     assert b["devices"] == 2 and a["devices"] == 1
     assert b["final_test_loss"] == pytest.approx(a["final_test_loss"], rel=1e-9)
+
+
+def test_cli_device_errors_are_one_line_with_exit_2(capsys, tmp_path):
+    from physgrad.cli import main
+
+    base = ["train", "oscillators", "--method", "adam", "--steps", "1", "--out", str(tmp_path / "r")]
+    assert main([*base, "--devices", "many"]) == 2
+    assert main([*base, "--coordinator", "127.0.0.1:1"]) == 2
+    assert main([*base, "--devices", "99"]) == 2
+    assert main([*base, "--set", "batch_size=6", "--set", "n_train=64", "--devices", str(min(jax.device_count(), 4))]) == (
+        2 if jax.device_count() >= 4 else 0
+    )
+    err = capsys.readouterr().err.strip().splitlines()
+    assert all(line.startswith("physgrad: error: ") for line in err) and len(err) == (4 if jax.device_count() >= 4 else 3)
+    assert "needs all of --coordinator, --num-processes and --process-id" in err[1]
