@@ -256,3 +256,20 @@ def test_cli_device_errors_are_one_line_with_exit_2(capsys, tmp_path):
     err = capsys.readouterr().err.strip().splitlines()
     assert all(line.startswith("physgrad: error: ") for line in err) and len(err) == (4 if jax.device_count() >= 4 else 3)
     assert "needs all of --coordinator, --num-processes and --process-id" in err[1]
+
+
+@needs_devices
+@pytest.mark.parametrize("n", [64, 30])  # 30: padded to 32 and cut again
+def test_evaluation_split_over_devices_equals_one_device(n):
+    from physgrad.train import make_evaluate
+
+    setup = build(make_config("oscillators", "adam", budget=Budget(steps=1), settings=OSC))
+    data = jax.tree.map(lambda a: a[:n], setup.data["test"])
+    evaluate = make_evaluate(setup, chunk=8, per_sample=True)
+    want = evaluate(setup.params, data)
+    mesh = make_mesh(DEVICES)
+    with use_mesh(mesh):
+        got = make_evaluate(setup, chunk=8, per_sample=True)(*replicate((setup.params, data), mesh))
+    for k in want:
+        assert got[k].shape == (n,)
+        np.testing.assert_allclose(np.asarray(got[k]), np.asarray(want[k]), rtol=1e-12)

@@ -236,7 +236,8 @@ def make_step(setup: Setup, batch_size: int, method: AbstractMethod | None = Non
 def make_evaluate(setup: Setup, chunk: int = 1024, per_sample: bool = False):
     """Mean per-sample loss and the problem's extra metrics over a data split (jitted, in
     chunks of ``chunk``): ``{"loss": ..., **problem.metrics}``; with ``per_sample`` the
-    values of every sample instead of their means (for paired tests across methods)."""
+    values of every sample instead of their means (for paired tests across methods).
+    Traced under a mesh, the samples are split over its devices."""
     problem = setup.problem
 
     def one(params, sample):
@@ -246,7 +247,17 @@ def make_evaluate(setup: Setup, chunk: int = 1024, per_sample: bool = False):
 
     def evaluate(params, data):
         n = jax.tree.leaves(data)[0].shape[0]
-        values = jax.lax.map(lambda s: one(params, s), data, batch_size=min(chunk, n))
+        devices = distributed.data_axis_size()
+        if devices == 1:
+            values = jax.lax.map(lambda s: one(params, s), data, batch_size=min(chunk, n))
+        else:  # each device evaluates its share: (devices, n/devices) with the first axis split
+            pad = -n % devices  # repeats of the last sample, cut off again below
+            data = jax.tree.map(lambda a: jnp.concatenate([a, jnp.repeat(a[-1:], pad, axis=0)]), data)
+            data = jax.tree.map(lambda a: a.reshape(devices, (n + pad) // devices, *a.shape[1:]), data)
+            data = distributed.shard_batch(data)
+            per_device = min(chunk, (n + pad) // devices)
+            values = jax.vmap(lambda d: jax.lax.map(lambda s: one(params, s), d, batch_size=per_device))(data)
+            values = jax.tree.map(lambda v: v.reshape(n + pad, *v.shape[2:])[:n], values)
         return values if per_sample else jax.tree.map(jnp.mean, values)
 
     return jax.jit(evaluate)
@@ -507,14 +518,17 @@ def train(
             values[("train", f"step_{name}")] = total / count
         window.clear()
         for split, split_data in (("train", eval_train), ("test", test_data)):
-            for metric, value in evaluate(params, split_data).items():
+            with distributed.use_mesh(mesh):
+                evaluated = evaluate(params, split_data)
+            for metric, value in evaluated.items():
                 values[(split, metric)] = float(value)
         if step > 0:
             values[("train", "time_per_step")] = train_time / step
         if refinable:
             values[("train", "solver_iterations")] = iterations_now()
         if val_data is not None:  # the validation split (PRDP's decisions, and its baselines)
-            val = evaluate(params, val_data)
+            with distributed.use_mesh(mesh):
+                val = evaluate(params, val_data)
             error = float(val.get("rel_error", val["loss"]))
             for metric, value in val.items():
                 values[("val", metric)] = float(value)
@@ -604,7 +618,8 @@ def train(
     if writer:
         eqx.tree_serialise_leaves(run_dir / "params.eqx", setup.network(distributed.to_host(params)))
     # Every test case's final metrics, for paired tests between methods (same seeds and cases).
-    cases = distributed.to_host(make_evaluate(setup, per_sample=True)(params, test_data))
+    with distributed.use_mesh(mesh):
+        cases = distributed.to_host(make_evaluate(setup, per_sample=True)(params, test_data))
     if writer:
         _write_json(run_dir / "test_cases.json", {k: [float(v) for v in vals] for k, vals in cases.items()})
     summary = {
