@@ -2,6 +2,7 @@
 
     python benchmarks/scale.py devices [--counts 1,2,4,8] [--repeats 10]
     python benchmarks/scale.py sizes [--rows 256] [--hidden 20,100,200,370,683] [--routes gram,svd,blockgram,lanczos]
+    python benchmarks/scale.py accuracy [--batch 64] [--hidden 20,100] [--steps 16,64,128,256]
 
 ``devices``: each case (method on a problem at its paper batch) on 1, 2, 4, 8 devices; on
 a CPU-only machine these are forced host devices (``XLA_FLAGS=
@@ -9,7 +10,8 @@ a CPU-only machine these are forced host devices (``XLA_FLAGS=
 cores, so the table shows the memory split and the collectives' overhead, not a speed-up.
 ``sizes``: one HIG step on ``oscillators`` with the hidden width set so that P runs from
 3k to 1M parameters (P = 2h² + 103h + 96), for each half-inverse route, at ``--rows``
-Jacobian rows (batch = rows / 4).
+Jacobian rows (batch = rows / 4). ``accuracy``: the block-Gram and Lanczos directions
+against the exact Gram route on one batch where J fits.
 
 Every measurement runs in its own subprocess (fresh memory statistics; a route that runs
 out of memory or time is reported as such and the table goes on) and prints: median
@@ -149,6 +151,40 @@ def cmd_sizes(args):
                   f"{gib(r['peak_rss_bytes'])} | {rows * p * 4 / 2**20:.0f} |", flush=True)  # fmt: skip
 
 
+def cmd_accuracy(args):
+    """The matrix-free routes against the exact Gram route on one HIG batch (where J fits)."""
+    import jax
+    import jax.numpy as jnp
+
+    from physgrad import Budget, make_config
+    from physgrad.half_inverse import half_inverse
+    from physgrad.half_inverse_large import blockgram_half_inverse, lanczos_half_inverse
+    from physgrad.methods.hig import JacobianPower
+    from physgrad.train import build
+
+    print(header())
+    print(f"one HIG direction on oscillators, batch {args.batch} (rows {4 * args.batch}), τ = {args.truncation}; "
+          "relative error ‖d − d_gram‖/‖d_gram‖, float32 network")  # fmt: skip
+    print("| P | route | rel. error vs gram | Lanczos estimate ‖x_k − x_{k−1}‖/‖x_k‖ |")
+    print("|---|---|---|---|")
+    for h in [int(h) for h in args.hidden.split(",")]:
+        settings = {"hidden": str(h), "batch_size": str(args.batch), "n_train": str(args.batch), "n_test": "16"}
+        setup = build(make_config("oscillators", "hig", budget=Budget(steps=1), settings=settings))
+        batch = setup.data["train"]
+        jac, g, _ = jax.jit(lambda p, b: JacobianPower._jacobian_and_gradient(setup.objective, p, b, 1))(setup.params, batch)
+        ref = half_inverse(jac, g, route="gram", truncation=args.truncation)
+        err = lambda d: float(jnp.linalg.norm(d - ref) / jnp.linalg.norm(ref))  # noqa: E731
+        p = jac.shape[1]
+        d = jax.jit(lambda p, b, g: blockgram_half_inverse(setup.objective.predict, p, b, g, blocks=8,
+                                                           truncation=args.truncation))(setup.params, batch, g)  # fmt: skip
+        print(f"| {p:,} | blockgram (8 groups) | {err(d):.1e} | |")
+        for k in [int(k) for k in args.steps.split(",")]:
+            run = jax.jit(lambda p, b, g: lanczos_half_inverse(setup.objective.predict, p, b, g, steps=k,
+                                                               truncation=args.truncation))  # fmt: skip
+            d, estimate = run(setup.params, batch, g)
+            print(f"| {p:,} | lanczos k = {min(k, g.size)} | {err(d):.1e} | {float(estimate):.1e} |", flush=True)
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
@@ -164,6 +200,11 @@ def main():
     p.add_argument("--lanczos-steps", type=int, default=64)
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--timeout", type=int, default=900)
+    p = sub.add_parser("accuracy")
+    p.add_argument("--batch", type=int, default=64)
+    p.add_argument("--hidden", default="20,100")
+    p.add_argument("--steps", default="16,64,128,256")
+    p.add_argument("--truncation", type=float, default=1e-6)
     p = sub.add_parser("measure")
     p.add_argument("--problem", required=True)
     p.add_argument("--method", required=True)
@@ -174,7 +215,7 @@ def main():
     if args.command == "measure":
         print(json.dumps(measure(args)))
     else:
-        {"devices": cmd_devices, "sizes": cmd_sizes}[args.command](args)
+        {"devices": cmd_devices, "sizes": cmd_sizes, "accuracy": cmd_accuracy}[args.command](args)
 
 
 if __name__ == "__main__":
