@@ -71,6 +71,7 @@ class Poisson(AbstractProblem):
     filters: int = eqx.field(static=True, default=16)
     n_train: int = eqx.field(static=True, default=8192)
     n_test: int = eqx.field(static=True, default=128)
+    dtype: str = eqx.field(static=True, default="float32")
 
     name: ClassVar[str] = "poisson"
     description: ClassVar[str] = "SIP paper: recover x from the solution of laplace(y) = x on 64x64 (zero padding), U-Net"
@@ -86,14 +87,14 @@ class Poisson(AbstractProblem):
     def make_data(self, key):
         def draw(k, n):
             x_gt = phiflow_noise(k, (n, self.resolution, self.resolution), scale=self.noise_scale,
-                                 smoothness=self.noise_smoothness)  # fmt: skip
+                                 smoothness=self.noise_smoothness, dtype=jnp.dtype(self.dtype))  # fmt: skip
             return {"x_gt": x_gt, "y": jax.vmap(solve_poisson)(x_gt)}
 
         k_train, k_test = jax.random.split(key)
         return {"train": draw(k_train, self.n_train), "test": draw(k_test, self.n_test)}
 
     def make_network(self, key):
-        return UNet(1, 1, levels=self.levels, filters=self.filters, key=key)
+        return UNet(1, 1, levels=self.levels, filters=self.filters, key=key, dtype=jnp.dtype(self.dtype))
 
     def network_output(self, network, sample):
         return network(sample["y"][None])[0]
