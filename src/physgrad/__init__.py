@@ -10,8 +10,9 @@ import jax
 jax.config.update("jax_enable_x64", True)
 
 from .config import Budget, ConfigError, RunConfig, make_config  # noqa: E402
-from . import inverse  # noqa: E402
+from . import distributed, inverse  # noqa: E402
 from .half_inverse import half_inverse  # noqa: E402
+from .half_inverse_large import blockgram_half_inverse, lanczos_half_inverse  # noqa: E402
 from .jacobian import stacked_jacobian  # noqa: E402
 from .methods import METHODS, AbstractMethod, Objective  # noqa: E402
 from .nets import MLP, UNet, parameter_count  # noqa: E402
@@ -31,9 +32,12 @@ __all__ = [
     "Objective",
     "RunConfig",
     "UNet",
+    "blockgram_half_inverse",
     "build",
+    "distributed",
     "half_inverse",
     "inverse",
+    "lanczos_half_inverse",
     "load_network",
     "make_config",
     "parameter_count",
