@@ -14,6 +14,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -27,7 +28,7 @@ from physgrad.half_inverse import half_inverse, sharded_gram_route
 from physgrad.half_inverse_large import blockgram_half_inverse, lanczos_half_inverse
 from physgrad.jacobian import stacked_jacobian
 from physgrad.methods.hig import JacobianPower
-from physgrad.train import build, make_step, train
+from physgrad.train import build, load_network, make_step, train
 
 DEVICES = 4
 needs_devices = pytest.mark.skipif(jax.device_count() < DEVICES, reason="needs 4 (forced host) devices")
@@ -92,6 +93,25 @@ def test_hig_routes_sharded_over_4_devices(route):
     start, single, _ = one_step("oscillators", "hig", settings, 1)
     _, sharded, _ = one_step("oscillators", "hig", settings, DEVICES)
     assert relative_update_difference(start, single, sharded) < 1e-8
+
+
+@needs_devices
+@pytest.mark.parametrize("route", ["gram", "auto"])
+def test_sharded_hig_step_uses_the_ring_not_a_gathered_jacobian(route):
+    """The compiled 4-device step passes Jacobian blocks around (collective-permute) and
+    never holds all of J: its largest buffer is below J's size."""
+    setup = build(make_config("oscillators", "hig", budget=Budget(steps=1), settings={**OSC, "route": route}))
+    stage = setup.stages[0]
+    data = setup.data["train"]
+    order = jnp.arange(64, dtype=jnp.int32)
+    mesh = make_mesh(DEVICES)
+    with use_mesh(mesh):
+        step = make_step(setup, stage.batch_size, stage.method)
+        args = (*replicate((setup.params, stage.method.init(setup.params), data, order), mesh), np.int32(0))
+        hlo = step.lower(*args).compile().as_text()
+    assert "collective-permute" in hlo
+    rows, p = 16 * 4, ravel_pytree(setup.params)[0].size  # J: 16 samples × 4 final-state entries
+    assert f"f64[{rows},{p}]" not in hlo and f"f64[{rows // DEVICES},{p}]" in hlo
 
 
 @needs_devices
@@ -241,6 +261,11 @@ def test_two_process_loopback_run_matches_a_single_process_run(tmp_path):
     b = json.loads(Path(tmp_path / "pair" / "summary.json").read_text())
     assert b["devices"] == 2 and a["devices"] == 1
     assert b["final_test_loss"] == pytest.approx(a["final_test_loss"], rel=1e-9)
+    cases_a, cases_b = (json.loads((tmp_path / d / "test_cases.json").read_text()) for d in ("single", "pair"))
+    assert len(cases_b["loss"]) == len(cases_a["loss"]) == int(OSC["n_test"])  # every case, not one process's share
+    np.testing.assert_allclose(cases_b["loss"], cases_a["loss"], rtol=1e-9)
+    theta_a, theta_b = (ravel_pytree(eqx.filter(load_network(tmp_path / d), eqx.is_inexact_array))[0] for d in ("single", "pair"))
+    np.testing.assert_allclose(np.asarray(theta_b), np.asarray(theta_a), rtol=1e-6, atol=1e-9)
 
 
 def test_cli_device_errors_are_one_line_with_exit_2(capsys, tmp_path):
@@ -273,3 +298,31 @@ def test_evaluation_split_over_devices_equals_one_device(n):
     for k in want:
         assert got[k].shape == (n,)
         np.testing.assert_allclose(np.asarray(got[k]), np.asarray(want[k]), rtol=1e-12)
+
+
+def test_settings_added_later_keep_earlier_run_names_and_resume(tmp_path):
+    """A config written before `blocks`/`lanczos_steps` (hig) and `dtype` (poisson)
+    existed has the same digest as today's default config, and resumes."""
+    from physgrad.config import RunConfig
+
+    for problem, method, added in [("oscillators", "hig", ("blocks", "lanczos_steps")), ("poisson", "sip", ())]:
+        config = make_config(problem, method, budget=Budget(steps=1))
+        old = config.to_dict()
+        for phase in old["phases"]:
+            for name in added:
+                del phase["hyperparameters"][name]
+        if problem == "poisson":
+            del old["problem_settings"]["dtype"]
+        assert RunConfig.from_dict(old).digest() == config.digest()
+    changed = make_config("oscillators", "hig", budget=Budget(steps=1), settings={"blocks": "4"})
+    assert changed.digest() != make_config("oscillators", "hig", budget=Budget(steps=1)).digest()
+    # resume of a run directory whose config.json predates the new hyperparameters
+    config = make_config("oscillators", "hig", budget=Budget(steps=2), settings={**OSC, "truncation": "1e-3"})
+    train(config, tmp_path / "run")
+    path = tmp_path / "run" / "config.json"
+    old = json.loads(path.read_text())
+    for name in ("blocks", "lanczos_steps"):
+        del old["phases"][0]["hyperparameters"][name]
+    path.write_text(json.dumps(old))
+    longer = make_config("oscillators", "hig", budget=Budget(steps=3), settings={**OSC, "truncation": "1e-3"})
+    assert train(longer, tmp_path / "run", resume=True)["steps"] == 3

@@ -154,6 +154,17 @@ def phase_methods(spec: str) -> list[str]:
     return [name for name, _ in parse_method(spec)]
 
 
+# Settings added after run directories were first written, with the default that keeps the
+# earlier behaviour. While they hold it they are left out of the digest (run directory
+# names) and of run comparisons, so studies written before they existed still match and
+# resume. Add a setting here when it joins an existing method or problem.
+ADDED_LATER: dict[str, dict[str, dict[str, Any]]] = {
+    "methods": {name: {"blocks": 8, "lanczos_steps": 64} for name in ("hig", "gn")},  # issue 7
+    "problems": {"poisson": {"dtype": "float32"}},  # issue 7
+}
+_ABSENT = object()
+
+
 @dataclasses.dataclass(frozen=True)
 class RunConfig:
     """Everything needed to re-run a training run exactly (written as ``config.json``).
@@ -194,9 +205,19 @@ class RunConfig:
         fields = {f.name for f in dataclasses.fields(cls)}
         return cls(**{k: v for k, v in data.items() if k in fields})
 
+    def canonical_dict(self) -> dict[str, Any]:
+        """``to_dict`` without the settings of ``ADDED_LATER`` that hold their default."""
+        out = self.to_dict()
+        later = ADDED_LATER["problems"].get(self.problem, {})
+        out["problem_settings"] = {k: v for k, v in out["problem_settings"].items() if later.get(k, _ABSENT) != v}
+        for phase in out["phases"]:
+            later = ADDED_LATER["methods"].get(phase["method"], {})
+            phase["hyperparameters"] = {k: v for k, v in phase["hyperparameters"].items() if later.get(k, _ABSENT) != v}
+        return out
+
     def digest(self) -> str:
         """A stable hash of the canonical configuration (never Python's ``hash()``)."""
-        text = json.dumps(self.to_dict(), sort_keys=True, default=str)
+        text = json.dumps(self.canonical_dict(), sort_keys=True, default=str)
         return hashlib.sha256(text.encode()).hexdigest()[:10]
 
 

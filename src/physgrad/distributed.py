@@ -41,8 +41,8 @@ def initialize(coordinator: str, num_processes: int, process_id: int) -> None:
 
 
 def make_mesh(devices: int | str | None = 1) -> Mesh | None:
-    """A one-axis ``"data"`` mesh over the first ``devices`` devices (``"all"``: every
-    device of every process); None for a single device (nothing to shard)."""
+    """A one-axis ``"data"`` mesh over the first ``devices`` devices (``"all"``, ``"auto"``
+    or None: every device of every process); None for a single device (nothing to shard)."""
     available = jax.device_count()
     if devices in (None, "all", "auto"):
         n = available
@@ -120,6 +120,8 @@ def to_host(tree):
 
     def get(x):
         if isinstance(x, jax.Array) and not x.is_fully_addressable:
+            if not x.is_fully_replicated:  # the caller should have replicated it
+                raise ValueError(f"to_host needs a replicated array, got sharding {x.sharding}")
             return np.asarray(x.addressable_data(0))
         return x
 

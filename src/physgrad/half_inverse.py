@@ -124,7 +124,7 @@ def sharded_gram_route(
     Call inside ``jax.shard_map`` over mesh axis ``axis``: each device passes its own
     block ``J_i`` (r × P, the rows of the samples it owns, in sample order over the
     devices) and the matching entries ``g_i`` of the output gradient. ``J`` is never
-    gathered; memory per device is two r × P blocks.
+    gathered; memory per device is the own block (in float64) and one visiting block.
 
     Wide ``J`` (m = devices·r ≤ P): the blocks travel once around a ring
     (``ppermute``, devices − 1 hops) so device i forms its strip ``G[i, :] = J_i Jᵀ``;
@@ -132,7 +132,8 @@ def sharded_gram_route(
     one small ``eigh`` ``G = U Λ Uᵀ`` and ``w = U Λ^{(κ−1)/2} Uᵀ g`` (m,) is broadcast
     by a ``psum``; ``Jᵀ w = Σ_i J_iᵀ w_i`` is applied shard-wise with one ``psum`` of a
     P-vector.
-    Tall ``J``: ``JᵀJ = Σ_i J_iᵀ J_i`` and ``Jᵀ g`` by ``psum``, then as the serial route.
+    Tall ``J``: ``JᵀJ = Σ_i J_iᵀ J_i`` and ``Jᵀ g`` by ``psum``, then as the serial route
+    (its eigendecomposition again on device 0 alone).
 
     Returns the direction ``J^κ g`` (P,), replicated, in the Jacobian's dtype. Equal to
     :func:`half_inverse` with ``route="gram"`` on the stacked rows up to the order of
@@ -142,24 +143,39 @@ def sharded_gram_route(
     g = grad.astype(jnp.float64)
     r, p = j.shape
     m = r * devices
-    if m > p:  # tall: the P × P Gram matrix is a sum over devices
-        eigenvalues, vectors = jnp.linalg.eigh(jax.lax.psum(j.T @ j, axis))
-        powers = _kept_powers(jnp.sqrt(jnp.clip(eigenvalues, 0.0, None)), exponent - 1.0, truncation)
-        jtg = jax.lax.psum(j.T @ g, axis)
-        return (vectors @ (powers * (vectors.T @ jtg))).astype(jacobian.dtype)
     me = jax.lax.axis_index(axis)
+
+    def on_device_0(fn, *args):
+        # Device 0 alone runs the eigendecomposition; the result reaches every device by a
+        # psum (the others add zeros). Replicating the eigh would cost nothing on separate
+        # accelerators, but N times the work where devices share cores (forced host
+        # devices, several processes on one machine).
+        # Both branches must be typed as varying over the devices: adding a device-varying
+        # zero makes them so whether fn's result already is or not.
+        vary = jax.lax.pcast(jnp.zeros((), jnp.float64), axis, to="varying")
+
+        def zeros(*a):
+            return jnp.zeros(jax.eval_shape(fn, *a).shape, jnp.float64) + vary
+
+        return jax.lax.psum(jax.lax.cond(me == 0, lambda *a: fn(*a) + vary, zeros, *args), axis)
+
+    if m > p:  # tall: the P × P Gram matrix is a sum over devices
+
+        def direction(gram, jtg):  # V Σ^{κ−1} Vᵀ Jᵀ g
+            eigenvalues, vectors = jnp.linalg.eigh(gram)
+            powers = _kept_powers(jnp.sqrt(jnp.clip(eigenvalues, 0.0, None)), exponent - 1.0, truncation)
+            return vectors @ (powers * (vectors.T @ jtg))
+
+        gram, jtg = jax.lax.psum(j.T @ j, axis), jax.lax.psum(j.T @ g, axis)
+        return on_device_0(direction, gram, jtg).astype(jacobian.dtype)
     ring = [(k, (k + 1) % devices) for k in range(devices)]
     strip = jnp.zeros((r, m), jnp.float64)
-    block = j
+    block = jacobian  # travels in its own dtype (half the bytes of float64 for float32 nets)
     for hop in range(devices):  # after `hop` hops this device holds the block of device me − hop
         owner = (me - hop) % devices
-        strip = jax.lax.dynamic_update_slice_in_dim(strip, j @ block.T, owner * r, axis=1)
+        strip = jax.lax.dynamic_update_slice_in_dim(strip, j @ block.astype(jnp.float64).T, owner * r, axis=1)
         if hop < devices - 1:
             block = jax.lax.ppermute(block, axis, ring)
-    # G's strips and g meet on device 0, which alone runs the eigendecomposition; w comes
-    # back to every device by a psum (the others add zeros). Replicating the eigh instead
-    # would cost nothing on separate accelerators, but N times the work where devices
-    # share cores (forced host devices, several processes on one machine).
     gram = jax.lax.all_gather(strip, axis, tiled=True)
     g_all = jax.lax.all_gather(g, axis, tiled=True)
 
@@ -168,7 +184,6 @@ def sharded_gram_route(
         powers = _kept_powers(jnp.sqrt(jnp.clip(eigenvalues, 0.0, None)), exponent - 1.0, truncation)
         return vectors @ (powers * (vectors.T @ g_all))
 
-    w = jax.lax.cond(me == 0, weights, lambda gram, g_all: jnp.zeros_like(g_all), gram, g_all)
-    w = jax.lax.psum(w, axis)
+    w = on_device_0(weights, gram, g_all)
     own = jax.lax.dynamic_slice_in_dim(w, me * r, r)
     return jax.lax.psum(j.T @ own, axis).astype(jacobian.dtype)

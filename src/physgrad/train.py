@@ -162,6 +162,7 @@ def build(config: RunConfig, overrides: dict[str, Any] | None = None) -> Setup:
         method = METHODS[phase.method](**phase.hyperparameters)
         try:
             method.check(objective)
+            method.check_batch_size(phase.batch_size)
             if opaque and not hasattr(method, "policy"):  # open-loop methods back-propagate through everything
                 raise ValueError("this method differentiates through the solver, which is not differentiable; use nog or one")
         except ValueError as e:
@@ -246,6 +247,9 @@ def make_evaluate(setup: Setup, chunk: int = 1024, per_sample: bool = False):
         return {"loss": problem.loss(y, sample), **problem.metrics(x, y, sample)}
 
     def evaluate(params, data):
+        return distributed.replicated(split_evaluate(params, data))  # whole on every device
+
+    def split_evaluate(params, data):
         n = jax.tree.leaves(data)[0].shape[0]
         devices = distributed.data_axis_size()
         if devices == 1:
@@ -360,8 +364,16 @@ def load_network(run_dir: str | Path):
     return eqx.tree_deserialise_leaves(run_dir / "params.eqx", setup.network())
 
 
+def _clock_of_process_0(seconds: float) -> float:
+    """Process 0's training time on every process (one small collective per step), so that
+    seconds budgets and ``eval_seconds`` stop and evaluate all processes at the same step."""
+    from jax.experimental import multihost_utils
+
+    return float(multihost_utils.broadcast_one_to_all(np.float64(seconds)))
+
+
 def _same_run(a: RunConfig, b: RunConfig) -> bool:
-    strip = lambda c: {k: v for k, v in c.to_dict().items() if k != "budget"}  # noqa: E731
+    strip = lambda c: {k: v for k, v in c.canonical_dict().items() if k != "budget"}  # noqa: E731
     return strip(a) == strip(b)
 
 
@@ -404,7 +416,8 @@ def train(
         multihost_utils.sync_global_devices(f"physgrad.train:{run_dir}")
     if not writer:  # other processes compute alike and write nothing
         progress = NoProgressMeter()
-    run_dir.mkdir(parents=True, exist_ok=True)
+    else:
+        run_dir.mkdir(parents=True, exist_ok=True)
     done = read_summary(run_dir) if has_ckpt else None
     # Nothing to do (checked before building data and network): diverged, or finished on this budget.
     if done and (
@@ -430,6 +443,13 @@ def train(
         params, state, counters = _load_checkpoint(run_dir, like)
     else:
         state = setup.stages[0].method.init(params)
+    if jax.process_count() > 1:  # every process must resume from the same checkpoint
+        from jax.experimental import multihost_utils
+
+        seen = multihost_utils.process_allgather(np.array([int(has_ckpt), counters["step"]]))
+        if len({tuple(row) for row in np.asarray(seen).reshape(-1, 2)}) > 1:
+            raise ConfigError(f"the processes see different checkpoints in {run_dir}; a multi-process --resume "
+                              "needs --out on a file system every process shares")  # fmt: skip
     if config.prdp:
         setup = _refine(setup, build(config, {refinable: counters["prdp"]["K"]}))
     if writer:
@@ -575,6 +595,8 @@ def train(
             new_params, new_state, stats = compiled(params, state, train_data, order, np.int32(batch))
             loss = float(stats["loss"])  # waits for the step: the timing is honest
             train_time += time.perf_counter() - t_start
+            if jax.process_count() > 1:  # process 0's clock decides budgets and evaluations for all
+                train_time = _clock_of_process_0(train_time)
             if not math.isfinite(loss) and not float(stats.get("skipped", 0.0)):
                 status, diverged_step = "diverged", step
                 break

@@ -63,6 +63,9 @@ class AbstractMethod(eqx.Module):
     def check(self, objective: Objective) -> None:
         """Raise ``ValueError`` if this method cannot run on ``objective`` (default: it can)."""
 
+    def check_batch_size(self, batch_size: int) -> None:
+        """Raise ``ValueError`` if this method cannot take batches of this size (default: it can)."""
+
     @abc.abstractmethod
     def step(
         self, objective: Objective, params: PyTree, state: Any, batch: PyTree

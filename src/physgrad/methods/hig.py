@@ -25,7 +25,7 @@ from jax.flatten_util import ravel_pytree
 from jax.sharding import PartitionSpec
 
 from ..distributed import AXIS, data_axis_size
-from ..half_inverse import ROUTES, half_inverse, sharded_gram_route
+from ..half_inverse import ROUTES, choose_route, half_inverse, sharded_gram_route
 from ..half_inverse_large import batch_output_map, blockgram_half_inverse, lanczos_half_inverse
 from ..jacobian import stacked_jacobian
 from .base import AbstractMethod
@@ -56,22 +56,30 @@ class JacobianPower(AbstractMethod):
     def init(self, params):
         return self.optimizer.init(params)
 
+    def check_batch_size(self, batch_size):
+        if self.route == "blockgram" and batch_size % self.blocks:
+            raise ValueError(f"route blockgram needs blocks ({self.blocks}) to divide the batch size {batch_size}")
+
     def step(self, objective, params, state, batch):
         devices = data_axis_size()
         stats = {}
-        if self.route in MATRIX_FREE:  # never forms J (under a mesh: partitioned by XLA)
-            n = jax.tree.leaves(batch)[0].shape[0]
-            if self.route == "blockgram" and n % self.blocks:
-                raise ValueError(f"blocks={self.blocks} must divide the batch size {n}")
+        route = self.route
+        if route == "auto":  # by the shape of the whole J, as on one device
+            jac_shape = jax.eval_shape(lambda p, b: stacked_jacobian(objective.predict, p, b)[0], params, batch)
+            route = choose_route(jac_shape.shape)
+        if route in MATRIX_FREE:
+            # Never forms J. Under a mesh XLA partitions what it can; the sample groups are
+            # indexed dynamically, so it may repeat work on every device.
+            self.check_batch_size(jax.tree.leaves(batch)[0].shape[0])
             y, g, loss = self._outputs_and_gradient(objective, params, batch)
             settings = dict(exponent=self.exponent, truncation=self.truncation)
-            if self.route == "blockgram":
+            if route == "blockgram":
                 direction = blockgram_half_inverse(objective.predict, params, batch, g, blocks=self.blocks, **settings)
             else:
                 direction, stats["lanczos_change"] = lanczos_half_inverse(
                     objective.predict, params, batch, g, steps=self.lanczos_steps, **settings
                 )
-        elif devices > 1 and self.route != "svd":
+        elif devices > 1 and route == "gram":
             # Data parallel: each device forms the Jacobian rows of its own samples and
             # the Gram matrix is assembled by collectives (half_inverse.sharded_gram_route).
             spec = PartitionSpec(AXIS)
@@ -81,7 +89,7 @@ class JacobianPower(AbstractMethod):
             )
         else:  # one device, or the SVD route (XLA gathers J for it)
             jac, g, loss = self._jacobian_and_gradient(objective, params, batch, 1)
-            direction = half_inverse(jac, g, exponent=self.exponent, truncation=self.truncation, route=self.route)
+            direction = half_inverse(jac, g, exponent=self.exponent, truncation=self.truncation, route=route)
         _, unravel = ravel_pytree(params)
         updates, state = self.optimizer.update(unravel(direction), state, params)
         return optax.apply_updates(params, updates), state, {"loss": loss, **stats}
