@@ -98,14 +98,9 @@ class JacobianPower(AbstractMethod):
     def _outputs_and_gradient(objective, params, batch):
         """The flat outputs ``y`` (rows,), ``g = ∂L/∂y`` and the batch-mean loss, without J."""
         outputs, flat = batch_output_map(objective.predict, params, batch)
-        unflatten_y = _output_unflattener(objective, params, batch)
         b = jax.tree.leaves(batch)[0].shape[0]
         y = outputs(flat)
-
-        def mean_loss(y_flat):
-            return jnp.mean(jax.vmap(objective.loss)(unflatten_y(y_flat.reshape(b, -1)), batch))
-
-        loss, g = jax.value_and_grad(mean_loss)(y)
+        loss, g = _loss_and_output_gradient(objective, params, batch, y.reshape(b, -1))
         return y, g, loss
 
     @staticmethod
@@ -113,14 +108,8 @@ class JacobianPower(AbstractMethod):
         """``J`` (rows, P), ``g = ∂L/∂y`` (rows,) and this batch's share of the loss
         ``L = mean over the global batch`` (the batch is 1/devices of it)."""
         jac, y = stacked_jacobian(objective.predict, params, batch)
-        unflatten_y = _output_unflattener(objective, params, batch)
-
-        def mean_loss(y_flat):
-            # y_flat holds the flattened outputs; losses see them in the predict shape.
-            return jnp.mean(jax.vmap(objective.loss)(unflatten_y(y_flat), batch)) / devices
-
-        loss, g = jax.value_and_grad(mean_loss)(y)
-        return jac, g.ravel(), loss
+        loss, g = _loss_and_output_gradient(objective, params, batch, y, devices)
+        return jac, g, loss
 
     def _sharded_direction(self, objective, params, batch, *, devices):
         # Mark the replicated parameters as varying over the devices: differentiating
@@ -132,6 +121,19 @@ class JacobianPower(AbstractMethod):
             jac, g, AXIS, devices, exponent=self.exponent, truncation=self.truncation
         )
         return direction, jax.lax.psum(loss, AXIS)
+
+
+def _loss_and_output_gradient(objective, params, batch, y, devices=1):
+    """The batch-mean loss (divided by ``devices``: a device's share of the global mean)
+    and its gradient w.r.t. the flat outputs ``y`` (b, d), raveled sample-major."""
+    unflatten_y = _output_unflattener(objective, params, batch)
+
+    def mean_loss(y_flat):
+        # y_flat holds the flattened outputs; losses see them in the predict shape.
+        return jnp.mean(jax.vmap(objective.loss)(unflatten_y(y_flat), batch)) / devices
+
+    loss, g = jax.value_and_grad(mean_loss)(y)
+    return loss, g.ravel()
 
 
 def _output_unflattener(objective, params, batch):
