@@ -68,7 +68,7 @@ def main():
 
         reference = flat_params(tmp / "single")
         print(f"{args.problem} {args.method}, {args.steps} steps, settings {args.set or 'paper defaults'}")
-        print("| run | devices | final train loss | final test loss | max |Δθ| / max |θ| vs 1 device |")
+        print("| run | devices | final train loss | final test loss | max abs Δθ / max abs θ vs 1 device |")
         print("|---|---|---|---|---|")
         for name, label in (("single", "1 device"), ("devices", f"{args.devices} devices, 1 process"),
                             ("processes", "2 processes × 1 device (loopback)")):  # fmt: skip
