@@ -56,6 +56,15 @@ def _kept_powers(s: Array, exponent: float, truncation: float) -> Array:
     return jnp.where(keep, safe**exponent, jnp.zeros_like(s))
 
 
+def gram_power(gram: Array, vector: Array, exponent: float, truncation: float) -> Array:
+    """``U Σ^{κ−1} Uᵀ v`` for a Gram matrix ``U Σ² Uᵀ`` (``J Jᵀ`` or ``Jᵀ J``), singular
+    values ``σ ≤ τ σ_max`` dropped. The one extra Σ⁻¹ turns the Gram eigenvectors into the
+    missing SVD factor: ``J^κ g = Jᵀ·gram_power(J Jᵀ, g)`` = ``gram_power(Jᵀ J, Jᵀ g)``."""
+    eigenvalues, vectors = jnp.linalg.eigh(gram)
+    powers = _kept_powers(jnp.sqrt(jnp.clip(eigenvalues, 0.0, None)), exponent - 1.0, truncation)
+    return vectors @ (powers * (vectors.T @ vector))
+
+
 def _svd_route(jacobian, grad, exponent, truncation):
     u, s, vt = jnp.linalg.svd(jacobian, full_matrices=False)
     return vt.T @ (_kept_powers(s, exponent, truncation) * (u.T @ grad))
@@ -66,14 +75,9 @@ def _gram_route(jacobian, grad, exponent, truncation):
     g = grad.astype(jnp.float64)
     m, p = j.shape
     wide = m <= p
-    gram = j @ j.T if wide else j.T @ j
-    eigenvalues, vectors = jnp.linalg.eigh(gram)
-    s = jnp.sqrt(jnp.clip(eigenvalues, 0.0, None))
-    # Σ^{κ−1}: one extra Σ⁻¹ turns the Gram eigenvectors into the missing SVD factor.
-    powers = _kept_powers(s, exponent - 1.0, truncation)
     if wide:  # Jᵀ U Σ^{κ−1} Uᵀ g
-        return j.T @ (vectors @ (powers * (vectors.T @ g)))
-    return vectors @ (powers * (vectors.T @ (j.T @ g)))  # V Σ^{κ−1} Vᵀ Jᵀ g
+        return j.T @ gram_power(j @ j.T, g, exponent, truncation)
+    return gram_power(j.T @ j, j.T @ g, exponent, truncation)  # V Σ^{κ−1} Vᵀ Jᵀ g
 
 
 def half_inverse(
@@ -159,13 +163,10 @@ def sharded_gram_route(
 
         return jax.lax.psum(jax.lax.cond(me == 0, lambda *a: fn(*a) + vary, zeros, *args), axis)
 
-    if m > p:  # tall: the P × P Gram matrix is a sum over devices
+    def direction(gram, vector):  # U Σ^{κ−1} Uᵀ v
+        return gram_power(gram, vector, exponent, truncation)
 
-        def direction(gram, jtg):  # V Σ^{κ−1} Vᵀ Jᵀ g
-            eigenvalues, vectors = jnp.linalg.eigh(gram)
-            powers = _kept_powers(jnp.sqrt(jnp.clip(eigenvalues, 0.0, None)), exponent - 1.0, truncation)
-            return vectors @ (powers * (vectors.T @ jtg))
-
+    if m > p:  # tall: the P × P Gram matrix is a sum over devices; V Σ^{κ−1} Vᵀ Jᵀ g
         gram, jtg = jax.lax.psum(j.T @ j, axis), jax.lax.psum(j.T @ g, axis)
         return on_device_0(direction, gram, jtg).astype(jacobian.dtype)
     ring = [(k, (k + 1) % devices) for k in range(devices)]
@@ -178,12 +179,6 @@ def sharded_gram_route(
             block = jax.lax.ppermute(block, axis, ring)
     gram = jax.lax.all_gather(strip, axis, tiled=True)
     g_all = jax.lax.all_gather(g, axis, tiled=True)
-
-    def weights(gram, g_all):  # w = U Λ^{(κ−1)/2} Uᵀ g
-        eigenvalues, vectors = jnp.linalg.eigh(gram)
-        powers = _kept_powers(jnp.sqrt(jnp.clip(eigenvalues, 0.0, None)), exponent - 1.0, truncation)
-        return vectors @ (powers * (vectors.T @ g_all))
-
-    w = on_device_0(weights, gram, g_all)
+    w = on_device_0(direction, gram, g_all)  # w = U Λ^{(κ−1)/2} Uᵀ g
     own = jax.lax.dynamic_slice_in_dim(w, me * r, r)
     return jax.lax.psum(j.T @ own, axis).astype(jacobian.dtype)

@@ -53,7 +53,7 @@ import jax.numpy as jnp
 from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, Float, PyTree
 
-from .half_inverse import _kept_powers
+from .half_inverse import gram_power
 from .jacobian import flat_output, stacked_jacobian
 
 
@@ -109,9 +109,7 @@ def blockgram_half_inverse(
 
     m = rows * blocks
     gram = jax.lax.fori_loop(0, blocks, row_block, jnp.zeros((m, m), jnp.float64))
-    eigenvalues, vectors = jnp.linalg.eigh(gram)
-    powers = _kept_powers(jnp.sqrt(jnp.clip(eigenvalues, 0.0, None)), exponent - 1.0, truncation)
-    w = (vectors @ (powers * (vectors.T @ grad.astype(jnp.float64)))).reshape(blocks, rows)
+    w = gram_power(gram, grad.astype(jnp.float64), exponent, truncation).reshape(blocks, rows)
 
     def apply(a, direction):  # Jᵀ w = Σ_A J_Aᵀ w_A, in float64 as the Gram route
         return direction + jac(a).T @ w[a]
@@ -186,11 +184,10 @@ def lanczos_half_inverse(
     init = (jnp.zeros((k, m)), jnp.zeros(k), jnp.zeros(k), q0)
     basis, alpha, beta, _ = jax.lax.fori_loop(0, k, body, init)
 
-    def coefficients(n):  # ‖g‖ f(T_n) e₁ padded to k
+    def coefficients(n):  # ‖g‖ f(T_n) e₁ padded to k (f on the Ritz values θ = eig T_n)
         t = jnp.diag(alpha[:n]) + jnp.diag(beta[: n - 1], 1) + jnp.diag(beta[: n - 1], -1)
-        theta, s = jnp.linalg.eigh(t)
-        powers = _kept_powers(jnp.sqrt(jnp.clip(theta, 0.0, None)), exponent - 1.0, truncation)
-        return jnp.zeros(k).at[:n].set(norm_g * (s @ (powers * s[0])))
+        e1 = jnp.zeros(n).at[0].set(1.0)
+        return jnp.zeros(k).at[:n].set(norm_g * gram_power(t, e1, exponent, truncation))
 
     c = coefficients(k)
     change = jnp.linalg.norm(c - coefficients(k - 1)) if k > 1 else jnp.array(jnp.inf)

@@ -71,7 +71,7 @@ class JacobianPower(AbstractMethod):
             # Never forms J. Under a mesh XLA partitions what it can; the sample groups are
             # indexed dynamically, so it may repeat work on every device.
             self.check_batch_size(jax.tree.leaves(batch)[0].shape[0])
-            y, g, loss = self._outputs_and_gradient(objective, params, batch)
+            g, loss = self._output_gradient(objective, params, batch)
             settings = dict(exponent=self.exponent, truncation=self.truncation)
             if route == "blockgram":
                 direction = blockgram_half_inverse(objective.predict, params, batch, g, blocks=self.blocks, **settings)
@@ -95,13 +95,12 @@ class JacobianPower(AbstractMethod):
         return optax.apply_updates(params, updates), state, {"loss": loss, **stats}
 
     @staticmethod
-    def _outputs_and_gradient(objective, params, batch):
-        """The flat outputs ``y`` (rows,), ``g = ∂L/∂y`` and the batch-mean loss, without J."""
+    def _output_gradient(objective, params, batch):
+        """``g = ∂L/∂y`` (rows,) and the batch-mean loss, without J."""
         outputs, flat = batch_output_map(objective.predict, params, batch)
         b = jax.tree.leaves(batch)[0].shape[0]
-        y = outputs(flat)
-        loss, g = _loss_and_output_gradient(objective, params, batch, y.reshape(b, -1))
-        return y, g, loss
+        loss, g = _loss_and_output_gradient(objective, params, batch, outputs(flat).reshape(b, -1))
+        return g, loss
 
     @staticmethod
     def _jacobian_and_gradient(objective, params, batch, devices):
