@@ -1,0 +1,59 @@
+#!/bin/bash
+# Long studies (issue: decide every open claim at the papers' budgets).
+#
+# Every run has a STEP budget: the paper's wall-clock budget divided by the method's time per
+# update measured alone on the idle machine (calibration.csv, from the step benchmarks). So a
+# run does identical work whatever the load on the machine, and its curve is drawn against
+# the calibrated time axis  t = step x (seconds per step measured alone)  beside its raw
+# wall-clock.
+#
+# The studies run with one fixed version of physgrad (STUDY_COMMIT, checked out into a git
+# worktree) so that development on main cannot change a study half-way; the run
+# directories live under docs/reproductions/data/ and are committed as they grow, so a
+# later session resumes them (`physgrad compare` skips finished runs and resumes an
+# interrupted one from its checkpoint).
+#
+# Usage (one core, niced; runs lanes in priority order until all are done):
+#   bash docs/reproductions/long/studies.sh [lane ...]      # default: every lane in order
+# Environment: CORE (default 0), STUDY_COMMIT, PY (python of an env with physgrad's deps).
+set -euo pipefail
+ROOT="$(cd "$(dirname "$0")/../../.." && pwd)"
+STUDY_COMMIT="${STUDY_COMMIT:-c31cb37}"
+CODE="${CODE:-$ROOT/../studycode}"
+CORE="${CORE:-0}"
+PY="${PY:-$ROOT/.venv/bin/python}"
+DATA="$ROOT/docs/reproductions/data"
+
+if [ ! -d "$CODE/src/physgrad" ]; then
+  git -C "$ROOT" worktree add --detach "$CODE" "$STUDY_COMMIT"
+fi
+[ "$(git -C "$CODE" rev-parse --short=7 HEAD)" = "${STUDY_COMMIT:0:7}" ] || { echo "worktree $CODE is not at $STUDY_COMMIT" >&2; exit 2; }
+
+pg() { PYTHONPATH="$CODE/src" nice -n 10 taskset -c "$CORE" "$PY" -m physgrad "$@"; }
+
+# one method of a study, seeds 0..K-1 grown one seed at a time across the methods, so that
+# an interrupted lane always has the same seeds for every method
+# usage: lane_study STUDY PROBLEM "method:steps:eval_every ..." [--set ...]
+lane_study() {
+  local study=$1 problem=$2 specs=$3; shift 3
+  for k in 1 2 3; do
+    for spec in $specs; do
+      IFS=: read -r method steps every <<<"$spec"
+      pg compare "$problem" --methods "$method" --seeds "$k" --steps "$steps" \
+        --set eval_every="$every" "$@" --out "$DATA/$study/$method" --quiet
+    done
+  done
+}
+
+# Claim 1, HIG paper Fig. 2b: 60 min per run (calibrated: adam 5.14 ms, hig 100.3 ms, gn 94.7 ms)
+lane_oscillators() { lane_study oscillators_60min oscillators "gn:38000:380 hig:36000:360 adam:700000:7000"; }
+# Claim 3, HIG paper dipole: 90 min per run (calibrated: adam 145.3 ms, hig 262.6 ms)
+lane_dipole() { lane_study quantum_dipole_90min quantum_dipole "hig:20500:205 adam:37000:370"; }
+
+LANES=("$@")
+[ ${#LANES[@]} -gt 0 ] || LANES=(oscillators dipole)
+for lane in "${LANES[@]}"; do
+  echo "== lane $lane ($(date -u +%FT%TZ))"
+  "lane_$lane"
+done
+echo "== all lanes done ($(date -u +%FT%TZ))"
