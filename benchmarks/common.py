@@ -10,7 +10,8 @@ import jax
 import jax.numpy as jnp
 
 import physgrad  # noqa: F401  (float64 on)
-from physgrad import Budget, make_config
+from physgrad import Budget
+from physgrad.config import make_config
 from physgrad.train import build, make_step
 
 

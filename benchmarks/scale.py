@@ -156,7 +156,8 @@ def cmd_accuracy(args):
     import jax
     import jax.numpy as jnp
 
-    from physgrad import Budget, make_config
+    from physgrad import Budget
+    from physgrad.config import make_config
     from physgrad.half_inverse import half_inverse
     from physgrad.half_inverse_large import blockgram_half_inverse, lanczos_half_inverse
     from physgrad.methods.hig import JacobianPower

@@ -9,7 +9,9 @@ import numpy as np
 import pytest
 
 import physgrad
-from physgrad import Budget, make_config, train
+from physgrad import Budget
+from physgrad.config import make_config
+from physgrad.train import train
 from physgrad.cli import main
 from physgrad.progress import NoProgressMeter
 

@@ -22,7 +22,9 @@ import pytest
 from jax.flatten_util import ravel_pytree
 from jax.sharding import PartitionSpec
 
-from physgrad import METHODS, Budget, ConfigError, make_config
+from physgrad import Budget, ConfigError
+from physgrad.config import make_config
+from physgrad.registry import METHODS
 from physgrad.distributed import make_mesh, replicate, use_mesh
 from physgrad.half_inverse import half_inverse, sharded_gram_route
 from physgrad.half_inverse_large import blockgram_half_inverse, lanczos_half_inverse

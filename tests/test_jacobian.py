@@ -7,7 +7,8 @@ from jax.flatten_util import ravel_pytree
 
 from physgrad.jacobian import stacked_jacobian
 from physgrad.train import build
-from physgrad import Budget, make_config
+from physgrad import Budget
+from physgrad.config import make_config
 
 
 def test_rows_are_sample_major_against_finite_differences():

@@ -6,7 +6,9 @@ import numpy as np
 import pytest
 from jax.flatten_util import ravel_pytree
 
-from physgrad import METHODS, Budget, make_config
+from physgrad import Budget
+from physgrad.config import make_config
+from physgrad.registry import METHODS
 from physgrad.train import build, make_evaluate, make_step
 
 TINY = {"n_steps": "8", "hidden": "6", "n_train": "64", "n_test": "64", "dtype": "float64", "batch_size": "16"}

@@ -6,7 +6,9 @@ import numpy as np
 import pytest
 
 import physgrad
-from physgrad import PROBLEMS, Budget, make_config
+from physgrad import Budget
+from physgrad.config import make_config
+from physgrad.registry import METHODS, PROBLEMS
 from physgrad.problems import HigToy
 from physgrad.config import phase_methods
 from physgrad.train import build
@@ -29,7 +31,7 @@ def test_registered_problem_contract(name, tmp_path, monkeypatch):
     cls = PROBLEMS[name]
     assert cls.name == name and cls.description and cls.source and cls.__doc__
     for method in cls.default_methods:
-        assert set(phase_methods(method)) <= set(physgrad.METHODS)
+        assert set(phase_methods(method)) <= set(METHODS)
     small = SMALL_DATA.get(name) or {k: "32" for k in ("n_train", "n_test") if k in cls.settings()}
     b = str(min(8, cls.default_batch_size))  # toy2d optimises one x
     setup = build(make_config(name, "hig", budget=Budget(steps=1), settings={**small, "batch_size": b}))

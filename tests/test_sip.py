@@ -9,8 +9,10 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from physgrad import Budget, make_config, train
-from physgrad.methods import METHODS
+from physgrad import Budget
+from physgrad.config import make_config
+from physgrad.train import train
+from physgrad.registry import METHODS
 from physgrad.problems import PROBLEMS, ExpInverse
 from physgrad.train import build, make_step
 
@@ -36,7 +38,7 @@ def test_sip_on_linear_invertible_physics_targets_the_ground_truth():
     obj = setup.objective
     x = jax.vmap(obj.network_output, (None, 0))(setup.params, batch)
     y = jax.vmap(obj.simulate)(x, batch)
-    x_tilde, ok = stage.method.local_inverse(obj, x, y, batch)
+    x_tilde, ok = stage.method.rule.local_inverse(obj, x, y, batch)
     assert bool(jnp.all(ok))
     np.testing.assert_allclose(x_tilde, batch["x_gt"], atol=2e-4)  # float32 U-Net output, exact inverse
 
@@ -66,7 +68,7 @@ def test_generic_solvers_agree_with_the_analytic_inverse(solver):
     obj = setup.objective
     x = jax.vmap(obj.network_output, (None, 0))(setup.params, batch).astype(jnp.float64)
     y = jnp.exp(x)
-    x_tilde, ok = stage.method.local_inverse(obj, x, y, batch)
+    x_tilde, ok = stage.method.rule.local_inverse(obj, x, y, batch)
     expected = np.log(np.asarray(y) + 1e-3 * (np.asarray(batch["y"], np.float64) - np.asarray(y)))
     assert bool(jnp.all(ok))
     np.testing.assert_allclose(x_tilde, expected, atol=1e-5)
@@ -105,7 +107,7 @@ def test_failed_solves_are_counted_and_contribute_nothing():
     bad = METHODS["sip"](eta=1e6, solver="analytic")
     x = jax.vmap(obj.network_output, (None, 0))(setup.params, batch)
     y = jnp.exp(x)
-    x_tilde, ok = bad.local_inverse(obj, x, y, batch)
+    x_tilde, ok = bad.rule.local_inverse(obj, x, y, batch)
     failed = ~np.asarray(ok)
     assert failed.any()
     np.testing.assert_array_equal(np.asarray(x_tilde)[failed], np.asarray(x)[failed])
@@ -127,7 +129,7 @@ def test_the_y_step_is_exact_at_eta_one_in_float32():
     obj = setup.objective
     small = {"x_gt": jnp.full((2, 1), -12.0, jnp.float32), "y": jnp.full((2, 1), np.exp(-12.0), jnp.float32)}
     x = jnp.full((2, 1), 5.0, jnp.float32)
-    x_tilde, ok = stage.method.local_inverse(obj, x, jnp.exp(x), small)
+    x_tilde, ok = stage.method.rule.local_inverse(obj, x, jnp.exp(x), small)
     assert bool(jnp.all(ok))
     np.testing.assert_allclose(x_tilde, -12.0, atol=1e-5)
 
@@ -135,10 +137,10 @@ def test_the_y_step_is_exact_at_eta_one_in_float32():
 def test_l1_proxy_gradient_is_the_sign():
     setup, stage, batch = one_step("sine", "sip", {"optimizer": "sgd", "lr": 1.0, "batch_size": 4})
     obj, method = setup.objective, stage.method
-    assert method.proxy == "l1"
+    assert method.rule.proxy == "l1"
     x = jax.vmap(obj.network_output, (None, 0))(setup.params, batch)
     y = jax.vmap(obj.simulate)(x, batch)
-    x_tilde, _ = method.local_inverse(obj, x, y, batch)
+    x_tilde, _ = method.rule.local_inverse(obj, x, y, batch)
 
     def l1(p):
         xp = jax.vmap(obj.network_output, (None, 0))(p, batch)

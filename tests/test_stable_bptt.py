@@ -214,8 +214,8 @@ def test_one_pass_and_two_pass_combination_give_the_same_gradient(problem):
     setup, _ = one_update(problem, "sbptt_c", {**settings, "one_pass": "true"})
     two = build(make_config(problem, "sbptt_c", budget=Budget(steps=1), settings={**settings, "one_pass": "false"}))
     system, batch = setup.objective.rollout, setup.data["train"][:8]
-    l1, g1, s1 = jax.jit(lambda p, b: setup.method.gradient(system, p, b))(setup.params, batch)
-    l2, g2, s2 = jax.jit(lambda p, b: two.method.gradient(system, p, b))(setup.params, batch)
+    l1, g1, s1 = jax.jit(lambda p, b: setup.method.rule.gradient(system, p, b))(setup.params, batch)
+    l2, g2, s2 = jax.jit(lambda p, b: two.method.rule.gradient(system, p, b))(setup.params, batch)
     _, g_m = physgrad.rollout.value_and_grad(system, setup.params, batch, physgrad.rollout.M())
     _, g_r = physgrad.rollout.value_and_grad(system, setup.params, batch, physgrad.rollout.R())
     np.testing.assert_allclose(l1, l2, rtol=1e-6)

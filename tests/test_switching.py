@@ -9,7 +9,9 @@ import numpy as np
 import pytest
 
 import physgrad
-from physgrad import Budget, ConfigError, make_config, train
+from physgrad import Budget, ConfigError
+from physgrad.config import make_config
+from physgrad.train import train
 from physgrad.cli import main
 from physgrad.config import parse_method, split_methods
 from physgrad.train import build, make_step, read_metrics

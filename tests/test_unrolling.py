@@ -15,7 +15,7 @@ import physgrad  # noqa: F401
 from physgrad import prdp
 from physgrad.cli import main
 from physgrad.config import Budget, ConfigError, make_config
-from physgrad.methods import METHODS
+from physgrad.registry import METHODS
 from physgrad.problems import Advection1d, Kolmogorov, KuramotoSivashinsky
 from physgrad.problems.advection_1d import ImplicitUpwind, fou_distance
 from physgrad.problems.ks import ks_stepper
@@ -472,11 +472,11 @@ def test_nondifferentiable_wrapper_keeps_the_solver_failure_flag():
 
 def test_prdp_rebuild_trains_with_the_new_iteration_count(tmp_path):
     """After a refinement the compiled step uses the new K: its loss equals a fresh setup's at K."""
-    from physgrad.train import _refine
+    import dataclasses
 
     config = adv_config("wig", setup="correction", iterations=10)
     low, high = build(config, {"iterations": 1}), build(config, {"iterations": 10})
-    refined = _refine(low, build(config, {"iterations": 4}))
+    refined = low.with_problem(dataclasses.replace(low.problem, iterations=4))
     reference = build(config, {"iterations": 4})
     args = lambda s: (s.params, s.method.init(s.params), s.data["train"], jnp.arange(52, dtype=jnp.int32), jnp.int32(0))  # noqa: E731
     loss = lambda s: float(make_step(s, 32)(*args(s))[2]["loss"])  # noqa: E731

@@ -1,46 +1,76 @@
 """physgrad: improved update rules for training neural networks through physics simulators.
 
-Importing physgrad enables JAX's float64 support, which the Gram route of the
-half-inverse needs; every problem and network still runs in float32 unless a problem's
-``dtype`` setting says otherwise.
+The update rules are direction estimators that compose with any optax chain::
+
+    estimate = physgrad.hig(predict, loss)                 # (params, batch) -> (direction, stats)
+    updates, opt_state = optimizer.update(estimate(params, batch)[0], opt_state, params)
+
+and :func:`fit` trains a problem object with a method object into a run directory.
+Importing physgrad changes nothing in JAX's configuration: float64 is scoped to the
+computations that need it (the Gram route's eigendecomposition, float64 problems).
 """
 
-import jax
-
-jax.config.update("jax_enable_x64", True)
-
-from .config import Budget, ConfigError, RunConfig, make_config  # noqa: E402
-from . import distributed, inverse  # noqa: E402
-from .half_inverse import half_inverse  # noqa: E402
-from .half_inverse_large import blockgram_half_inverse, lanczos_half_inverse  # noqa: E402
-from .jacobian import stacked_jacobian  # noqa: E402
-from .methods import METHODS, AbstractMethod, Objective  # noqa: E402
-from .nets import MLP, UNet, parameter_count  # noqa: E402
-from .problems import PROBLEMS, AbstractProblem  # noqa: E402
-from .train import build, load_network, train  # noqa: E402
+from . import distributed, inverse, routes, transforms
+from .engine import Budget, Phase, TrainSettings, TrainState, fit
+from .errors import ConfigError
+from .half_inverse import half_inverse
+from .half_inverse_large import blockgram_half_inverse, lanczos_half_inverse
+from .jacobian import stacked_jacobian
+from .methods import (
+    AbstractMethod,
+    AbstractRule,
+    Estimator,
+    Method,
+    Objective,
+    bptt,
+    dp,
+    gauss_newton,
+    hig,
+    newton,
+    sip,
+    stabilised_bptt,
+    unrolled,
+)
+from .nets import MLP, UNet, parameter_count
+from .problems import AbstractProblem
+from .rollout import System, closed_loop
+from .train import load_network
 
 __version__ = "0.1.0"
 
 __all__ = [
-    "METHODS",
     "MLP",
-    "PROBLEMS",
     "AbstractMethod",
     "AbstractProblem",
+    "AbstractRule",
     "Budget",
     "ConfigError",
+    "Estimator",
+    "Method",
     "Objective",
-    "RunConfig",
+    "Phase",
+    "System",
+    "TrainSettings",
+    "TrainState",
     "UNet",
     "blockgram_half_inverse",
-    "build",
+    "bptt",
+    "closed_loop",
     "distributed",
+    "dp",
+    "fit",
+    "gauss_newton",
     "half_inverse",
+    "hig",
     "inverse",
     "lanczos_half_inverse",
     "load_network",
-    "make_config",
+    "newton",
     "parameter_count",
+    "routes",
+    "sip",
+    "stabilised_bptt",
     "stacked_jacobian",
-    "train",
+    "transforms",
+    "unrolled",
 ]

@@ -143,7 +143,7 @@ def _print_table(console: Console, lines: list[list[str]], title: str = ""):
 
 
 def cmd_list(args, console):
-    from .methods import METHODS, describe
+    from .registry import METHODS, describe
     from .problems import PROBLEMS
 
     console.print("[bold]problems[/bold]")
@@ -154,7 +154,7 @@ def cmd_list(args, console):
     for name in METHODS:
         console.print(f"  {name:<19} {describe(name)}", markup=False)
     console.print("  a sequence such as adam:2000,hig runs Adam for 2000 steps, then HIG from those parameters")
-    from .inverse import INVERSE_SOLVERS
+    from .registry import INVERSE_SOLVERS
 
     console.print("[bold]SIP local inverse solvers[/bold] (--set solver=...)")
     console.print(f"  {', '.join(INVERSE_SOLVERS)}", markup=False)

@@ -1,4 +1,5 @@
-"""Run configurations: names and settings resolved against the registries, with clear errors."""
+"""Run configurations (the command line's and the studies'): names and settings resolved
+against the registries, with clear errors."""
 
 from __future__ import annotations
 
@@ -7,9 +8,9 @@ import hashlib
 import json
 from typing import Any
 
+from .engine import Budget
 from .errors import ConfigError
-from .methods import METHODS, hyperparameters
-from .problems import PROBLEMS
+from .registry import METHODS, PROBLEMS, hyperparameters
 
 # Training-engine settings, settable with --set like problem and method settings.
 TRAIN_SETTINGS: dict[str, Any] = {
@@ -53,41 +54,6 @@ def parse_value(name: str, text: Any, default: Any) -> Any:
     except ValueError:
         kind = {bool: "true or false", int: "an integer", float: "a number"}.get(type(default), "a string")
         raise ConfigError(f"setting {name!r} expects {kind}, got {text!r}") from None
-
-
-@dataclasses.dataclass(frozen=True)
-class Budget:
-    """How long to train: exactly one of steps, epochs or training seconds.
-
-    Seconds count training steps only (evaluation excluded, as in the HIG paper); the run
-    stops at the first step that reaches the budget.
-    """
-
-    steps: int | None = None
-    epochs: int | None = None
-    seconds: float | None = None
-
-    def __post_init__(self):
-        given = [k for k in ("steps", "epochs", "seconds") if getattr(self, k) is not None]
-        if len(given) != 1:
-            raise ConfigError("give exactly one budget: --steps N, --epochs E or --seconds S")
-        if getattr(self, given[0]) <= 0:
-            raise ConfigError(f"the budget --{given[0]} must be positive")
-
-    @property
-    def kind(self) -> str:
-        return next(k for k in ("steps", "epochs", "seconds") if getattr(self, k) is not None)
-
-    @property
-    def amount(self) -> float:
-        return getattr(self, self.kind)
-
-    def to_dict(self) -> dict[str, float]:
-        """``{kind: amount}``, as written in config.json, summary.json and study.json."""
-        return {self.kind: self.amount}
-
-    def __str__(self):
-        return f"{self.amount:g} {self.kind}"
 
 
 @dataclasses.dataclass(frozen=True)

@@ -16,10 +16,15 @@ from .base import AbstractInverseSolver, InverseResult, all_finite
 
 
 class Analytic(AbstractInverseSolver):
-    """x̃ = fn(x, y, y_target, sample), the problem's closed-form local inverse."""
+    """x̃ = fn(x, y, y_target, sample), a closed-form local inverse.
 
-    fn: Callable = eqx.field(static=True)
+    ``fn=None`` stands for the problem's own inverse: SIP binds it from the problem
+    (``Objective.inverse``) before solving."""
+
+    fn: Callable | None = eqx.field(static=True, default=None)
 
     def __call__(self, simulate, x, y, y_target, sample):
+        if self.fn is None:
+            raise ValueError("Analytic() without fn needs the problem's inverse; pass Analytic(fn) or use it through sip")
         x_new = self.fn(x, y, y_target, sample)
         return InverseResult(x_new, all_finite(x_new))

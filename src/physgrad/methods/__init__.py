@@ -1,63 +1,50 @@
-"""Update rules, one file each, and the ``METHODS`` registry (name → factory).
+"""Update rules, one file each: the direction (a rule), its public entry point, and what
+the engine runs (a method: rule + optax transformation).
 
-A factory takes the method's hyperparameters as keyword-only arguments with defaults and
-returns an ``AbstractMethod``; its docstring's first line describes it. The batch size is
-a training setting (per-method defaults come from the problem).
+=====================  ===============================  =====================================
+entry point            rule                             direction
+=====================  ===============================  =====================================
+:func:`dp`             :class:`Gradient`                ∇_θ L (DP)
+:func:`gauss_newton`   :class:`JacobianPower` (κ = −1)  J⁺ g
+:func:`hig`            :class:`JacobianPower` (κ = −½)  V Σ^{−½} Uᵀ g
+:func:`newton`         :class:`Newton`                  (H + λI)⁻¹ ∇L
+:func:`sip`            :class:`ScaleInvariantPhysics`   ∇_θ ½‖x − x̃‖², x̃ from a local inverse
+:func:`bptt`           :class:`RolloutGradient`         rollout gradient under a policy
+:func:`stabilised_bptt` :class:`RolloutGradient`        M's gradient masked by R's signs
+:func:`unrolled`       :class:`UnrolledGradient`        ONE / NOG / WIG gradients
+=====================  ===============================  =====================================
+
+The registry of names for the command line is :mod:`physgrad.registry`.
 """
 
-import inspect
-from collections.abc import Callable
-from typing import Any
-
-from .base import AbstractMethod, Objective
-from .dp import DifferentiablePhysics, adadelta, adagrad, adam, rmsprop, sgd
-from .hig import JacobianPower, gn, hig
+from .base import AbstractMethod, AbstractRule, Estimator, Method, Objective
+from .dp import Gradient, dp
+from .hig import JacobianPower, gauss_newton, hig
 from .newton import Newton, newton
 from .sip import ScaleInvariantPhysics, sip
-from .stable_bptt import RolloutGradient, bptt, no_temporal, sbptt_c, sbptt_m
-from .unrolling import Unrolled, nog, one, wig
-
-METHODS: dict[str, Callable[..., AbstractMethod]] = {
-    "adam": adam,
-    "sgd": sgd,
-    "rmsprop": rmsprop,
-    "adagrad": adagrad,
-    "adadelta": adadelta,
-    "gn": gn,
-    "hig": hig,
-    "sip": sip,
-    "newton": newton,
-    "bptt": bptt,
-    "sbptt_m": sbptt_m,
-    "sbptt_c": sbptt_c,
-    "no_temporal": no_temporal,
-    "one": one,
-    "nog": nog,
-    "wig": wig,
-}
-
-
-def hyperparameters(method: str) -> dict[str, Any]:
-    """A registered method's hyperparameters and their generic defaults."""
-    params = inspect.signature(METHODS[method]).parameters
-    return {name: p.default for name, p in params.items()}
-
-
-def describe(method: str) -> str:
-    """The one-line description of a registered method."""
-    return (METHODS[method].__doc__ or "").strip().splitlines()[0]
-
+from .stable_bptt import RolloutGradient, bptt, stabilised_bptt
+from .unrolling import Unrolled, UnrolledGradient, schedule, unrolled
 
 __all__ = [
-    "METHODS",
     "AbstractMethod",
-    "DifferentiablePhysics",
+    "AbstractRule",
+    "Estimator",
+    "Gradient",
     "JacobianPower",
+    "Method",
     "Newton",
-    "ScaleInvariantPhysics",
     "Objective",
     "RolloutGradient",
+    "ScaleInvariantPhysics",
     "Unrolled",
-    "describe",
-    "hyperparameters",
+    "UnrolledGradient",
+    "bptt",
+    "dp",
+    "gauss_newton",
+    "hig",
+    "newton",
+    "schedule",
+    "sip",
+    "stabilised_bptt",
+    "unrolled",
 ]

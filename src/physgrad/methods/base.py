@@ -1,4 +1,30 @@
-"""The Method contract and what a method sees of a problem."""
+"""Update rules as direction estimators plus optax, and what a rule sees of a problem.
+
+physgrad's part of an update rule is the **direction**: the DP gradient, the κ-power of
+the joint Jacobian (Gauss–Newton, HIG), SIP's proxy gradient, a rollout gradient under a
+gradient-flow policy. Applying it is optax's job, with whatever chain the user chooses::
+
+    estimate = physgrad.hig(predict, loss, truncation=1e-6)      # (params, batch) -> (d, stats)
+    optimizer = optax.chain(optax.clip_by_global_norm(1.0), optax.sgd(schedule))
+
+    @jax.jit
+    def step(params, opt_state, batch):
+        d, stats = estimate(params, batch)                        # d has params' structure
+        updates, opt_state = optimizer.update(d, opt_state, params)
+        return optax.apply_updates(params, updates), opt_state, stats
+
+The direction plays the role of a gradient: the optimizer steps *against* it, so
+``optax.sgd(η)`` gives θ ← θ − η d, the papers' step.
+
+Three layers of objects:
+
+- :class:`AbstractRule`: the direction as a pure function of the problem's pieces
+  (an :class:`Objective`), the parameters and a batch; holds only the rule's settings.
+- :class:`Estimator`: a rule bound to a user's functions (what ``physgrad.hig(...)`` and
+  friends return): ``estimate(params, batch) -> (direction, stats)``.
+- :class:`AbstractMethod`: what the training engine runs: a rule and an optax
+  transformation, ``init`` and one pure ``step``; :class:`Method` is the plain pairing.
+"""
 
 from __future__ import annotations
 
@@ -9,37 +35,47 @@ from typing import Any, NamedTuple
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import optax
 from jaxtyping import Array, PyTree
+
+Stats = dict[str, Array]
 
 
 class Objective(NamedTuple):
     """The per-sample pieces of a problem, as pure functions of the trainable parameters.
 
-    ``predict(params, sample) -> y`` runs network and simulator for one sample;
-    ``loss(y, sample) -> L_i`` is the per-sample loss. Methods use the batch mean
-    ``L = (1/b) Σ_i L_i``, as the HIG paper's code does.
+    Each rule uses only the pieces it needs; the others may stay None.
 
-    Methods that treat network and physics separately (SIP) also use
-    ``network_output(params, sample) -> x``, ``simulate(x, sample) -> y``,
-    ``target(sample) -> y*`` (the y-space target, None if the problem has none) and
-    ``inverse(x, y, y_target, sample) -> x̃`` (the problem's analytic local inverse or None).
-
-    Rollout methods (BPTT and its variants) use ``rollout``: a
-    :class:`physgrad.rollout.System` whose transition takes the trainable parameters; a
-    batch of samples is then a batch of initial states. None for open-loop problems.
-    Time-stepper problems also give ``unrolled(m, teacher_forcing) -> System``: the rollout
-    over the first m steps of each window (None: the problem's m), teacher-forced for the
-    one-step modality.
+    - ``predict(params, sample) -> y`` runs network and simulator for one sample and
+      ``loss(y, sample) -> L_i`` is the per-sample loss; rules use the batch mean
+      ``L = (1/b) Σ_i L_i``, as the HIG paper's code does (DP, Gauss–Newton, HIG, Newton).
+    - ``network_output(params, sample) -> x``, ``simulate(x, sample) -> y``,
+      ``target(sample) -> y*`` and ``inverse(x, y, y_target, sample) -> x̃`` (the problem's
+      analytic local inverse, or None): the network and the physics apart (SIP).
+    - ``rollout``: a :class:`physgrad.rollout.System` whose transition takes the trainable
+      parameters; a batch of samples is a batch of initial states (BPTT and its variants).
+    - ``unrolled(m, teacher_forcing) -> System``: the rollout over the first m steps of
+      each window (None: the problem's m), teacher-forced for the one-step modality
+      (neural time-steppers).
+    - ``differentiable``: False when ``predict`` runs a solver without derivatives (an
+      external code): rules that back-propagate through it refuse.
     """
 
-    predict: Callable[[PyTree, PyTree], Array]
-    loss: Callable[[Array, PyTree], Array]
+    predict: Callable[[PyTree, PyTree], Array] | None = None
+    loss: Callable[[Array, PyTree], Array] | None = None
     network_output: Callable[[PyTree, PyTree], Array] | None = None
     simulate: Callable[[Array, PyTree], Array] | None = None
     target: Callable[[PyTree], Array] | None = None
     inverse: Callable | None = None
     rollout: Any = None
     unrolled: Callable[[int | None, bool], Any] | None = None
+    differentiable: bool = True
+
+    def require_differentiable(self) -> None:
+        """Raise the one-line error of a rule that back-propagates through ``predict``
+        when the problem declares its solver non-differentiable."""
+        if not self.differentiable:
+            raise ValueError("this method differentiates through the solver, which is not differentiable; use nog or one")
 
     def sample_losses(self, params: PyTree, batch: PyTree) -> Array:
         return jax.vmap(lambda s: self.loss(self.predict(params, s), s))(batch)
@@ -48,25 +84,98 @@ class Objective(NamedTuple):
         return jnp.mean(self.sample_losses(params, batch))
 
 
+class AbstractRule(eqx.Module):
+    """``rule(objective, params, batch) -> (direction, stats)``.
+
+    ``direction`` has the structure of ``params`` and is used like a gradient (the
+    optimizer steps against it); ``stats`` is a dict of scalars with at least ``"loss"``,
+    the batch-mean loss at ``params``.
+    """
+
+    @abc.abstractmethod
+    def __call__(self, objective: Objective, params: PyTree, batch: PyTree) -> tuple[PyTree, Stats]: ...
+
+    def check(self, objective: Objective) -> None:
+        """Raise ``ValueError`` (one line, saying what to use instead) if the rule cannot
+        run on ``objective``; by default it can."""
+
+    def check_batch_size(self, batch_size: int) -> None:
+        """Raise ``ValueError`` if the rule cannot take batches of this size."""
+
+
+class Estimator(eqx.Module):
+    """A rule bound to a user's functions: ``estimate(params, batch) -> (direction, stats)``.
+
+    Returned by the public entry points (:func:`physgrad.hig`, :func:`physgrad.sip`, …);
+    pure and traceable, so it goes inside the user's ``jax.jit`` with their optax update.
+    """
+
+    rule: AbstractRule
+    objective: Objective = eqx.field(static=True)
+
+    def __check_init__(self):
+        self.rule.check(self.objective)
+
+    def __call__(self, params: PyTree, batch: PyTree) -> tuple[PyTree, Stats]:
+        return self.rule(self.objective, params, batch)
+
+
+def with_extra_args(optimizer: optax.GradientTransformation) -> optax.GradientTransformationExtraArgs:
+    """``optimizer`` accepting keyword extras (``value=``), so a chain that needs the loss
+    (``optax.contrib.reduce_on_plateau``, line searches) gets it and one that does not
+    ignores it."""
+    return optax.with_extra_args_support(optimizer)
+
+
 class AbstractMethod(eqx.Module):
-    """An update rule: ``init(params) -> state`` and a pure ``step``.
+    """What the engine runs: ``init(params) -> state`` and a pure ``step``.
 
     ``step(objective, params, state, batch) -> (params, state, stats)`` does everything a
-    training step needs (gradients, Jacobians, inverse solves) and is jit-compiled by the
-    engine as one function. ``stats`` is a dict of scalars and must contain ``"loss"``, the
-    batch-mean loss at the parameters *before* the update.
+    training step needs and is jit-compiled by the engine as one function. ``stats``
+    holds ``"loss"`` (at the parameters *before* the update) and the rule's statistics.
+    A method may declare ``stages()``: a curriculum of methods (default: itself alone).
     """
 
     @abc.abstractmethod
     def init(self, params: PyTree) -> Any: ...
 
+    @abc.abstractmethod
+    def step(self, objective: Objective, params: PyTree, state: Any, batch: PyTree) -> tuple[PyTree, Any, Stats]: ...
+
     def check(self, objective: Objective) -> None:
-        """Raise ``ValueError`` if this method cannot run on ``objective`` (default: it can)."""
+        """Raise ``ValueError`` if this method cannot run on ``objective``."""
 
     def check_batch_size(self, batch_size: int) -> None:
-        """Raise ``ValueError`` if this method cannot take batches of this size (default: it can)."""
+        """Raise ``ValueError`` if this method cannot take batches of this size."""
 
-    @abc.abstractmethod
-    def step(
-        self, objective: Objective, params: PyTree, state: Any, batch: PyTree
-    ) -> tuple[PyTree, Any, dict[str, Array]]: ...
+    def stages(self) -> list[tuple[AbstractMethod, float | None]]:
+        """``(method, epochs)`` stages; the last runs until the budget is spent."""
+        return [(self, None)]
+
+    def stage_label(self) -> str:
+        """What distinguishes this stage in a curriculum (e.g. ``m=2``); empty by default."""
+        return ""
+
+
+class Method(AbstractMethod):
+    """A rule applied by an optax transformation: ``θ ← θ + optimizer(d)``, d = rule(θ).
+
+    The optimizer receives the batch loss as ``value=`` (ignored unless the chain uses it).
+    """
+
+    rule: AbstractRule
+    optimizer: optax.GradientTransformation = eqx.field(static=True)
+
+    def init(self, params):
+        return self.optimizer.init(params)
+
+    def check(self, objective):
+        self.rule.check(objective)
+
+    def check_batch_size(self, batch_size):
+        self.rule.check_batch_size(batch_size)
+
+    def step(self, objective, params, state, batch):
+        direction, stats = self.rule(objective, params, batch)
+        updates, state = with_extra_args(self.optimizer).update(direction, state, params, value=stats["loss"])
+        return optax.apply_updates(params, updates), state, stats

@@ -1,66 +1,39 @@
-"""Differentiable-physics (DP) gradients applied by any optax optimizer.
+"""Differentiable-physics (DP) gradients.
 
-The update direction is ∇_θ L with L = (1/b) Σ_i L_i(P(f(x_i; θ))) back-propagated through
-network and simulator; the optimizer (Adam, SGD, …) turns it into a step. This is the
-baseline every physics-based deep learning paper compares against.
+The direction is the gradient of the batch-mean loss back-propagated through network and
+simulator,
+
+    d = ∇_θ L,      L = (1/b) Σ_i L_i(P(f(x_i; θ))),
+
+which any optax optimizer (Adam, SGD, …) turns into a step. This is the baseline every
+physics-based deep learning paper compares against.
 """
 
 from __future__ import annotations
 
-import equinox as eqx
 import jax
-import optax
 
-from .base import AbstractMethod
+from .base import AbstractRule, Estimator, Objective
 
 
-class DifferentiablePhysics(AbstractMethod):
-    """``θ ← θ + optimizer(∇_θ L)`` with ``L`` the batch-mean loss."""
+class Gradient(AbstractRule):
+    """``d = ∇_θ L`` with ``L`` the batch-mean loss (plain back-propagation)."""
 
-    optimizer: optax.GradientTransformation = eqx.field(static=True)
-
-    def init(self, params):
-        return self.optimizer.init(params)
-
-    def step(self, objective, params, state, batch):
+    def __call__(self, objective, params, batch):
         loss, grads = jax.value_and_grad(objective.batch_loss)(params, batch)
-        updates, state = self.optimizer.update(grads, state, params)
-        return optax.apply_updates(params, updates), state, {"loss": loss}
+        return grads, {"loss": loss}
+
+    def check(self, objective):
+        if objective.predict is None or objective.loss is None:
+            raise ValueError("the DP gradient needs predict(params, sample) and loss(y, sample)")
+        objective.require_differentiable()
 
 
-# ε = 1e-7 is the Keras default that the HIG and StableBPTT papers' baselines used.
+def dp(predict, loss) -> Estimator:
+    """The DP gradient of the batch-mean loss, ``(params, batch) -> (∇_θ L, {"loss": L})``.
 
-
-def adam(*, lr: float = 1e-3, b1: float = 0.9, b2: float = 0.999, eps: float = 1e-7):
-    """Adam on DP gradients (Kingma & Ba 2015; Keras ε = 1e-7)."""
-    return DifferentiablePhysics(optax.adam(lr, b1=b1, b2=b2, eps=eps))
-
-
-def sgd(*, lr: float = 1e-2, momentum: float = 0.0):
-    """Plain (or momentum) SGD on DP gradients: θ ← θ − η ∇L."""
-    return DifferentiablePhysics(optax.sgd(lr, momentum=momentum or None))
-
-
-def rmsprop(*, lr: float = 1e-3, decay: float = 0.9, eps: float = 1e-7):
-    """RMSprop on DP gradients (Tieleman & Hinton 2012; Keras defaults)."""
-    return DifferentiablePhysics(optax.rmsprop(lr, decay=decay, eps=eps))
-
-
-def adagrad(*, lr: float = 1e-2, initial_accumulator: float = 0.1, eps: float = 1e-7):
-    """Adagrad on DP gradients (Duchi et al. 2011; Keras defaults)."""
-    return DifferentiablePhysics(
-        optax.adagrad(lr, initial_accumulator_value=initial_accumulator, eps=eps)
-    )
-
-
-def adadelta(*, lr: float = 1.0, rho: float = 0.95, eps: float = 1e-7):
-    """Adadelta on DP gradients (Zeiler 2012: η = 1, ρ = 0.95)."""
-    return DifferentiablePhysics(optax.adadelta(lr, rho=rho, eps=eps))
-
-
-# The DP optimizers with their defaults above, by name, for methods that apply an optax
-# optimizer to some other direction (SIP's proxy gradient): name -> (lr -> transformation).
-OPTIMIZERS = {
-    factory.__name__: (lambda lr, factory=factory: factory(lr=lr).optimizer)
-    for factory in (adam, sgd, rmsprop, adagrad, adadelta)
-}
+    Arguments:
+        predict: ``predict(params, sample) -> y``, network and simulator for one sample.
+        loss: ``loss(y, sample) -> L_i``, the per-sample loss.
+    """
+    return Estimator(Gradient(), Objective(predict, loss))

@@ -1,55 +1,39 @@
 """Back-propagation through time with gradient-flow policies, and stabilised BPTT.
 
 Schnell & Thuerey, "Stabilizing Backpropagation Through Time to Learn Complex Physics",
-ICLR 2024 (shared/papers/stablebptt.md §1). For a closed loop c_k = N_θ(s_k),
-s_{k+1} = P(s_k, c_k) with loss L = Σ_k w_k ℓ_k:
+ICLR 2024 (§3). For a closed loop c_k = N_θ(s_k), s_{k+1} = P(s_k, c_k) with loss
+L = Σ_k w_k ℓ_k:
 
-- ``bptt`` (R): the true gradient g_R, adjoint λ_k = λ_{k+1}(∂P/∂s + ∂P/∂c ∂N/∂s) + ∂ℓ_k/∂s;
-- ``sbptt_m`` (M): stop-gradient on the network's input, λ̃_k = λ̃_{k+1} ∂P/∂s + ∂ℓ_k/∂s;
-- ``no_temporal`` (S): stop-gradient on both paths: each control gets only its one-step
-  gradient;
-- ``sbptt_c`` (C, the paper's method): g_C = where(sign g_M = sign g_R, g_M, 0) per element.
+- R (regular BPTT): the true gradient g_R, adjoint λ_k = λ_{k+1}(∂P/∂s + ∂P/∂c ∂N/∂s) + ∂ℓ_k/∂s;
+- M (modified): stop-gradient on the network's input, λ̃_k = λ̃_{k+1} ∂P/∂s + ∂ℓ_k/∂s;
+- S (no temporal gradient): stop-gradient on both paths, each control gets only its
+  one-step gradient;
+- C (stabilised BPTT, the paper's method): g_C = where(sign g_M = sign g_R, g_M, 0) per
+  element.
 
-Each gradient then goes through clipping (``clip=value``: element-wise to ±1, Keras
-``clipvalue``; ``norm``: global L2 norm ≤ 1, Keras ``global_clipnorm``; ``none``) and Adam
-(lr 1e-3, ε 1e-7, Keras defaults), chained as optax transformations, clipping after the
-combination as in the authors' code. Logged per step (averaged per evaluation window):
-``grad_norm2``, the squared L2 norm of the gradient before clipping (g_C for C), and for C
-``cos_mr``, the cosine between g_M and g_R.
+The policy is an object (:mod:`physgrad.rollout.policy`), like diffrax's ``adjoint=``; the
+paper applies the result with clipping (Keras ``clipvalue=1`` or ``global_clipnorm=1``) and
+Adam (lr 1e-3, ε 1e-7), which any optax chain expresses. Statistics: ``grad_norm2``, the
+squared L2 norm of the direction before the optimizer, and for C ``cos_mr``, the cosine
+between g_M and g_R.
 """
 
 from __future__ import annotations
 
 import equinox as eqx
-import jax
 import jax.numpy as jnp
-import optax
+import jax
 
-from ..rollout import Combined, GradientFlow, M, R, S, cosine, joint_gradients, sign_mask, value_and_grad
-from .base import AbstractMethod
-
-CLIP_MODES = ("value", "norm", "none")
+from ..rollout import Combined, GradientFlow, M, R, cosine, joint_gradients, sign_mask, value_and_grad
+from .base import AbstractRule, Estimator, Objective
 
 
-def clipping(mode: str, threshold: float) -> optax.GradientTransformation:
-    """The authors' clip modes as optax transformations (applied before the optimizer)."""
-    if mode not in CLIP_MODES:
-        raise ValueError(f"unknown clip mode {mode!r}; valid choices: {', '.join(CLIP_MODES)}")
-    if threshold <= 0:
-        raise ValueError(f"clip_threshold must be positive, got {threshold}")
-    return {"value": optax.clip(threshold), "norm": optax.clip_by_global_norm(threshold), "none": optax.identity()}[mode]
+class RolloutGradient(AbstractRule):
+    """The gradient of the rollout loss under a gradient-flow policy, or the C combination
+    of two policies (:class:`~physgrad.rollout.Combined`)."""
 
-
-class RolloutGradient(AbstractMethod):
-    """A gradient of the rollout loss under a gradient-flow policy (or the C combination),
-    applied by an optax optimizer."""
-
-    policy: GradientFlow | Combined
-    optimizer: optax.GradientTransformation = eqx.field(static=True)
+    policy: GradientFlow | Combined = R()
     checkpoint: bool = eqx.field(static=True, default=False)
-
-    def init(self, params):
-        return self.optimizer.init(params)
 
     def check(self, objective):
         if objective.rollout is None:
@@ -76,38 +60,28 @@ class RolloutGradient(AbstractMethod):
             loss, g_comparison = value_and_grad(system, params, s0, policy.comparison, checkpoint=self.checkpoint)
         return loss, sign_mask(g_base, g_comparison), {"cos_mr": cosine(g_base, g_comparison)}
 
-    def step(self, objective, params, state, batch):
+    def __call__(self, objective, params, batch):
         system = objective.rollout
         loss, grads, stats = self.gradient(system, params, system.initial_state(batch))
         norm2 = sum(jnp.vdot(g, g).real for g in jax.tree.leaves(grads))
-        updates, state = self.optimizer.update(grads, state, params)
-        return optax.apply_updates(params, updates), state, {"loss": loss, "grad_norm2": norm2, **stats}
+        return grads, {"loss": loss, "grad_norm2": norm2, **stats}
 
 
-def _method(policy, clip, clip_threshold, lr, eps, checkpoint):
-    optimizer = optax.chain(clipping(clip, clip_threshold), optax.adam(lr, eps=eps))
-    return RolloutGradient(policy, optimizer, checkpoint)
+def bptt(system, *, policy: GradientFlow = R(), checkpoint: bool = False) -> Estimator:
+    """The rollout gradient under a gradient-flow policy: ``(params, batch) -> (g, stats)``.
+
+    Arguments:
+        system: a :class:`physgrad.rollout.System` (e.g. :func:`physgrad.rollout.closed_loop`);
+            a batch is a batch of initial states (or samples, with ``system.init``).
+        policy: ``R()`` full BPTT (default), ``M()``, ``S()`` (no temporal gradient), with
+            ``truncate=k`` / ``warmup=W`` cuts; or ``Combined(...)``.
+        checkpoint: rematerialise the rollout (memory ≈ √m states).
+    """
+    return Estimator(RolloutGradient(policy, checkpoint), Objective(rollout=system))
 
 
-def bptt(*, clip: str = "value", clip_threshold: float = 1.0, lr: float = 1e-3, eps: float = 1e-7,
-         truncate: int = 0, warmup: int = 0, checkpoint: bool = False):  # fmt: skip
-    """Full BPTT (R): the true rollout gradient, clipped, Adam; truncate=k cuts every k steps."""
-    return _method(R(truncate=truncate, warmup=warmup), clip, clip_threshold, lr, eps, checkpoint)
-
-
-def sbptt_m(*, clip: str = "value", clip_threshold: float = 1.0, lr: float = 1e-3, eps: float = 1e-7,
-            truncate: int = 0, warmup: int = 0, checkpoint: bool = False):  # fmt: skip
-    """Stabilised BPTT's modified gradient (M): stop-gradient on the network's input only."""
-    return _method(M(truncate=truncate, warmup=warmup), clip, clip_threshold, lr, eps, checkpoint)
-
-
-def no_temporal(*, clip: str = "value", clip_threshold: float = 1.0, lr: float = 1e-3, eps: float = 1e-7,
-                warmup: int = 0, checkpoint: bool = False):  # fmt: skip
-    """No temporal gradient (S): stop-gradient on network and physics inputs (one-step gradients)."""
-    return _method(S(warmup=warmup), clip, clip_threshold, lr, eps, checkpoint)
-
-
-def sbptt_c(*, clip: str = "value", clip_threshold: float = 1.0, lr: float = 1e-3, eps: float = 1e-7,
-            one_pass: bool = True, checkpoint: bool = False):  # fmt: skip
-    """Stabilised BPTT (C, Schnell & Thuerey 2024): M's gradient masked by the signs of R's."""
-    return _method(Combined(M(), R(), one_pass=one_pass), clip, clip_threshold, lr, eps, checkpoint)
+def stabilised_bptt(system, *, one_pass: bool = True, checkpoint: bool = False) -> Estimator:
+    """Stabilised BPTT (C, Schnell & Thuerey 2024): M's gradient where its sign agrees with
+    R's, else 0. ``one_pass`` computes both from one forward and one joint backward pass
+    (the authors ran two full passes: ``one_pass=False``). Statistics add ``cos_mr``."""
+    return Estimator(RolloutGradient(Combined(M(), R(), one_pass=one_pass), checkpoint), Objective(rollout=system))

@@ -1,34 +1,31 @@
 """Training modalities of neural time-steppers: one-step, no-gradient unrolled, fully differentiable.
 
-List, Chen, Bali & Thuerey, CMAME 2025 (shared/papers/unrolling.md §1.2, §5). With the
-rollout u⁰ = ũ⁰, uᵏ = S_θ(uᵏ⁻¹) and L = (1/m) Σ_k MSE(uᵏ, ũᵏ):
+List, Chen, Bali & Thuerey, *Differentiability in unrolled training of neural physics
+simulators on transient dynamics*, CMAME 2025 (§2). With the rollout u⁰ = ũ⁰,
+uᵏ = S_θ(uᵏ⁻¹) and L = (1/m) Σ_k MSE(uᵏ, ũᵏ):
 
-- ``one`` (ONE): every step starts from the reference frame ũᵏ⁻¹ (teacher forcing), so the
+- ONE: every step starts from the reference frame ũᵏ⁻¹ (teacher forcing), so the
   gradient is (1/m) Σ_k ∂ℓ_k/∂θ at ground-truth inputs. Budget parity with the unrolled
-  modalities (the KS code trains ONE with batch B·m and epochs × m): a batch of B windows
-  gives B·m one-step targets per update and one epoch over the windows visits every pair
-  m times, so updates and targets match ``nog``/``wig`` at the same batch size and epochs.
-- ``nog`` (NOG): the m-step rollout on the model's own predictions, with the gradient
-  stopped on each state after its loss (policy ``S``): Σ_k ∂ℓ_k/∂uᵏ · ∂S_θ/∂θ(uᵏ⁻¹). The
-  solver's input is stopped statically, so it is never differentiated.
-- ``wig`` (WIG): the full BPTT gradient through network and solver (policy ``R``), with
+  modalities (the authors' KS code trains ONE with batch B·m and epochs × m): a batch of B
+  windows gives B·m one-step targets per update and one epoch over the windows visits
+  every pair m times, so updates and targets match NOG/WIG at equal batch size and epochs.
+- NOG: the m-step rollout on the model's own predictions, with the gradient stopped on
+  each state after its loss (policy ``S``): Σ_k ∂ℓ_k/∂uᵏ · ∂S_θ/∂θ(uᵏ⁻¹). The solver's
+  input is stopped statically, so it is never differentiated.
+- WIG: the full BPTT gradient through network and solver (policy ``R``), with
   ``truncate=k`` (cut every k steps) and ``warmup=W`` (the first W steps run without
   gradient and without loss: the pushforward trick). Refuses a non-differentiable solver.
 
-Stabilisers (§1.4B, §5.4), all options of every modality:
-
-- ``curriculum="1,2,4"``: stages of increasing unroll length, each ``stage_epochs`` long
-  (the last runs until the budget is spent), with ``stage_lr`` per stage and a fresh Adam;
-- ``lr_warmup``: linear learning-rate warm-up over the first steps of each stage (KOLM:
-  64·m); ``decay``/``decay_every``: lr ← decay·lr every ``decay_every`` steps (KS: 0.9
-  every 2000);
-- update skipping, counted in the step statistics ``skipped``, ``skip_nan``, ``skip_norm``
-  and ``skip_solver``: on a non-finite gradient; on a gradient norm above a running bound
-  (``norm_guard``: c ← 0.9c + 10‖g‖ after each accepted update, ≈ 100× the mean norm;
-  the first update sets c = 100‖g‖); and when the solver reports a failure;
-- ``clip``: global-norm clipping (0 = off).
-
-Logged per step: ``loss``, ``grad_norm`` and the skip counters.
+The direction is :class:`UnrolledGradient` (and :func:`physgrad.unrolled` for a user's own
+rollout system). The engine's :class:`Unrolled` applies it with the paper's stabilisers,
+all built from optax: a learning-rate schedule (``optax.linear_schedule`` warm-up times
+``optax.exponential_decay``: lr ← decay·lr every ``decay_every`` steps), global-norm
+clipping, and update skipping — ``optax.apply_if_finite`` on a non-finite gradient,
+:func:`physgrad.transforms.norm_guard` on a norm above a running bound, and no update when
+the solver reports a failure. Skips are counted in the step statistics ``skipped``,
+``skip_nan``, ``skip_norm`` and ``skip_solver``. A curriculum (stages of increasing m, each
+``stage_epochs`` long with its own learning rate and a fresh Adam) is declared by
+``stages()``.
 """
 
 from __future__ import annotations
@@ -41,24 +38,73 @@ import jax.numpy as jnp
 import optax
 
 from ..rollout import GradientFlow, R, S, value_and_grad
-from .base import AbstractMethod
+from ..transforms import norm_guard
+from .base import AbstractMethod, AbstractRule, Estimator, Objective, with_extra_args
 
 
-def parse_list(text: str, kind, name: str) -> tuple:
-    """A comma-separated setting (``"1,2,4"``) as a tuple; a one-line error otherwise."""
-    try:
-        return tuple(kind(t) for t in str(text).split(",") if t.strip())
-    except ValueError:
-        raise ValueError(f"{name} must be a comma-separated list of numbers, got {text!r}") from None
+class UnrolledGradient(AbstractRule):
+    """The gradient of the unrolled time-stepper loss under a gradient-flow policy.
+
+    Statistics: ``loss``, ``grad_norm`` (global L2 norm) and ``solver_ok`` (no solver
+    failure flagged in the rollout's final state)."""
+
+    policy: GradientFlow = R()
+    teacher_forcing: bool = eqx.field(static=True, default=False)
+    m: int = eqx.field(static=True, default=0)  # 0: the problem's window length
+    checkpoint: bool = eqx.field(static=True, default=False)
+
+    def __check_init__(self):
+        if self.m < 0:
+            raise ValueError("unroll lengths (m, curriculum) must be positive")
+
+    def system(self, objective):
+        return objective.unrolled(self.m or None, self.teacher_forcing)
+
+    def check(self, objective):
+        if objective.unrolled is None:
+            raise ValueError("this method trains a neural time-stepper; use a time-stepper problem (ks, kolmogorov, advection_1d)")
+        system = self.system(objective)
+        if not system.differentiable_physics and not self.teacher_forcing and not self.policy.stop_physics:
+            raise ValueError(
+                "this method differentiates through the solver, but the problem's solver is not "
+                "differentiable; train with nog or one"
+            )
+
+    def __call__(self, objective, params, batch):
+        system = self.system(objective)
+        s0 = system.initial_state(batch)
+        policy = S() if self.teacher_forcing else self.policy  # inputs are data: nothing to stop
+        (loss, final), grads = value_and_grad(system, params, s0, policy, checkpoint=self.checkpoint, has_aux=True)
+        ok = jnp.all(final["ok"]) if isinstance(final, dict) and "ok" in final else jnp.asarray(True)
+        return grads, {"loss": loss, "grad_norm": optax.tree.norm(grads), "solver_ok": ok}
+
+
+def unrolled(system, *, policy: GradientFlow = S(), checkpoint: bool = False) -> Estimator:
+    """The unrolled-training gradient of a time-stepper rollout: ``(params, batch) -> (g, stats)``.
+
+    ``policy=S()`` is NOG, ``R()`` WIG (with ``truncate``/``warmup`` cuts); ONE is NOG on a
+    teacher-forced system (every step reads the reference frame). ``system`` is a
+    :class:`physgrad.rollout.System`; its final state may carry an ``"ok"`` flag per sample
+    (solver failures), reported as ``stats["solver_ok"]``.
+    """
+    return Estimator(UnrolledGradient(policy, False, 0, checkpoint), Objective(unrolled=lambda m=None, tf=False: system))
+
+
+def schedule(lr: float, warmup: int = 0, decay: float = 1.0, every: int = 0) -> optax.Schedule:
+    """``lr · min(1, (t+1)/warmup) · decay^⌊t/every⌋`` from optax's schedules (t = updates
+    applied so far): a linear warm-up over the first ``warmup`` updates (KOLM: 64·m) times
+    a staircase exponential decay (KS: 0.9 every 2000)."""
+    decayed = optax.exponential_decay(lr, every, decay, staircase=True) if every and decay != 1.0 else optax.constant_schedule(lr)
+    if not warmup:
+        return decayed
+    ramp = optax.linear_schedule(1.0 / warmup, 1.0, max(warmup - 1, 1))
+    return lambda t: ramp(t) * decayed(t)
 
 
 class Unrolled(AbstractMethod):
-    """A gradient of the unrolled time-stepper loss under a gradient-flow policy, applied by
-    Adam with the stabilisers of the module docstring."""
+    """The unrolled gradient applied by Adam with the stabilisers of the module docstring."""
 
-    policy: GradientFlow
-    teacher_forcing: bool = eqx.field(static=True, default=False)
-    m: int = eqx.field(static=True, default=0)  # 0: the problem's window length
+    rule: UnrolledGradient
     lr: float = eqx.field(static=True, default=1e-3)
     lr_warmup: int = eqx.field(static=True, default=0)
     decay: float = eqx.field(static=True, default=1.0)
@@ -70,10 +116,9 @@ class Unrolled(AbstractMethod):
     curriculum: tuple[int, ...] = eqx.field(static=True, default=())
     stage_epochs: float = eqx.field(static=True, default=1.0)
     stage_lr: tuple[float, ...] = eqx.field(static=True, default=())
-    checkpoint: bool = eqx.field(static=True, default=False)
 
     def __check_init__(self):
-        if self.m < 0 or any(m < 1 for m in self.curriculum):
+        if any(m < 1 for m in self.curriculum):
             raise ValueError("unroll lengths (m, curriculum) must be positive")
         if self.stage_lr and len(self.stage_lr) != len(self.curriculum):
             raise ValueError(f"stage_lr needs one learning rate per curriculum stage ({len(self.curriculum)})")
@@ -82,111 +127,65 @@ class Unrolled(AbstractMethod):
         if self.lr <= 0 or any(lr <= 0 for lr in self.stage_lr):
             raise ValueError("learning rates must be positive")
 
-    def stages(self) -> list[tuple[Unrolled, float | None]]:
+    @property
+    def m(self) -> int:
+        return self.rule.m
+
+    @property
+    def policy(self) -> GradientFlow:
+        return self.rule.policy
+
+    def stages(self):
         """The curriculum as (method, epochs) stages; the last runs until the budget ends."""
         if not self.curriculum:
             return [(self, None)]
         lrs = self.stage_lr or (self.lr,) * len(self.curriculum)
         out = []
         for i, (m, lr) in enumerate(zip(self.curriculum, lrs)):
-            stage = dataclasses.replace(self, m=m, lr=lr, curriculum=(), stage_lr=())
+            stage = dataclasses.replace(self, rule=dataclasses.replace(self.rule, m=m), lr=lr, curriculum=(), stage_lr=())
             out.append((stage, None if i == len(self.curriculum) - 1 else self.stage_epochs))
         return out
 
+    def stage_label(self):
+        return f"m={self.rule.m}"
+
     @property
     def optimizer(self) -> optax.GradientTransformation:
-        lr, warmup, decay, every = self.lr, self.lr_warmup, self.decay, self.decay_every
-
-        def schedule(t):
-            scale = jnp.minimum(1.0, (t + 1) / warmup) if warmup else 1.0
-            if every and decay != 1.0:
-                scale = scale * decay ** jnp.floor(t / every)
-            return lr * scale
-
         chain = [optax.clip_by_global_norm(self.clip)] if self.clip > 0 else []
-        return optax.chain(*chain, optax.adam(schedule))
+        opt = optax.chain(*chain, optax.adam(schedule(self.lr, self.lr_warmup, self.decay, self.decay_every)))
+        if self.norm_guard:
+            opt = norm_guard(opt)
+        if self.skip_nan:  # never give up skipping: a diverged run is the engine's call
+            opt = optax.apply_if_finite(opt, max_consecutive_errors=2**30)
+        return opt
 
     def init(self, params):
-        return self.optimizer.init(params), jnp.zeros((), jnp.float32)
+        return self.optimizer.init(params)
 
     def check(self, objective):
-        if objective.unrolled is None:
-            raise ValueError("this method trains a neural time-stepper; use a time-stepper problem (ks, kolmogorov, advection_1d)")
-        system = objective.unrolled(self.m or None, self.teacher_forcing)
+        self.rule.check(objective)
         for m in self.curriculum:
-            objective.unrolled(m, self.teacher_forcing)  # raises if m exceeds the windows
-        if not system.differentiable_physics and not self.teacher_forcing and not self.policy.stop_physics:
-            raise ValueError(
-                "this method differentiates through the solver, but the problem's solver is not "
-                "differentiable; train with nog or one"
-            )
+            objective.unrolled(m, self.rule.teacher_forcing)  # raises if m exceeds the windows
 
     def step(self, objective, params, state, batch):
-        opt_state, cutoff = state
-        system = objective.unrolled(self.m or None, self.teacher_forcing)
-        s0 = system.initial_state(batch)
-        policy = S() if self.teacher_forcing else self.policy  # inputs are data: nothing to stop
-        (loss, final), grads = value_and_grad(system, params, s0, policy, checkpoint=self.checkpoint, has_aux=True)
-        norm = optax.tree.norm(grads)
+        grads, stats = self.rule(objective, params, batch)
+        norm, solver_ok = stats["grad_norm"], stats.pop("solver_ok")
         finite = jnp.isfinite(norm)
-        solver_ok = jnp.all(final["ok"])
-        within = (cutoff == 0) | (norm <= cutoff)
-        accept = jnp.asarray(True)
-        if self.skip_nan:
-            accept = accept & finite
+        within = jnp.asarray(True)
         if self.norm_guard:
-            accept = accept & within
-        if self.skip_solver_failure:
-            accept = accept & solver_ok
-        updates, new_opt = self.optimizer.update(grads, opt_state, params)
+            bound = optax.tree_utils.tree_get(state, "bound")
+            within = (bound == 0) | (norm <= bound)
+        updates, new_state = with_extra_args(self.optimizer).update(grads, state, params, value=stats["loss"])
         new_params = optax.apply_updates(params, updates)
-        keep = lambda new, old: jax.tree.map(lambda a, b: jnp.where(accept, a, b), new, old)  # noqa: E731
-        new_cutoff = jnp.where(cutoff == 0, 100.0 * norm, 0.9 * cutoff + 10.0 * norm).astype(cutoff.dtype)
-        cutoff = jnp.where(accept & self.norm_guard, new_cutoff, cutoff)
+        if self.skip_solver_failure:  # no update at all where the solver failed
+            keep = lambda new, old: jax.tree.map(lambda a, b: jnp.where(solver_ok, a, b), new, old)  # noqa: E731
+            new_params, new_state = keep(new_params, params), keep(new_state, state)
+        accept = (finite | (not self.skip_nan)) & (within | (not self.norm_guard)) & (solver_ok | (not self.skip_solver_failure))
         skipped = ~accept
-        stats = {
-            "loss": loss,
-            "grad_norm": norm,
-            "skipped": skipped.astype(jnp.float32),
-            "skip_nan": (skipped & ~finite).astype(jnp.float32),
-            "skip_norm": (skipped & finite & ~within & self.norm_guard).astype(jnp.float32),
-            "skip_solver": (skipped & ~solver_ok).astype(jnp.float32),
-        }
-        return keep(new_params, params), (keep(new_opt, opt_state), cutoff), stats
-
-
-def _unrolled(policy, teacher_forcing, *, m, lr, lr_warmup, decay, decay_every, clip, skip_nan, norm_guard,
-              skip_solver_failure, curriculum, stage_epochs, stage_lr, checkpoint):  # fmt: skip
-    return Unrolled(
-        policy, teacher_forcing, m, lr, lr_warmup, decay, decay_every, clip, skip_nan, norm_guard,
-        skip_solver_failure, parse_list(curriculum, int, "curriculum"), stage_epochs,
-        parse_list(stage_lr, float, "stage_lr"), checkpoint,
-    )  # fmt: skip
-
-
-def one(*, lr: float = 1e-3, lr_warmup: int = 0, decay: float = 1.0, decay_every: int = 0, clip: float = 0.0,
-        skip_nan: bool = True, norm_guard: bool = False, skip_solver_failure: bool = True, m: int = 0):  # fmt: skip
-    """One-step training (ONE): every step from the reference frame; B·m targets per update."""
-    return _unrolled(S(), True, m=m, lr=lr, lr_warmup=lr_warmup, decay=decay, decay_every=decay_every, clip=clip,
-                     skip_nan=skip_nan, norm_guard=norm_guard, skip_solver_failure=skip_solver_failure,
-                     curriculum="", stage_epochs=1.0, stage_lr="", checkpoint=False)  # fmt: skip
-
-
-def nog(*, lr: float = 1e-3, lr_warmup: int = 0, decay: float = 1.0, decay_every: int = 0, clip: float = 0.0,
-        skip_nan: bool = True, norm_guard: bool = False, skip_solver_failure: bool = True, m: int = 0,
-        curriculum: str = "", stage_epochs: float = 1.0, stage_lr: str = "", checkpoint: bool = False):  # fmt: skip
-    """No-gradient unrolling (NOG): m-step rollout, stop-gradient on each state after its loss."""
-    return _unrolled(S(), False, m=m, lr=lr, lr_warmup=lr_warmup, decay=decay, decay_every=decay_every, clip=clip,
-                     skip_nan=skip_nan, norm_guard=norm_guard, skip_solver_failure=skip_solver_failure,
-                     curriculum=curriculum, stage_epochs=stage_epochs, stage_lr=stage_lr, checkpoint=checkpoint)  # fmt: skip
-
-
-def wig(*, lr: float = 1e-3, lr_warmup: int = 0, decay: float = 1.0, decay_every: int = 0, clip: float = 0.0,
-        skip_nan: bool = True, norm_guard: bool = False, skip_solver_failure: bool = True, m: int = 0,
-        truncate: int = 0, warmup: int = 0, curriculum: str = "", stage_epochs: float = 1.0, stage_lr: str = "",
-        checkpoint: bool = False):  # fmt: skip
-    """Fully differentiable unrolling (WIG): BPTT through network and solver; truncate/warmup cuts."""
-    return _unrolled(R(truncate=truncate, warmup=warmup), False, m=m, lr=lr, lr_warmup=lr_warmup, decay=decay,
-                     decay_every=decay_every, clip=clip, skip_nan=skip_nan, norm_guard=norm_guard,
-                     skip_solver_failure=skip_solver_failure, curriculum=curriculum, stage_epochs=stage_epochs,
-                     stage_lr=stage_lr, checkpoint=checkpoint)  # fmt: skip
+        stats.update(
+            skipped=skipped.astype(jnp.float32),
+            skip_nan=(skipped & ~finite).astype(jnp.float32),
+            skip_norm=(skipped & finite & ~within & self.norm_guard).astype(jnp.float32),
+            skip_solver=(skipped & ~solver_ok).astype(jnp.float32),
+        )
+        return new_params, new_state, stats

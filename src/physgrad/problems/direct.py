@@ -44,10 +44,11 @@ class DirectOptimisation(AbstractProblem):
         return {"train": indexed, "test": indexed}
 
     def make_network(self, key):
-        raise NotImplementedError("use initial_network(samples): the start depends on the data")
+        raise NotImplementedError("use initial_network(key, data): the start depends on the data")
 
-    def initial_network(self, samples) -> FreeVariables:
-        return FreeVariables(jax.vmap(self.problem.initial_guess)(samples["sample"]))
+    def initial_network(self, key, data) -> FreeVariables:
+        del key  # the start is the problem's initial guess for each sample
+        return FreeVariables(jax.vmap(self.problem.initial_guess)(data["train"]["sample"]))
 
     def network_output(self, network, sample):
         return network.x[sample["index"]]

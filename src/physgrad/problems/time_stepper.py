@@ -232,6 +232,21 @@ class TimeStepperProblem(AbstractProblem):
         differentiable = self.setup == "prediction" or self._differentiable(solvers)
         return System(transition, m, weights, init, differentiable)
 
+    def objective(self, static):
+        """The open-loop pieces, the rollout over the problem's m steps and the unrolled
+        windows of any m (ONE / NOG / WIG); ``differentiable`` is the solver's declaration."""
+
+        def apply(p, u, cond):
+            return self.apply(eqx.combine(p, static), u, cond)
+
+        def unrolled(m=None, teacher_forcing=False):
+            return self.system(apply, m, teacher_forcing)
+
+        rollout = unrolled()
+        return super().objective(static)._replace(
+            rollout=rollout, unrolled=unrolled, differentiable=rollout.differentiable_physics
+        )
+
     # --- the open-loop contract and the metrics -------------------------------------------
     def network_output(self, network, sample):
         """The autoregressive rollout u¹…u^T from ũ⁰ over the whole sample (T, C, *N)."""

@@ -1,0 +1,818 @@
+"""The training engine: one run of methods on a problem, with objects in and a run directory out.
+
+    physgrad.fit(problem, method, budget=Budget(steps=2000), out="runs/mine", seed=0)
+
+``problem`` is any :class:`physgrad.problems.AbstractProblem` instance (the user's own
+too: no registry), ``method`` an engine method (:class:`physgrad.methods.Method`: a rule and
+an optax transformation) or a sequence of :class:`Phase` (e.g. Adam for 1,413 steps, then
+HIG from those parameters). One run::
+
+    data    = problem.make_data(fold_in(key(seed), 0))
+    network = problem.initial_network(fold_in(key(seed), 1), data)
+    loop:  state = step(state, batch)                      # one jitted function per step
+           every epoch / eval_every steps / eval_seconds: full train and test metrics
+
+The loop (:func:`_loop`) reads in one screen; everything around it is a small strategy
+object: :class:`StopRule` (the budget), :class:`EvalSchedule`, :class:`Placement` (devices and
+processes), :class:`Fidelity` (PRDP's solver refinement), :class:`Recorder` (evaluation and
+``metrics.csv``), :class:`Checkpointer`, and the progress meter. The loop state is one typed
+value, :class:`TrainState`, which is what a checkpoint holds.
+
+A run directory holds ``config.json`` (what the caller says identifies the run; the command
+line writes its :class:`~physgrad.config.RunConfig`), ``metrics.csv`` (long format: step,
+wall_time, split, metric, value), ``env.json``, ``summary.json``, ``test_cases.json``,
+``params.eqx`` (the final network) and ``checkpoint/`` for ``resume``. Wall time counts
+training steps only: compilation (``compile_seconds``) and evaluation are excluded, so equal
+budgets compare update rules, not tracing.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import csv
+import dataclasses
+import json
+import math
+import os
+import platform
+import re
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from . import distributed
+from . import prdp as prdp_control
+from .errors import ConfigError
+from .methods import AbstractMethod, Objective
+from .nets import parameter_count
+from .problems import AbstractProblem
+from .progress import AbstractProgressMeter, NoProgressMeter
+
+METRICS_HEADER = ("step", "wall_time", "split", "metric", "value")
+FINAL_STATUSES = ("finished", "diverged")
+
+
+# --- what the caller gives -----------------------------------------------------------------
+@dataclasses.dataclass(frozen=True)
+class Budget:
+    """How long to train: exactly one of steps, epochs or training seconds.
+
+    Seconds count training steps only (evaluation excluded, as in the HIG paper); the run
+    stops at the first step that reaches the budget.
+    """
+
+    steps: int | None = None
+    epochs: int | None = None
+    seconds: float | None = None
+
+    def __post_init__(self):
+        given = [k for k in ("steps", "epochs", "seconds") if getattr(self, k) is not None]
+        if len(given) != 1:
+            raise ConfigError("give exactly one budget: --steps N, --epochs E or --seconds S")
+        if getattr(self, given[0]) <= 0:
+            raise ConfigError(f"the budget --{given[0]} must be positive")
+
+    @property
+    def kind(self) -> str:
+        return next(k for k in ("steps", "epochs", "seconds") if getattr(self, k) is not None)
+
+    @property
+    def amount(self) -> float:
+        return getattr(self, self.kind)
+
+    def to_dict(self) -> dict[str, float]:
+        """``{kind: amount}``, as written in config.json, summary.json and study.json."""
+        return {self.kind: self.amount}
+
+    def __str__(self):
+        return f"{self.amount:g} {self.kind}"
+
+
+@dataclasses.dataclass(frozen=True)
+class Phase:
+    """A method for ``steps`` steps (None: until the budget is spent) at ``batch_size``
+    (None: the problem's ``default_batch_size``)."""
+
+    method: AbstractMethod
+    steps: int | None = None
+    batch_size: int | None = None
+    name: str = ""  # how tables and summaries call it (default: the method's class name)
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainSettings:
+    """How a run evaluates, orders its batches, checkpoints and refines its solver."""
+
+    eval_every: int = 0  # steps between full train/test evaluations; 0 = once per epoch
+    eval_seconds: float = 0.0  # if > 0: evaluate every this many training seconds instead
+    eval_samples: int = 0  # evaluate the train split on its first N samples only; 0 = all
+    shuffle: bool = False  # the papers take mini-batches in fixed order
+    checkpoint_seconds: float = 60.0  # training seconds between checkpoints (and one at the end)
+    prdp: bool = False  # refine the solver's iteration count on validation plateaus (physgrad.prdp)
+    prdp_start: int = 1
+    prdp_increment: int = 1
+    prdp_tau_step: float = 0.98
+    prdp_tau_stop: float = 0.9
+
+
+# --- built before the first step -------------------------------------------------------------
+@dataclasses.dataclass
+class Stage:
+    """One stage of a run, built: its method, batch size, length and first global step."""
+
+    method: AbstractMethod
+    batch_size: int
+    steps_per_epoch: int
+    start: int
+    steps: int | None  # None: until the budget is spent
+    label: str = ""
+
+    def contains(self, step: int) -> bool:
+        return step >= self.start and (self.steps is None or step < self.start + self.steps)
+
+    def steps_done(self, step: int) -> int:
+        """How many of the run's first ``step`` steps this stage took."""
+        local = max(step - self.start, 0)
+        return local if self.steps is None else min(local, self.steps)
+
+
+@dataclasses.dataclass
+class Setup:
+    """Everything a run builds before the first step: problem, data, split network,
+    the problem's :class:`Objective` and the stages."""
+
+    problem: AbstractProblem
+    data: dict[str, Any]
+    params: Any
+    static: Any
+    objective: Objective
+    stages: list[Stage]
+
+    @property
+    def method(self) -> AbstractMethod:
+        """The first (for a single method: the only) stage's method."""
+        return self.stages[0].method
+
+    @property
+    def steps_per_epoch(self) -> int:
+        return self.stages[0].steps_per_epoch
+
+    def stage_index(self, step: int) -> int:
+        """The stage that takes global step ``step`` (0-based)."""
+        return next(i for i, s in enumerate(self.stages) if s.contains(step))
+
+    def epochs(self, step: int) -> float:
+        """Epochs done after ``step`` steps (each stage counts its own batch size)."""
+        return sum(s.steps_done(step) / s.steps_per_epoch for s in self.stages)
+
+    def network(self, params=None):
+        return eqx.combine(self.params if params is None else params, self.static)
+
+    def with_problem(self, problem: AbstractProblem) -> Setup:
+        """The same network, data and stages on another instance of the problem (a
+        fidelity schedule changes the solver's iteration count)."""
+        return dataclasses.replace(self, problem=problem, objective=problem.objective(self.static))
+
+
+def build_setup(problem: AbstractProblem, phases: Sequence[Phase], seed: int) -> Setup:
+    """Data, network and stages (deterministic per seed); every method is checked against
+    the problem's declared pieces, with one-line errors."""
+    key = jax.random.key(seed)
+    try:
+        data = problem.make_data(jax.random.fold_in(key, 0))
+    except ValueError as e:
+        raise ConfigError(f"{problem.name}: {e}") from None
+    params, static = eqx.partition(problem.initial_network(jax.random.fold_in(key, 1), data), eqx.is_inexact_array)
+    objective = problem.objective(static)
+    n_train = jax.tree.leaves(data["train"])[0].shape[0]
+    stages, start = [], 0
+    for phase in phases:
+        name = phase.name or type(phase.method).__name__
+        batch_size = phase.batch_size or problem.default_batch_size
+        if batch_size > n_train:
+            raise ConfigError(f"batch_size {batch_size} exceeds the {n_train} training samples")
+        try:
+            phase.method.check(objective)
+            phase.method.check_batch_size(batch_size)
+        except ValueError as e:
+            raise ConfigError(f"{name} on {problem.name}: {e}") from None
+        per_epoch, phase_start = n_train // batch_size, start
+        expanded = phase.method.stages()
+        for stage_method, epochs in expanded:
+            if epochs is not None:  # a curriculum stage before the last
+                steps = max(1, round(epochs * per_epoch))
+            elif phase.steps is not None:  # the phase's remaining steps
+                steps = max(1, phase.steps - (start - phase_start))
+            else:
+                steps = None
+            label = name + (f"[{stage_method.stage_label()}]" if len(expanded) > 1 else "")
+            stages.append(Stage(stage_method, batch_size, per_epoch, start, steps, label))
+            start += steps or 0
+    return Setup(problem, data, params, static, objective, stages)
+
+
+def make_step(setup: Setup, batch_size: int, method: AbstractMethod | None = None):
+    """The training step as one jitted function of (params, state, data, order, index).
+
+    The mini-batch is gathered inside the jit (``order`` is the epoch's sample order,
+    ``index`` the batch number), so a step is a single dispatch with no host work.
+    Traced under a mesh (``jax.set_mesh``, :mod:`physgrad.distributed`) the batch is split
+    over the mesh's ``"data"`` axis while parameters and state stay replicated."""
+    method = method or setup.method
+
+    def step(params, state, data, order, index):
+        rows = jax.lax.dynamic_slice_in_dim(order, index * batch_size, batch_size)
+        batch = distributed.shard_batch(jax.tree.map(lambda a: a[rows], data))
+        params, state, stats = method.step(setup.objective, params, state, batch)
+        return distributed.replicated(params), distributed.replicated(state), stats
+
+    return jax.jit(step)
+
+
+def make_evaluate(setup: Setup, chunk: int = 1024, per_sample: bool = False):
+    """Mean per-sample loss and the problem's extra metrics over a data split (jitted, in
+    chunks of ``chunk``): ``{"loss": ..., **problem.metrics}``; with ``per_sample`` every
+    sample's values (for paired tests). Under a mesh the samples are split over its devices."""
+    problem = setup.problem
+
+    def one(params, sample):
+        x = problem.network_output(setup.network(params), sample)
+        y = problem.simulate(x, sample)
+        return {"loss": problem.loss(y, sample), **problem.metrics(x, y, sample)}
+
+    def split_evaluate(params, data):
+        n = jax.tree.leaves(data)[0].shape[0]
+        devices = distributed.data_axis_size()
+        if devices == 1:
+            values = jax.lax.map(lambda s: one(params, s), data, batch_size=min(chunk, n))
+        else:  # each device evaluates its share: (devices, n/devices) with the first axis split
+            pad = -n % devices  # repeats of the last sample, cut off again below
+            data = jax.tree.map(lambda a: jnp.concatenate([a, jnp.repeat(a[-1:], pad, axis=0)]), data)
+            data = jax.tree.map(lambda a: a.reshape(devices, (n + pad) // devices, *a.shape[1:]), data)
+            data = distributed.shard_batch(data)
+            per_device = min(chunk, (n + pad) // devices)
+            values = jax.vmap(lambda d: jax.lax.map(lambda s: one(params, s), d, batch_size=per_device))(data)
+            values = jax.tree.map(lambda v: v.reshape(n + pad, *v.shape[2:])[:n], values)
+        return values if per_sample else jax.tree.map(jnp.mean, values)
+
+    return jax.jit(lambda params, data: distributed.replicated(split_evaluate(params, data)))
+
+
+# --- the loop state --------------------------------------------------------------------------
+class TrainState(NamedTuple):
+    """Everything the loop carries from step to step (and a checkpoint holds).
+
+    ``params``/``opt_state`` are arrays (``state.eqx``); the rest are host scalars
+    (``counters.json``): global step, stage index, training and compile seconds, the best
+    test loss so far, per-statistic sums over all steps, the solver's summed iteration count
+    and PRDP's controller state."""
+
+    params: Any
+    opt_state: Any
+    step: int = 0
+    stage: int = 0
+    train_time: float = 0.0
+    compile_seconds: float = 0.0
+    best_test_loss: float = math.inf
+    stat_totals: dict = {}
+    solver_iterations: int = 0
+    prdp: dict | None = None
+
+    def counters(self) -> dict[str, Any]:
+        return {k: getattr(self, k) for k in self._fields[2:]}
+
+
+# --- strategies around the loop -------------------------------------------------------------
+@dataclasses.dataclass
+class StopRule:
+    """The budget: steps, epochs (each stage at its own batch size) or training seconds."""
+
+    budget: Budget
+    setup: Setup
+
+    def met(self, step: int, train_time: float) -> bool:
+        kind, amount = self.budget.kind, self.budget.amount
+        if kind == "seconds":
+            return train_time >= amount
+        if kind == "steps":
+            return step >= amount
+        return self.setup.epochs(step) >= amount - 1e-9
+
+
+@dataclasses.dataclass
+class EvalSchedule:
+    """Every ``eval_seconds`` of training time if set (equal points per curve in a
+    wall-clock comparison), else every ``eval_every`` steps, else every epoch of the
+    current stage; always at the end of a stage and of the budget."""
+
+    settings: TrainSettings
+    next_time: float = 0.0
+
+    def start(self, train_time: float):
+        self.next_time = self._after(train_time)
+
+    def _after(self, train_time: float) -> float:
+        every = self.settings.eval_seconds
+        return every * (1 + math.floor(train_time / every)) if every > 0 else math.inf
+
+    def due(self, step: int, train_time: float, stage: Stage, boundary: bool) -> bool:
+        if boundary:
+            return True
+        if self.settings.eval_seconds > 0:
+            if train_time < self.next_time:
+                return False
+            self.next_time = self._after(train_time)
+            return True
+        if self.settings.eval_every:
+            return step % self.settings.eval_every == 0
+        return (step - stage.start) % stage.steps_per_epoch == 0
+
+
+@dataclasses.dataclass
+class Placement:
+    """Where arrays live: one device, or a data mesh over devices and processes."""
+
+    devices: int | str | None = 1
+
+    def __post_init__(self):
+        self.mesh = distributed.make_mesh(self.devices)
+        self.writer = distributed.is_writer()
+
+    def put(self, tree):
+        return distributed.replicate(tree, self.mesh)
+
+    def scope(self):
+        return distributed.use_mesh(self.mesh)
+
+    def clock(self, seconds: float) -> float:
+        """Process 0's training time on every process, so that seconds budgets and
+        ``eval_seconds`` stop and evaluate all processes at the same step."""
+        if jax.process_count() == 1:
+            return seconds
+        from jax.experimental import multihost_utils
+
+        return float(multihost_utils.broadcast_one_to_all(np.float64(seconds)))
+
+    def barrier(self, name: str):
+        if jax.process_count() > 1:
+            from jax.experimental import multihost_utils
+
+            multihost_utils.sync_global_devices(name)
+
+
+@dataclasses.dataclass
+class Fidelity:
+    """PRDP (Bhatia et al., ICLR 2025): start an iterative solver at few iterations and
+    refine on validation plateaus; the problem declares the setting (``refinable_setting``)."""
+
+    settings: TrainSettings
+    name: str | None  # the refinable problem setting, or None
+    full: int | None  # its value as given (the cap)
+
+    @classmethod
+    def of(cls, problem: AbstractProblem, settings: TrainSettings) -> Fidelity:
+        name = problem.refinable_setting
+        if settings.prdp and name is None:
+            raise ConfigError("prdp needs a problem with an iterative solver (one that declares refinable_setting)")
+        if settings.prdp and getattr(problem, "setup", None) == "prediction":
+            raise ConfigError("prdp refines the solver of a correction setup; use setup=correction")
+        if settings.prdp and (settings.prdp_start < 1 or settings.prdp_increment < 1):
+            raise ConfigError("prdp_start and prdp_increment must be >= 1")
+        if settings.prdp and not (0 < settings.prdp_tau_stop <= 1 and 0 < settings.prdp_tau_step <= 1):
+            raise ConfigError("prdp_tau_step and prdp_tau_stop must be in (0, 1]")
+        return cls(settings, name, getattr(problem, name) if name else None)
+
+    def initial(self) -> dict | None:
+        return prdp_control.initial_state(min(self.settings.prdp_start, self.full)) if self.settings.prdp else None
+
+    def iterations(self, state: TrainState) -> int | None:
+        return state.prdp["K"] if self.settings.prdp else self.full
+
+    def problem_at(self, setup: Setup, state: TrainState) -> Setup:
+        if not self.settings.prdp or getattr(setup.problem, self.name) == state.prdp["K"]:
+            return setup
+        return setup.with_problem(dataclasses.replace(setup.problem, **{self.name: state.prdp["K"]}))
+
+    def observe(self, state: TrainState, error: float) -> TrainState:
+        s = self.settings
+        new = prdp_control.update(state.prdp, error, state.step, increment=s.prdp_increment, maximum=self.full,
+                                  tau_step=s.prdp_tau_step, tau_stop=s.prdp_tau_stop)  # fmt: skip
+        return state._replace(prdp=new)
+
+
+class MetricsLog:
+    """Appends long-format rows to ``metrics.csv``; on resume, drops rows after the checkpoint."""
+
+    def __init__(self, path: Path, keep_until_step: int | None = None, enabled: bool = True):
+        self.path = path
+        self.enabled = enabled
+        if not enabled:
+            return
+        rows = []
+        if keep_until_step is not None and path.exists():
+            with path.open() as f:
+                rows = [r for r in csv.DictReader(f) if int(r["step"]) <= keep_until_step]
+        with path.open("w", newline="") as f:
+            writer = csv.writer(f)
+            writer.writerow(METRICS_HEADER)
+            writer.writerows([[r[k] for k in METRICS_HEADER] for r in rows])
+
+    def write(self, step: int, wall_time: float, values: dict[tuple[str, str], float]):
+        if not self.enabled:
+            return
+        with self.path.open("a", newline="") as f:
+            writer = csv.writer(f)
+            for (split, metric), value in values.items():
+                writer.writerow([step, f"{wall_time:.6f}", split, metric, repr(float(value))])
+
+
+class Recorder:
+    """Evaluation at the scheduled steps: full train/test (and val) metrics, the methods'
+    step statistics averaged since the last evaluation (``step_<name>``), written to
+    ``metrics.csv``; feeds PRDP the validation error."""
+
+    def __init__(self, setup: Setup, settings: TrainSettings, placement: Placement, fidelity: Fidelity, log: MetricsLog):
+        self.settings, self.placement, self.fidelity, self.log = settings, placement, fidelity, log
+        self.window: dict[str, tuple[float, int]] = {}
+        self.last: dict[str, float] = {}
+        train = setup.data["train"]
+        n_train = jax.tree.leaves(train)[0].shape[0]
+        # The train-split evaluation may be limited to its first eval_samples samples (large
+        # image datasets would otherwise cost more per evaluation than many training steps).
+        # A problem's own default takes a strided subset: its windows are stored trajectory
+        # by trajectory, so the first N would all come from one trajectory.
+        n_eval = settings.eval_samples or setup.problem.default_eval_samples or None
+        stride = max(1, n_train // n_eval) if n_eval and not settings.eval_samples else 1
+        self.splits = {"train": placement.put(jax.tree.map(lambda a: a[::stride][:n_eval], train)),
+                       "test": placement.put(setup.data["test"])}  # fmt: skip
+        self.val = placement.put(setup.data.get("val"))
+        self.use(setup)
+
+    def use(self, setup: Setup):
+        self.evaluate = make_evaluate(setup)
+
+    def accumulate(self, state: TrainState, stats: dict[str, Any]) -> TrainState:
+        totals = dict(state.stat_totals)
+        for name, value in stats.items():
+            value = float(value)
+            if name == "loss" or not math.isfinite(value):  # e.g. the norm of a skipped NaN gradient
+                continue
+            total, count = self.window.get(name, (0.0, 0))
+            self.window[name] = (total + value, count + 1)
+            totals[name] = totals.get(name, 0.0) + value
+        return state._replace(stat_totals=totals)
+
+    def __call__(self, state: TrainState, final: bool) -> tuple[TrainState, bool]:
+        """Evaluate and log at ``state.step``; returns the state and whether the losses are finite."""
+        values = {("train", f"step_{n}"): total / count for n, (total, count) in self.window.items()}
+        self.window.clear()
+        with self.placement.scope():
+            for split, data in self.splits.items():
+                values.update({(split, k): float(v) for k, v in self.evaluate(state.params, data).items()})
+            val = self.evaluate(state.params, self.val) if self.val is not None else {}
+        if state.step > 0:
+            values[("train", "time_per_step")] = state.train_time / state.step
+        if self.fidelity.name:
+            values[("train", "solver_iterations")] = self.fidelity.iterations(state)
+        values.update({("val", k): float(v) for k, v in val.items()})
+        if self.settings.prdp and not final:
+            state = self.fidelity.observe(state, float(val.get("rel_error", val["loss"])))
+        self.log.write(state.step, state.train_time, values)
+        self.last.update({f"{split}_{metric}": v for (split, metric), v in values.items()})
+        test = self.last["test_loss"]
+        if math.isfinite(test):
+            state = state._replace(best_test_loss=min(state.best_test_loss, test))
+        return state, math.isfinite(self.last["train_loss"]) and math.isfinite(test)
+
+
+@dataclasses.dataclass
+class Checkpointer:
+    """Writes the :class:`TrainState` every ``seconds`` of training time (and at the end):
+    arrays to ``checkpoint/state.eqx``, host scalars to ``checkpoint/counters.json``."""
+
+    run_dir: Path
+    seconds: float
+    writer: bool
+    last: float = 0.0
+
+    def maybe(self, state: TrainState):
+        if state.train_time - self.last >= self.seconds:
+            self.save(state)
+
+    def save(self, state: TrainState):
+        self.last = state.train_time
+        if not self.writer:
+            return
+        ckpt = self.run_dir / "checkpoint"
+        ckpt.mkdir(exist_ok=True)
+        tmp = ckpt / "state.eqx.tmp"
+        eqx.tree_serialise_leaves(tmp, distributed.to_host((state.params, state.opt_state)))
+        os.replace(tmp, ckpt / "state.eqx")
+        write_json(ckpt / "counters.json", state.counters())
+
+    def load(self, like: Callable[[dict[str, Any]], TrainState]) -> TrainState | None:
+        """The checkpointed state (None without one); ``like(counters)`` gives its structure
+        (the optimizer state depends on the stage it was taken in)."""
+        ckpt = self.run_dir / "checkpoint"
+        if not (ckpt / "counters.json").exists():
+            return None
+        counters = json.loads((ckpt / "counters.json").read_text())
+        counters.setdefault("stage", 0)
+        counters.setdefault("stat_totals", {})
+        counters = {k: v for k, v in counters.items() if k in TrainState._fields}
+        template = like(counters)
+        try:
+            params, opt_state = eqx.tree_deserialise_leaves(ckpt / "state.eqx", (template.params, template.opt_state))
+        except (ValueError, RuntimeError, TypeError) as e:
+            raise ConfigError(
+                f"the checkpoint in {self.run_dir} does not match this method's state ({type(e).__name__}); "
+                "it was written by another version of the method: delete checkpoint/ to restart the run"
+            ) from None
+        self.last = counters.get("train_time", 0.0)
+        return template._replace(params=params, opt_state=opt_state, **counters)
+
+
+# --- the run ---------------------------------------------------------------------------------
+def fit(
+    problem: AbstractProblem,
+    method: AbstractMethod | Phase | Sequence[Phase],
+    *,
+    budget: Budget,
+    out: str | Path,
+    seed: int = 0,
+    batch_size: int | None = None,
+    settings: TrainSettings = TrainSettings(),
+    resume: bool = False,
+    progress: AbstractProgressMeter | None = None,
+    devices: int | str | None = 1,
+    record: dict[str, Any] | None = None,
+    same_run: Callable[[dict[str, Any]], bool] | None = None,
+    label: str = "",
+    name: str = "",
+) -> dict[str, Any]:
+    """Train ``method`` (or a sequence of phases) on ``problem`` into the run directory
+    ``out`` and return the summary (also ``summary.json``).
+
+    ``batch_size`` applies to a single method (phases carry their own; default: the
+    problem's ``default_batch_size``). ``record`` is written as ``config.json`` (default: a
+    description of problem, method, seed, budget and settings); with ``resume=True`` an
+    existing run whose record matches (``same_run(old_record)``, default: equal apart from
+    the budget) continues from its checkpoint up to ``budget``, and a finished run whose
+    budget is met returns its summary. A run whose loss turns NaN or infinite stops with
+    status ``"diverged"``, the step and the last finite loss. ``devices`` (a number or
+    ``"all"``) splits every batch over a device mesh; in a multi-process run every process
+    calls ``fit`` alike and only process 0 writes. ``name`` is the method's name in the
+    summary (default: the phases' names joined by ``,``).
+
+    A problem that declares ``needs_float64`` runs inside ``jax.enable_x64(True)``; the
+    caller's JAX configuration is otherwise untouched.
+    """
+    phases = _phases(method, batch_size)
+    record = record or _describe(problem, phases, seed, budget, settings)
+    same_run = same_run or (lambda old: {**old, "budget": None} == {**json.loads(json.dumps(record, default=str)), "budget": None})
+    run_dir = Path(out)
+    identity = {"problem": problem.name, "method": name or ",".join(_name(p) for p in phases), "seed": seed}
+    float64 = getattr(problem, "needs_float64", False)
+    with jax.enable_x64(True) if float64 else contextlib.nullcontext():
+        return _run(problem, phases, seed, budget, settings, run_dir, resume, progress or NoProgressMeter(),
+                    Placement(devices), record, same_run, label or run_dir.name, identity)  # fmt: skip
+
+
+def _name(phase: Phase) -> str:
+    return phase.name or type(phase.method).__name__
+
+
+def _phases(method, batch_size) -> list[Phase]:
+    if isinstance(method, AbstractMethod):
+        return [Phase(method, None, batch_size)]
+    phases = [method] if isinstance(method, Phase) else list(method)
+    if not phases or not all(isinstance(p, Phase) for p in phases):
+        raise ConfigError("method must be a physgrad method (e.g. physgrad.methods.Method) or a list of Phase")
+    if any(p.steps is None for p in phases[:-1]) or phases[-1].steps is not None and len(phases) > 1:
+        raise ConfigError("every phase but the last needs steps; the last runs until the budget is spent")
+    return phases
+
+
+def _describe(problem, phases, seed, budget, settings) -> dict[str, Any]:
+    """A readable record of a run given as objects (memory addresses removed, so the same
+    objects describe alike in every process and session)."""
+    text = lambda obj: re.sub(r" at 0x[0-9a-f]+", "", repr(obj))  # noqa: E731
+    return {"problem": text(problem), "phases": [text(p) for p in phases], "seed": seed,
+            "budget": budget.to_dict(), "settings": dataclasses.asdict(settings)}  # fmt: skip
+
+
+def _run(problem, phases, seed, budget, settings, run_dir, resume, progress, placement, record, same_run, label, identity):
+    config_path = run_dir / "config.json"
+    if config_path.exists():
+        if not resume:
+            raise ConfigError(f"run directory {run_dir} exists; pass --resume or choose another --out")
+        if not same_run(json.loads(config_path.read_text())):
+            raise ConfigError(f"run directory {run_dir} holds a different configuration; choose another --out")
+    has_ckpt = resume and (run_dir / "checkpoint" / "counters.json").exists()
+    placement.barrier(f"physgrad.fit:{run_dir}")  # every process has looked before process 0 writes
+    if placement.writer:
+        run_dir.mkdir(parents=True, exist_ok=True)
+    else:  # other processes compute alike and write nothing
+        progress = NoProgressMeter()
+    done = read_summary(run_dir) if has_ckpt else None
+    if done and (done["status"] == "diverged" or (done["status"] == "finished" and done.get("budget") == budget.to_dict())):
+        return done  # nothing to do (checked before building data and network)
+
+    fidelity = Fidelity.of(problem, settings)
+    setup = build_setup(problem, phases, seed)
+    for stage in setup.stages:
+        distributed.check_batch(stage.batch_size, placement.mesh)
+    fresh = TrainState(setup.params, setup.method.init(setup.params), prdp=fidelity.initial())
+    checkpointer = Checkpointer(run_dir, settings.checkpoint_seconds, placement.writer)
+    like = lambda c: fresh._replace(opt_state=setup.stages[c["stage"]].method.init(setup.params))  # noqa: E731
+    state = (checkpointer.load(like) if has_ckpt else None) or fresh
+    if jax.process_count() > 1:  # every process must resume from the same checkpoint
+        from jax.experimental import multihost_utils
+
+        seen = multihost_utils.process_allgather(np.array([int(has_ckpt), state.step]))
+        if len({tuple(row) for row in np.asarray(seen).reshape(-1, 2)}) > 1:
+            raise ConfigError(f"the processes see different checkpoints in {run_dir}; a multi-process --resume "
+                              "needs --out on a file system every process shares")  # fmt: skip
+    setup = fidelity.problem_at(setup, state)
+    if placement.writer:
+        write_json(config_path, record)
+        write_json(run_dir / "env.json", {**environment(), "mesh_devices": distributed.mesh_size(placement.mesh)})
+    log = MetricsLog(run_dir / "metrics.csv", keep_until_step=state.step if has_ckpt else None, enabled=placement.writer)
+    recorder = Recorder(setup, settings, placement, fidelity, log)
+    state = state._replace(params=placement.put(state.params), opt_state=placement.put(state.opt_state))
+    progress.start(budget=budget, steps_per_epoch=setup.steps_per_epoch, step=state.step, train_time=state.train_time, label=label)
+    try:
+        state, setup, status, diverged_step, last_finite = _loop(
+            state, setup, StopRule(budget, setup), EvalSchedule(settings), placement, fidelity, recorder,
+            checkpointer, progress, settings, seed,
+        )  # fmt: skip
+    finally:
+        progress.close()
+    if status == "interrupted":  # Ctrl-C: keep what was done, then let it propagate
+        checkpointer.save(state)
+        if placement.writer:
+            write_json(run_dir / "summary.json", {"status": "interrupted", "steps": state.step, "train_seconds": state.train_time})
+        raise KeyboardInterrupt
+    summary = {**identity, **_finish(state, setup, status, diverged_step, last_finite, recorder, checkpointer, placement,
+                                     budget, run_dir)}  # fmt: skip
+    if placement.writer:
+        write_json(run_dir / "summary.json", summary)
+    return summary
+
+
+def _loop(state, setup, stop, schedule, placement, fidelity, recorder, checkpointer, progress, settings, seed):
+    """Steps until the budget is met or the loss stops being finite (the training loop)."""
+    n_train = jax.tree.leaves(setup.data["train"])[0].shape[0]
+    train_data = placement.put(setup.data["train"])
+    shuffle_key = jax.random.fold_in(jax.random.key(seed), 2)
+
+    def order_for(stage: int, epoch: int):
+        if not settings.shuffle:
+            return placement.put(jnp.arange(n_train, dtype=jnp.int32))
+        key = jax.random.fold_in(jax.random.fold_in(shuffle_key, stage), epoch)
+        return placement.put(jax.random.permutation(key, n_train).astype(jnp.int32))
+
+    def compile_stage(state, setup):
+        stage = setup.stages[state.stage]
+        t0 = time.perf_counter()
+        with placement.scope():
+            fn = make_step(setup, stage.batch_size, stage.method)
+            compiled = fn.lower(state.params, state.opt_state, train_data, order_for(state.stage, 0), np.int32(0)).compile()
+        return compiled, state._replace(compile_seconds=state.compile_seconds + time.perf_counter() - t0)
+
+    if state.step == 0:
+        state, _ = recorder(state, final=False)
+    schedule.start(state.train_time)
+    compiled, state = compile_stage(state, setup)
+    order_key, order, last_finite = None, None, None
+    try:
+        while not stop.met(state.step, state.train_time):
+            index = setup.stage_index(state.step)
+            if index != state.stage:  # switch method: the parameters carry over, the new method starts fresh
+                opt_state = placement.put(setup.stages[index].method.init(distributed.to_host(state.params)))
+                compiled, state = compile_stage(state._replace(stage=index, opt_state=opt_state), setup)
+            stage = setup.stages[index]
+            epoch, batch = divmod(state.step - stage.start, stage.steps_per_epoch)
+            if (index, epoch) != order_key:
+                order, order_key = order_for(index, epoch), (index, epoch)
+            t_start = time.perf_counter()
+            params, opt_state, stats = compiled(state.params, state.opt_state, train_data, order, np.int32(batch))
+            loss = float(stats["loss"])  # waits for the step: the timing is honest
+            train_time = placement.clock(state.train_time + time.perf_counter() - t_start)
+            if not math.isfinite(loss) and not float(stats.get("skipped", 0.0)):
+                return state, setup, "diverged", state.step, last_finite
+            last_finite = loss if math.isfinite(loss) else last_finite
+            state = recorder.accumulate(state, stats)._replace(params=params, opt_state=opt_state, step=state.step + 1,
+                                                                train_time=train_time)  # fmt: skip
+            if fidelity.name:
+                state = state._replace(solver_iterations=state.solver_iterations + fidelity.iterations(state))
+            boundary = stop.met(state.step, state.train_time) or (stage.steps is not None and state.step == stage.start + stage.steps)
+            if schedule.due(state.step, state.train_time, stage, boundary):
+                state, finite = recorder(state, final=stop.met(state.step, state.train_time))
+                if not finite:
+                    return state, setup, "diverged", state.step, last_finite
+                refined = fidelity.problem_at(setup, state)
+                if refined is not setup:  # PRDP refined the solver: new problem, new step
+                    setup = refined
+                    recorder.use(setup)
+                    compiled, state = compile_stage(state, setup)
+            checkpointer.maybe(state)
+            progress.update(step=state.step, train_time=state.train_time, loss=loss)
+    except KeyboardInterrupt:
+        return state, setup, "interrupted", None, last_finite
+    return state, setup, "finished", None, last_finite
+
+
+def _finish(state, setup, status, diverged_step, last_finite, recorder, checkpointer, placement, budget, run_dir):
+    checkpointer.save(state)
+    params = state.params
+    if placement.writer:
+        eqx.tree_serialise_leaves(run_dir / "params.eqx", setup.network(distributed.to_host(params)))
+    # Every test case's final metrics, for paired tests between methods (same seeds and cases).
+    with placement.scope():
+        cases = distributed.to_host(make_evaluate(setup, per_sample=True)(params, recorder.splits["test"]))
+    if placement.writer:
+        write_json(run_dir / "test_cases.json", {k: [float(v) for v in vals] for k, vals in cases.items()})
+    last = recorder.last
+    summary = {
+        "status": status,
+        "budget": budget.to_dict(),
+        "steps": state.step,
+        "epochs": setup.epochs(state.step),
+        "stage_steps": {
+            s.label if len(setup.stages) == 1 else f"{i}:{s.label}": s.steps_done(state.step)
+            for i, s in enumerate(setup.stages)
+        },
+        "train_seconds": state.train_time,
+        "compile_seconds": state.compile_seconds,
+        "time_per_step": state.train_time / state.step if state.step else None,
+        "final_train_loss": last.get("train_loss"),
+        "final_test_loss": last.get("test_loss"),
+        "final_test_metrics": {k[5:]: v for k, v in last.items() if k.startswith("test_") and k != "test_loss"},
+        "best_test_loss": state.best_test_loss if math.isfinite(state.best_test_loss) else None,
+        "diverged_step": diverged_step,
+        "last_finite_loss": last_finite if status == "diverged" else None,
+        "n_params": parameter_count(setup.params),
+        "devices": distributed.mesh_size(placement.mesh),
+        "solver_iterations": state.solver_iterations if recorder.fidelity.name else None,
+        "prdp": state.prdp,
+        "step_stat_totals": state.stat_totals,
+    }
+    return summary
+
+
+# --- run directories -------------------------------------------------------------------------
+def environment() -> dict[str, Any]:
+    """Versions and devices, written as ``env.json``."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    versions = {}
+    for name in ("physgrad", "jax", "jaxlib", "equinox", "optax", "numpy"):
+        try:
+            versions[name] = version(name)
+        except PackageNotFoundError:
+            versions[name] = None
+    return {
+        "python": platform.python_version(),
+        "platform": platform.platform(),
+        "cpu_count": os.cpu_count(),
+        "devices": [str(d) for d in jax.devices()],
+        "backend": jax.default_backend(),
+        "x64": bool(jax.config.jax_enable_x64),
+        "versions": versions,
+        "time": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+    }
+
+
+def write_json(path: Path, data: dict[str, Any]):
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    tmp.write_text(json.dumps(data, indent=2, sort_keys=True, default=str) + "\n")
+    os.replace(tmp, path)
+
+
+def read_metrics(path: Path) -> list[dict[str, Any]]:
+    """``metrics.csv`` as a list of typed rows."""
+    with Path(path).open() as f:
+        return [
+            {"step": int(r["step"]), "wall_time": float(r["wall_time"]), "split": r["split"], "metric": r["metric"],
+             "value": float(r["value"])}
+            for r in csv.DictReader(f)
+        ]  # fmt: skip
+
+
+def read_summary(run_dir: str | Path) -> dict[str, Any] | None:
+    """A run's ``summary.json``, or None if it has none."""
+    path = Path(run_dir) / "summary.json"
+    return json.loads(path.read_text()) if path.exists() else None
+
+
+def is_complete(run_dir: str | Path) -> bool:
+    """Whether a run finished or diverged (so a study can skip it)."""
+    summary = read_summary(run_dir)
+    return summary is not None and summary.get("status") in FINAL_STATUSES

@@ -1,0 +1,263 @@
+"""Names for the command line: methods and problems by name, built from flat settings.
+
+This is the only place where update rules and their strategies are strings. A factory
+takes the method's hyperparameters as keyword-only arguments with defaults (the command
+line reads them with ``inspect.signature``) and returns an engine method
+(:class:`physgrad.methods.AbstractMethod`) built from the library's objects; its
+docstring's first line describes it. The batch size is a training setting (per-method
+defaults come from the problem).
+"""
+
+from __future__ import annotations
+
+import inspect
+from collections.abc import Callable
+from typing import Any
+
+import optax
+
+from . import routes
+from .inverse import LBFGS, Analytic, GaussNewton, LinearSolve, SaddleFreeNewton
+from .methods import (
+    AbstractMethod,
+    Gradient,
+    JacobianPower,
+    Method,
+    Newton,
+    RolloutGradient,
+    ScaleInvariantPhysics,
+    Unrolled,
+    UnrolledGradient,
+)
+from .problems import PROBLEMS
+from .rollout import Combined, M, R, S
+
+# --- DP: optax optimizers on the DP gradient --------------------------------------------
+# ε = 1e-7 is the Keras default that the HIG and StableBPTT papers' baselines used.
+
+
+def adam(*, lr: float = 1e-3, b1: float = 0.9, b2: float = 0.999, eps: float = 1e-7):
+    """Adam on DP gradients (Kingma & Ba 2015; Keras ε = 1e-7)."""
+    return Method(Gradient(), optax.adam(lr, b1=b1, b2=b2, eps=eps))
+
+
+def sgd(*, lr: float = 1e-2, momentum: float = 0.0):
+    """Plain (or momentum) SGD on DP gradients: θ ← θ − η ∇L."""
+    return Method(Gradient(), optax.sgd(lr, momentum=momentum or None))
+
+
+def rmsprop(*, lr: float = 1e-3, decay: float = 0.9, eps: float = 1e-7):
+    """RMSprop on DP gradients (Tieleman & Hinton 2012; Keras defaults)."""
+    return Method(Gradient(), optax.rmsprop(lr, decay=decay, eps=eps))
+
+
+def adagrad(*, lr: float = 1e-2, initial_accumulator: float = 0.1, eps: float = 1e-7):
+    """Adagrad on DP gradients (Duchi et al. 2011; Keras defaults)."""
+    return Method(Gradient(), optax.adagrad(lr, initial_accumulator_value=initial_accumulator, eps=eps))
+
+
+def adadelta(*, lr: float = 1.0, rho: float = 0.95, eps: float = 1e-7):
+    """Adadelta on DP gradients (Zeiler 2012: η = 1, ρ = 0.95)."""
+    return Method(Gradient(), optax.adadelta(lr, rho=rho, eps=eps))
+
+
+# The DP optimizers with their defaults above, by name, for methods that apply an optax
+# optimizer to some other direction (SIP's proxy gradient): name -> (lr -> transformation).
+OPTIMIZERS = {f.__name__: (lambda lr, f=f: f(lr=lr).optimizer) for f in (adam, sgd, rmsprop, adagrad, adadelta)}
+
+# --- Gauss–Newton and HIG ---------------------------------------------------------------
+ROUTES = ("auto", "svd", "gram", "blockgram", "lanczos")
+
+
+def make_route(name: str, *, blocks: int = 8, lanczos_steps: int = 64) -> routes.AbstractRoute:
+    """A half-inverse route object by name (``blocks`` and ``lanczos_steps`` go to the
+    routes that use them)."""
+    _choose("route", name, ROUTES)
+    return {
+        "auto": lambda: routes.Auto(),
+        "svd": lambda: routes.SVD(),
+        "gram": lambda: routes.Gram(),
+        "blockgram": lambda: routes.BlockGram(blocks),
+        "lanczos": lambda: routes.Lanczos(lanczos_steps),
+    }[name]()
+
+
+def hig(*, lr: float = 1.0, truncation: float = 1e-6, route: str = "auto", blocks: int = 8, lanczos_steps: int = 64):
+    """Half-inverse gradients: −η V Σ^{-1/2} Uᵀ g, applied by SGD (Schnell et al. 2022).
+
+    ``route``: ``auto``/``svd``/``gram`` hold J; ``blockgram`` (exact, ``blocks`` sample
+    groups) and ``lanczos`` (approximate, ``lanczos_steps``) never form it."""
+    _check_route_sizes(blocks, lanczos_steps)
+    rule = JacobianPower(-0.5, truncation, make_route(route, blocks=blocks, lanczos_steps=lanczos_steps))
+    return Method(rule, optax.sgd(lr))
+
+
+def gn(*, lr: float = 1.0, truncation: float = 1e-6, route: str = "auto", blocks: int = 8, lanczos_steps: int = 64):
+    """Gauss–Newton: −η J⁺ g (pseudo-inverse, κ = −1) with the same truncation, by SGD."""
+    _check_route_sizes(blocks, lanczos_steps)
+    rule = JacobianPower(-1.0, truncation, make_route(route, blocks=blocks, lanczos_steps=lanczos_steps))
+    return Method(rule, optax.sgd(lr))
+
+
+def _check_route_sizes(blocks, lanczos_steps):
+    if blocks < 1 or lanczos_steps < 1:
+        raise ValueError(f"blocks and lanczos_steps must be >= 1, got {blocks} and {lanczos_steps}")
+
+
+def newton(*, lr: float = 1.0, damping: float = 0.0):
+    """Newton's method with the dense Hessian of the batch loss: −η (H + λI)⁻¹ ∇L (small problems)."""
+    return Method(Newton(damping), optax.sgd(lr))
+
+
+# --- SIP ---------------------------------------------------------------------------------
+INVERSE_SOLVERS = ("auto", "analytic", "gauss_newton", "saddle_free_newton", "lbfgs", "linear_solve")
+
+
+def make_solver(name: str, *, analytic=None, rcond=1e-5, max_loss_change=0.2, max_steps=100, tol=1e-6, krylov="gmres"):
+    """A local inverse solver by name; ``auto`` is ``analytic`` when ``analytic`` (a
+    problem's inverse function) is given, else Gauss–Newton. ``analytic`` with no function
+    stands for the problem's own inverse, bound by SIP. ``max_loss_change <= 0`` disables
+    the saddle-free Newton limit."""
+    _choose("inverse solver", name, INVERSE_SOLVERS)
+    if name == "auto":
+        name = "analytic" if analytic is not None else "gauss_newton"
+    if name == "analytic":
+        return Analytic(analytic)
+    if name == "gauss_newton":
+        return GaussNewton(rcond)
+    if name == "saddle_free_newton":
+        return SaddleFreeNewton(max_loss_change if max_loss_change > 0 else None)
+    if name == "lbfgs":
+        return LBFGS(max_steps, tol)
+    return LinearSolve(krylov, rtol=tol, max_steps=max_steps)
+
+
+def sip(
+    *,
+    lr: float = 1e-3,
+    optimizer: str = "adam",
+    eta: float = 1.0,
+    proxy: str = "l2",
+    solver: str = "auto",
+    rcond: float = 1e-5,
+    max_loss_change: float = 0.2,
+    max_steps: int = 100,
+    tol: float = 1e-6,
+    krylov: str = "gmres",
+    precision: str = "float32",
+):
+    """Scale-invariant physics: fit the network to a local inverse x̃ = P⁻¹(y + η(y* − y); x) (Holl et al. 2022)."""
+    _choose("optimizer", optimizer, OPTIMIZERS)
+    settings = dict(rcond=rcond, max_loss_change=max_loss_change, max_steps=max_steps, tol=tol, krylov=krylov)
+    inverse = None if solver == "auto" else make_solver(solver, **settings)  # auto: decided by the problem
+    if solver == "auto":
+        make_solver("gauss_newton", **settings)  # the fallback's settings are checked now
+    return Method(ScaleInvariantPhysics(inverse, eta, proxy, precision), OPTIMIZERS[optimizer](lr))
+
+
+# --- BPTT and stabilised BPTT --------------------------------------------------------------
+CLIP_MODES = ("value", "norm", "none")
+
+
+def clipping(mode: str, threshold: float) -> optax.GradientTransformation:
+    """The StableBPTT authors' clip modes as optax transformations (before the optimizer):
+    ``value`` = Keras ``clipvalue`` (element-wise), ``norm`` = ``global_clipnorm``."""
+    _choose("clip mode", mode, CLIP_MODES)
+    if threshold <= 0:
+        raise ValueError(f"clip_threshold must be positive, got {threshold}")
+    return {"value": optax.clip(threshold), "norm": optax.clip_by_global_norm(threshold), "none": optax.identity()}[mode]
+
+
+def _rollout_method(policy, clip, clip_threshold, lr, eps, checkpoint):
+    return Method(RolloutGradient(policy, checkpoint), optax.chain(clipping(clip, clip_threshold), optax.adam(lr, eps=eps)))
+
+
+def bptt(*, clip: str = "value", clip_threshold: float = 1.0, lr: float = 1e-3, eps: float = 1e-7,
+         truncate: int = 0, warmup: int = 0, checkpoint: bool = False):  # fmt: skip
+    """Full BPTT (R): the true rollout gradient, clipped, Adam; truncate=k cuts every k steps."""
+    return _rollout_method(R(truncate=truncate, warmup=warmup), clip, clip_threshold, lr, eps, checkpoint)
+
+
+def sbptt_m(*, clip: str = "value", clip_threshold: float = 1.0, lr: float = 1e-3, eps: float = 1e-7,
+            truncate: int = 0, warmup: int = 0, checkpoint: bool = False):  # fmt: skip
+    """Stabilised BPTT's modified gradient (M): stop-gradient on the network's input only."""
+    return _rollout_method(M(truncate=truncate, warmup=warmup), clip, clip_threshold, lr, eps, checkpoint)
+
+
+def no_temporal(*, clip: str = "value", clip_threshold: float = 1.0, lr: float = 1e-3, eps: float = 1e-7,
+                warmup: int = 0, checkpoint: bool = False):  # fmt: skip
+    """No temporal gradient (S): stop-gradient on network and physics inputs (one-step gradients)."""
+    return _rollout_method(S(warmup=warmup), clip, clip_threshold, lr, eps, checkpoint)
+
+
+def sbptt_c(*, clip: str = "value", clip_threshold: float = 1.0, lr: float = 1e-3, eps: float = 1e-7,
+            one_pass: bool = True, checkpoint: bool = False):  # fmt: skip
+    """Stabilised BPTT (C, Schnell & Thuerey 2024): M's gradient masked by the signs of R's."""
+    return _rollout_method(Combined(M(), R(), one_pass=one_pass), clip, clip_threshold, lr, eps, checkpoint)
+
+
+# --- ONE / NOG / WIG -----------------------------------------------------------------------
+def parse_list(text: str, kind, name: str) -> tuple:
+    """A comma-separated setting (``"1,2,4"``) as a tuple; a one-line error otherwise."""
+    try:
+        return tuple(kind(t) for t in str(text).split(",") if t.strip())
+    except ValueError:
+        raise ValueError(f"{name} must be a comma-separated list of numbers, got {text!r}") from None
+
+
+def _unrolled(policy, teacher_forcing, *, m, checkpoint=False, curriculum="", stage_lr="", **options):
+    rule = UnrolledGradient(policy, teacher_forcing, m, checkpoint)
+    return Unrolled(rule, curriculum=parse_list(curriculum, int, "curriculum"), stage_lr=parse_list(stage_lr, float, "stage_lr"), **options)
+
+
+def one(*, lr: float = 1e-3, lr_warmup: int = 0, decay: float = 1.0, decay_every: int = 0, clip: float = 0.0,
+        skip_nan: bool = True, norm_guard: bool = False, skip_solver_failure: bool = True, m: int = 0):  # fmt: skip
+    """One-step training (ONE): every step from the reference frame; B·m targets per update."""
+    return _unrolled(S(), True, m=m, lr=lr, lr_warmup=lr_warmup, decay=decay, decay_every=decay_every, clip=clip,
+                     skip_nan=skip_nan, norm_guard=norm_guard, skip_solver_failure=skip_solver_failure)  # fmt: skip
+
+
+def nog(*, lr: float = 1e-3, lr_warmup: int = 0, decay: float = 1.0, decay_every: int = 0, clip: float = 0.0,
+        skip_nan: bool = True, norm_guard: bool = False, skip_solver_failure: bool = True, m: int = 0,
+        curriculum: str = "", stage_epochs: float = 1.0, stage_lr: str = "", checkpoint: bool = False):  # fmt: skip
+    """No-gradient unrolling (NOG): m-step rollout, stop-gradient on each state after its loss."""
+    return _unrolled(S(), False, m=m, lr=lr, lr_warmup=lr_warmup, decay=decay, decay_every=decay_every, clip=clip,
+                     skip_nan=skip_nan, norm_guard=norm_guard, skip_solver_failure=skip_solver_failure,
+                     curriculum=curriculum, stage_epochs=stage_epochs, stage_lr=stage_lr, checkpoint=checkpoint)  # fmt: skip
+
+
+def wig(*, lr: float = 1e-3, lr_warmup: int = 0, decay: float = 1.0, decay_every: int = 0, clip: float = 0.0,
+        skip_nan: bool = True, norm_guard: bool = False, skip_solver_failure: bool = True, m: int = 0,
+        truncate: int = 0, warmup: int = 0, curriculum: str = "", stage_epochs: float = 1.0, stage_lr: str = "",
+        checkpoint: bool = False):  # fmt: skip
+    """Fully differentiable unrolling (WIG): BPTT through network and solver; truncate/warmup cuts."""
+    return _unrolled(R(truncate=truncate, warmup=warmup), False, m=m, lr=lr, lr_warmup=lr_warmup, decay=decay,
+                     decay_every=decay_every, clip=clip, skip_nan=skip_nan, norm_guard=norm_guard,
+                     skip_solver_failure=skip_solver_failure, curriculum=curriculum, stage_epochs=stage_epochs,
+                     stage_lr=stage_lr, checkpoint=checkpoint)  # fmt: skip
+
+
+METHODS: dict[str, Callable[..., AbstractMethod]] = {
+    f.__name__: f
+    for f in (adam, sgd, rmsprop, adagrad, adadelta, gn, hig, sip, newton, bptt, sbptt_m, sbptt_c, no_temporal, one, nog, wig)
+}
+
+
+def hyperparameters(method: str) -> dict[str, Any]:
+    """A registered method's hyperparameters and their generic defaults."""
+    params = inspect.signature(METHODS[method]).parameters
+    return {name: p.default for name, p in params.items()}
+
+
+def describe(method: str) -> str:
+    """The one-line description of a registered method."""
+    return (METHODS[method].__doc__ or "").strip().splitlines()[0]
+
+
+def _choose(kind: str, name: str, choices) -> None:
+    if name not in choices:
+        raise ValueError(f"unknown {kind} {name!r}; valid choices: {', '.join(choices)}")
+
+
+__all__ = ["INVERSE_SOLVERS", "METHODS", "OPTIMIZERS", "PROBLEMS", "ROUTES", "describe", "hyperparameters",
+           "make_route", "make_solver"]  # fmt: skip
