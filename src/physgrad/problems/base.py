@@ -82,6 +82,29 @@ class AbstractProblem(eqx.Module):
         """Simulator output ``y = P(network(sample))`` for one sample."""
         return self.simulate(self.network_output(network, sample), sample)
 
+    # --- what the training engine asks of a problem (declared, never type-tested) -------
+    def initial_network(self, key: PRNGKeyArray, data: dict[str, Sample]) -> eqx.Module:
+        """The network a run starts from (default: :meth:`make_network`; direct
+        optimisation starts from the data's initial guesses)."""
+        return self.make_network(key)
+
+    def objective(self, static: PyTree) -> "Objective":
+        """The pieces the update rules use, as functions of the trainable parameters
+        (the network's inexact arrays; ``static`` is the rest, ``eqx.partition``)."""
+        from ..methods import Objective
+
+        return Objective(
+            predict=lambda p, s: self.predict(eqx.combine(p, static), s),
+            loss=self.loss,
+            network_output=lambda p, s: self.network_output(eqx.combine(p, static), s),
+            simulate=self.simulate,
+            target=self.target,
+            inverse=self.inverse,
+        )
+
+    refinable_setting: ClassVar[str | None] = None  # an iterative solver's count, refined by PRDP
+    default_eval_samples: ClassVar[int] = 0  # evaluate the train split on a strided subset of this size
+
     @classmethod
     def defaults_for(cls, method: str) -> dict[str, Any]:
         """The paper's hyperparameters for ``method`` on this problem (batch size included)."""
