@@ -160,7 +160,7 @@ def cmd_accuracy(args):
     from physgrad.config import make_config
     from physgrad.half_inverse import half_inverse
     from physgrad.half_inverse_large import blockgram_half_inverse, lanczos_half_inverse
-    from physgrad.methods.hig import JacobianPower
+    from physgrad.routes import jacobian_and_gradient
     from physgrad.train import build
 
     print(header())
@@ -172,7 +172,7 @@ def cmd_accuracy(args):
         settings = {"hidden": str(h), "batch_size": str(args.batch), "n_train": str(args.batch), "n_test": "16"}
         setup = build(make_config("oscillators", "hig", budget=Budget(steps=1), settings=settings))
         batch = setup.data["train"]
-        jac, g, _ = jax.jit(lambda p, b: JacobianPower._jacobian_and_gradient(setup.objective, p, b, 1))(setup.params, batch)
+        jac, g, _ = jax.jit(lambda p, b: jacobian_and_gradient(setup.objective, p, b, 1))(setup.params, batch)
         ref = half_inverse(jac, g, route="gram", truncation=args.truncation)
         err = lambda d: float(jnp.linalg.norm(d - ref) / jnp.linalg.norm(ref))  # noqa: E731
         p = jac.shape[1]

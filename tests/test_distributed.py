@@ -29,7 +29,7 @@ from physgrad.distributed import make_mesh, replicate, use_mesh
 from physgrad.half_inverse import half_inverse, sharded_gram_route
 from physgrad.half_inverse_large import blockgram_half_inverse, lanczos_half_inverse
 from physgrad.jacobian import stacked_jacobian
-from physgrad.methods.hig import JacobianPower
+from physgrad.routes import jacobian_and_gradient
 from physgrad.train import build, load_network, make_step, train
 
 DEVICES = 4
@@ -142,7 +142,7 @@ def test_sharded_gram_route_equals_numpy_svd(shape, exponent):
 def hig_pieces(batch_size=32):
     setup = build(make_config("oscillators", "hig", budget=Budget(steps=1), settings={**OSC, "batch_size": str(batch_size)}))
     batch = jax.tree.map(lambda a: a[:batch_size], setup.data["train"])
-    jac, g, _ = JacobianPower._jacobian_and_gradient(setup.objective, setup.params, batch, 1)
+    jac, g, _ = jacobian_and_gradient(setup.objective, setup.params, batch, 1)
     return setup, batch, np.asarray(jac), np.asarray(g)
 
 

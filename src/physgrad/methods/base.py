@@ -111,7 +111,7 @@ class Estimator(eqx.Module):
     """
 
     rule: AbstractRule
-    objective: Objective = eqx.field(static=True)
+    objective: Objective
 
     def __check_init__(self):
         self.rule.check(self.objective)
