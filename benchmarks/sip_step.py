@@ -1,8 +1,11 @@
 """Median time per training step of SIP (each applicable local inverse solver) against Adam.
 
-The SIP book chapter reports SIP at about 3× Adam's time per iteration on the sine problem
-(sip.md §2.4, §6); this prints, for one problem, each step's median time and its ratio to
-Adam's step measured in the same run (same batch size, same network).
+The PBDL book (Thuerey et al., *Physics-based Deep Learning*, arXiv:2109.05237), in its
+chapter on SIP training, reports SIP at about 3× Adam's time per iteration on the rotated
+sine problem of Holl, Koltun & Thuerey (NeurIPS 2022, Fig. 5), because of the per-sample
+Hessian evaluation of its saddle-free Newton inverse; this prints, for one problem, each
+step's median time and its ratio to Adam's step measured in the same run (same batch size,
+same network).
 
     python benchmarks/sip_step.py [--problem sine] [--solvers analytic,gauss_newton,...]
                                   [--batch-size B] [--repeats 30] [--set name=value ...]
