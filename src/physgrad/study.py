@@ -227,7 +227,8 @@ def format_table(table: list[dict[str, Any]], reference: str | None = None) -> l
         final = f"{fm:.3e} ± {fs:.1e}" if math.isfinite(fm) else "all diverged"
         line = [t["method"], runs, final, f"{bm:.3e} ± {bs:.1e}", f"{t['steps']:.0f}", f"{t['ms_per_step']:.2f}"]
         if ref is not None:
-            ratio = fm / ref["final_test_loss"][0]
+            base = ref["final_test_loss"][0]  # 0 or NaN (all diverged): no ratio to show
+            ratio = fm / base if math.isfinite(base) and base != 0 else math.nan
             line.append(f"{ratio:.3g}" if math.isfinite(ratio) else "-")
         lines.append(line)
     return lines
