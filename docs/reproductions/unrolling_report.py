@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from physgrad.stats import case_values, paired_tests, seed_means
+from physgrad.stats import case_values, format_p, format_ratio, paired_tests, seed_means
 from physgrad.study import collect, markdown, read_csv
 
 FIGURES = Path(__file__).parent / "figures"
@@ -81,11 +81,11 @@ def modality_section(root: Path, problem: str, title: str) -> str:
     for setup, cell in cells.items():
         for t in paired_tests(cell, "rel_error", list(METHODS)) if runs(cell) else []:
             tests.append([setup, f"{t['method_a']} vs {t['method_b']}", str(t["pairs"]), f"{100 * t['a_lower']:.0f}%",
-                          f"{t['seeds_a_lower']}/{t['seeds']}", f"{t['ratio']:.3g}", f"{t['p_value']:.2g}"])  # fmt: skip
+                          f"{t['seeds_a_lower']}/{t['seeds']}", format_ratio(t["ratio"]), format_p(t["p_value"])])  # fmt: skip
     cross = cross_test(cells["correction"], "nog", cells["prediction"], "wig")
     if cross:
         tests.append(["NOG-correction vs WIG-prediction", "nog vs wig", str(cross["pairs"]),
-                      f"{100 * cross['a_lower']:.0f}%", cross["seeds"], f"{cross['ratio']:.3g}", f"{cross['p_value']:.2g}"])  # fmt: skip
+                      f"{100 * cross['a_lower']:.0f}%", cross["seeds"], format_ratio(cross["ratio"]), format_p(cross["p_value"])])  # fmt: skip
     out += ["Paired tests on rel_error (two-sided Wilcoxon signed-rank over seeds × test cases):\n", markdown(tests), ""]
 
     fig, axes = plt.subplots(1, 2, figsize=(11, 4), sharey=True)

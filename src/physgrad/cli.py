@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 from pathlib import Path
 
@@ -306,8 +307,11 @@ def cmd_demo(args, console):
         console, DEMO["problem"], DEMO["methods"], range(DEMO["seeds"]), Budget(seconds=args.seconds), DEMO["settings"],
         args.out,
     )
-    ratio = result.final_test_loss("adam") / result.final_test_loss("hig")
-    console.print(f"HIG's mean final test loss is {ratio:.1f}x below Adam's at equal wall-clock.")
+    adam, hig = result.final_test_loss("adam"), result.final_test_loss("hig")
+    if math.isfinite(adam) and math.isfinite(hig) and hig > 0:
+        console.print(f"HIG's mean final test loss is {adam / hig:.1f}x below Adam's at equal wall-clock.")
+    else:
+        console.print("No HIG/Adam ratio: every seed of one of them diverged (see the table).")
     return 0
 
 

@@ -380,8 +380,11 @@ class Fidelity:
         name = problem.refinable_setting
         if settings.prdp and name is None:
             raise ConfigError("prdp needs a problem with an iterative solver (one that declares refinable_setting)")
-        if settings.prdp and getattr(problem, "setup", None) == "prediction":
-            raise ConfigError("prdp refines the solver of a correction setup; use setup=correction")
+        if settings.prdp:
+            try:
+                problem.check_refinable()
+            except ValueError as e:
+                raise ConfigError(str(e)) from None
         if settings.prdp and (settings.prdp_start < 1 or settings.prdp_increment < 1):
             raise ConfigError("prdp_start and prdp_increment must be >= 1")
         if settings.prdp and not (0 < settings.prdp_tau_stop <= 1 and 0 < settings.prdp_tau_step <= 1):
@@ -529,7 +532,7 @@ class Checkpointer:
         template = like(counters)
         try:
             params, opt_state = eqx.tree_deserialise_leaves(ckpt / "state.eqx", (template.params, template.opt_state))
-        except (ValueError, RuntimeError, TypeError) as e:
+        except (ValueError, RuntimeError, TypeError, EOFError) as e:
             raise ConfigError(
                 f"the checkpoint in {self.run_dir} does not match this method's state ({type(e).__name__}); "
                 "it was written by another version of the method: delete checkpoint/ to restart the run"

@@ -83,6 +83,9 @@ def train(
     ``config.budget`` (which may be larger than the original one); a finished run whose
     budget is already met returns its summary unchanged. Runs written before settings were
     added keep matching (:data:`physgrad.config.ADDED_LATER`)."""
+    if config.prdp and PROBLEMS[config.problem].refinable_setting is None:
+        valid = [name for name, cls in PROBLEMS.items() if cls.refinable_setting]
+        raise ConfigError(f"prdp needs a problem with an iterative solver; valid choices: {', '.join(valid)}")
     return fit(
         problem_of(config), phases_of(config), budget=config.budget, out=run_dir, seed=config.seed,
         settings=settings_of(config), resume=resume, progress=progress, devices=devices,

@@ -103,6 +103,9 @@ class AbstractProblem(eqx.Module):
         )
 
     refinable_setting: ClassVar[str | None] = None  # an iterative solver's count, refined by PRDP
+
+    def check_refinable(self) -> None:
+        """Raise ``ValueError`` if this instance's solver cannot be refined (PRDP)."""
     default_eval_samples: ClassVar[int] = 0  # evaluate the train split on a strided subset of this size
 
     @classmethod

@@ -1,8 +1,8 @@
 """Direct optimisation without a network (``--no-network``): x itself is trained.
 
 The PBDL book and the SIP paper compare update rules first on the bare inverse problem,
-``min_x L(P(x), y*)`` per sample, before putting a network in front (sip.md §2.1, §3.2's
-``plot_heat_optim.py``). :class:`DirectOptimisation` wraps any problem so that the engine
+``min_x L(P(x), y*)`` per sample, before putting a network in front (the SIP paper's 2D
+toy and its heat-equation optimisation plots). :class:`DirectOptimisation` wraps any problem so that the engine
 does exactly that: the "network" is a table of free variables, one x per sample, started
 at ``problem.initial_guess(sample)``; every method applies unchanged (Adam/SGD = gradient
 descent on x, ``newton`` = Newton on x, ``sip`` with ``optimizer=sgd, lr=1`` = iterating
@@ -33,9 +33,12 @@ class DirectOptimisation(AbstractProblem):
 
     problem: AbstractProblem
 
-    name: ClassVar[str] = "direct"
     description: ClassVar[str] = "direct optimisation of x per sample (no network)"
-    source: ClassVar[str] = "sip.md §2.1"
+    source: ClassVar[str] = "Holl, Koltun, Thuerey, NeurIPS 2022 (direct optimisation of the inverse problem)"
+
+    @property
+    def name(self) -> str:  # the wrapped problem's: summaries and errors name what was run
+        return self.problem.name
 
     def make_data(self, key):
         samples = self.problem.make_data(key)["test"]

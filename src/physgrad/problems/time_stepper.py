@@ -232,6 +232,10 @@ class TimeStepperProblem(AbstractProblem):
         differentiable = self.setup == "prediction" or self._differentiable(solvers)
         return System(transition, m, weights, init, differentiable)
 
+    def check_refinable(self):
+        if self.setup == "prediction":
+            raise ValueError("prdp refines the solver of a correction setup; use setup=correction")
+
     def objective(self, static):
         """The open-loop pieces, the rollout over the problem's m steps and the unrolled
         windows of any m (ONE / NOG / WIG); ``differentiable`` is the solver's declaration."""
