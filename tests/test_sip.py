@@ -13,7 +13,8 @@ from physgrad import Budget
 from physgrad.config import make_config
 from physgrad.train import train
 from physgrad.registry import METHODS
-from physgrad.problems import PROBLEMS, ExpInverse
+from physgrad.problems import ExpInverse
+from physgrad.registry import PROBLEMS
 from physgrad.train import build, make_step
 
 

@@ -145,7 +145,7 @@ def _print_table(console: Console, lines: list[list[str]], title: str = ""):
 
 def cmd_list(args, console):
     from .registry import METHODS, describe
-    from .problems import PROBLEMS
+    from .registry import PROBLEMS
 
     console.print("[bold]problems[/bold]")
     for name, cls in PROBLEMS.items():

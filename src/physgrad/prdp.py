@@ -3,7 +3,7 @@
 A solver inside the training loop that iterates (Jacobi sweeps, Krylov steps) costs in
 proportion to its inner iteration count K, forward and backward. PRDP starts training with
 a small K and raises it only when the validation error stops improving
-(shared/papers/unrolling.md §3, after the authors' ``prdp.py``):
+(the rule of the paper's Algorithm 1, as in the authors' code):
 
 - smooth the per-check validation error with an exponential moving average (window 6,
   α = 2/7);

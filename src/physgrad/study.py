@@ -20,7 +20,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from .config import Budget, ConfigError, RunConfig, choose, make_config, method_slug, parse_method, phase_methods, valid_settings
-from .problems import PROBLEMS
+from .registry import PROBLEMS
 from .progress import AbstractProgressMeter
 from .train import is_complete, read_metrics, read_summary, train
 

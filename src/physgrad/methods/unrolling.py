@@ -135,6 +135,10 @@ class Unrolled(AbstractMethod):
     def policy(self) -> GradientFlow:
         return self.rule.policy
 
+    @property
+    def teacher_forcing(self) -> bool:
+        return self.rule.teacher_forcing
+
     def stages(self):
         """The curriculum as (method, epochs) stages; the last runs until the budget ends."""
         if not self.curriculum:

@@ -1,4 +1,4 @@
-"""Benchmark problems, one file each, and the ``PROBLEMS`` registry (name → class)."""
+"""Benchmark problems, one file each (the command line's names for them: :mod:`physgrad.registry`)."""
 
 from .base import AbstractProblem
 from .cartpole import CartPole
@@ -20,13 +20,4 @@ from .ks import KuramotoSivashinsky
 from .kolmogorov import Kolmogorov
 from .advection_1d import Advection1d
 
-PROBLEMS: dict[str, type[AbstractProblem]] = {
-    cls.name: cls for cls in (
-        HigToy, Oscillators, QuantumDipole, PoissonHig, LinearOscillators,
-        Toy2d, ExpInverse, Sine, Poisson, Heat,
-        CartPole, Guidance, QuantumControl,
-        KuramotoSivashinsky, Kolmogorov, Advection1d,
-    )  # fmt: skip
-}
-
-__all__ = ["PROBLEMS", "TimeStepperProblem", "KuramotoSivashinsky", "Kolmogorov", "Advection1d", "AbstractProblem", "CartPole", "ClosedLoopProblem", "Guidance", "QuantumControl", "ExpInverse", "Heat", "Poisson", "Sine", "Toy2d", "HigToy", "LinearOscillators", "Oscillators", "PoissonHig", "QuantumDipole"]
+__all__ = ["TimeStepperProblem", "KuramotoSivashinsky", "Kolmogorov", "Advection1d", "AbstractProblem", "CartPole", "ClosedLoopProblem", "Guidance", "QuantumControl", "ExpInverse", "Heat", "Poisson", "Sine", "Toy2d", "HigToy", "LinearOscillators", "Oscillators", "PoissonHig", "QuantumDipole"]

@@ -1,7 +1,6 @@
 """Gradient-flow policies: where a rollout's backward pass is cut.
 
-A closed-loop rollout feeds the state s_k into two paths (Schnell & Thuerey, ICLR 2024, §1.2
-of shared/papers/stablebptt.md):
+A closed-loop rollout feeds the state s_k into two paths (Schnell & Thuerey, ICLR 2024):
 
 - the **control path** s_k → network → c_k → step, and
 - the **physics path** s_k → step directly.
@@ -20,7 +19,8 @@ name               network input          physics input           gradient
 ``S`` (stopped)    stop(s_k)              stop(s_k)               no temporal gradient (one-step)
 =================  =====================  ======================  ===========================
 
-Two cuts combine with any of them (List et al. 2025, shared/papers/unrolling.md §1.2):
+Two cuts combine with any of them (List et al., CMAME 2025, the unrolling study's truncation
+and warm-up options):
 ``truncate=k`` stops both paths at every k-th step, counted from step 0 (truncated BPTT:
 gradients live within windows of k steps; with a warm-up the windows are not shifted), ``warmup=W`` runs the first W steps without gradient and drops their
 losses (the "pushforward" trick): both paths are stopped at step W and the losses of
@@ -108,7 +108,7 @@ class Combined(eqx.Module):
 
     Magnitudes come from the base; the comparison only supplies signs, so every kept
     component agrees in sign with the true gradient and ⟨g_C, g_R⟩ ≥ 0: −g_C is never an
-    ascent direction (shared/papers/stablebptt.md §1.3). ``one_pass`` computes both
+    ascent direction (the paper's argument for C). ``one_pass`` computes both
     gradients from one forward rollout and one backward pass carrying both adjoints
     (:func:`physgrad.rollout.joint_gradients`); otherwise two full passes, as the authors.
     """
