@@ -2,7 +2,7 @@
 
 Assumptions: ``fn(x, y, y_target, sample) -> x̃`` is the problem's closed-form inverse,
 conditioned on the current prediction ``x`` where P is not injective (pick the solution
-closest to x, sip.md §1.2). Examples: Poisson ``x̃ = x + ∇²(y_t − y)``; exp ``x̃ = log y_t``;
+closest to x, as the SIP paper prescribes). Examples: Poisson ``x̃ = x + ∇²(y_t − y)``; exp ``x̃ = log y_t``;
 the heat equation's damped Fourier deconvolution. Converged = all entries finite.
 """
 

@@ -1,7 +1,7 @@
 """The local-inverse contract shared by every solver.
 
 Source: Holl, Koltun, Thuerey, *Scale-invariant Learning by Physics Inversion*, NeurIPS
-2022; sip.md §1.3 and §4.
+2022 (the local inverse of its §3); PBDL book, chapter "Scale-invariant physics training".
 
 A local inverse solver maps, for ONE sample, the current prediction ``x`` (where the
 simulator gives ``y = P(x)``) and a target ``y_t = y + η (y* − y)`` in y-space to

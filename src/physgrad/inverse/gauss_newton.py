@@ -5,7 +5,7 @@
 with singular values below ``rcond · σ_max`` dropped (NumPy's ``pinv(rcond)``). Exact in one
 step for affine P; the minimum-norm solution of an under-determined P is the one closest
 to x. The PBDL book's SIP on the linear oscillators uses ``pinv(J, rcond=1e-5)``
-(sip.md §4–§5). Assumes real x; complex outputs enter as (Re, Im) pairs. Cost: one
+(its linear-oscillators notebook). Assumes real x; complex outputs enter as (Re, Im) pairs. Cost: one
 Jacobian (forward mode, dim x JVPs) and one SVD per sample. Converged = finite.
 """
 

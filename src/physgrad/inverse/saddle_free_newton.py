@@ -8,9 +8,9 @@ For ℓ(x) = ½‖P(x) − y_t‖² with gradient g and Hessian H = V diag(s) V�
     x̃ = x − V (sign(ĝ) ⊙ n)                             (always a descent direction)
 
 Directions of small or negative curvature would otherwise get huge steps; the limit caps
-the first-order loss change there at ``max_loss_change`` (0.2 in the sine experiment,
-sip.md §2.4); a zero eigenvalue gets the capped step. Without a limit, zero divisions give
-zero steps (``divide_no_nan``, as the authors'). Assumes a small x (dense
+the first-order loss change there at ``max_loss_change`` (0.2: the SIP authors' setting
+for the rotated sine of their Fig. 5); a zero eigenvalue gets the capped step. Without a
+limit, zero divisions give zero steps (``divide_no_nan``, as the authors'). Assumes a small x (dense
 d × d Hessian per sample). Converged = finite.
 """
 
