@@ -319,6 +319,12 @@ COMMANDS = {"list": cmd_list, "train": cmd_train, "compare": cmd_compare, "repor
 
 
 def main(argv=None) -> int:
+    import jax
+
+    # The command line owns its process, so it may set JAX's configuration (the library never
+    # does): x64 on, as when importing physgrad enabled it, keeps CLI runs numerically identical
+    # to the study directories written then. Set before anything is built.
+    jax.config.update("jax_enable_x64", True)
     from .config import ConfigError
 
     # Outside a terminal (CI, pipes) rich would wrap at 80 columns; tables need more.

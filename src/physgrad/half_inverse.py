@@ -21,6 +21,12 @@ Two exact routes compute the same vector:
   condition number, which is why it is formed and decomposed in float64. This never
   forms the large factor (``V`` for wide, ``U`` for tall) and costs one matrix product
   of O(min(m,P)² · max(m,P)) plus an O(min(m,P)³) ``eigh``.
+
+The float64 of the Gram route is scoped (:func:`physgrad.precision.float64_scope`): it
+works whether or not the user enabled ``jax_enable_x64`` and leaves that setting alone.
+A scoped region cannot be differentiated (its transpose would run outside the scope), so
+the Gram route treats its inputs as constants (``stop_gradient``): the direction is an
+update, never differentiated by an update rule. The SVD route stays differentiable.
 """
 
 from __future__ import annotations
@@ -30,6 +36,8 @@ from typing import Literal
 import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
+
+from .precision import float64_scope, to_float64
 
 Route = Literal["auto", "svd", "gram"]
 ROUTES = ("auto", "svd", "gram")
@@ -59,7 +67,9 @@ def _kept_powers(s: Array, exponent: float, truncation: float) -> Array:
 def gram_power(gram: Array, vector: Array, exponent: float, truncation: float) -> Array:
     """``U Σ^{κ−1} Uᵀ v`` for a Gram matrix ``U Σ² Uᵀ`` (``J Jᵀ`` or ``Jᵀ J``), singular
     values ``σ ≤ τ σ_max`` dropped. The one extra Σ⁻¹ turns the Gram eigenvectors into the
-    missing SVD factor: ``J^κ g = Jᵀ·gram_power(J Jᵀ, g)`` = ``gram_power(Jᵀ J, Jᵀ g)``."""
+    missing SVD factor: ``J^κ g = Jᵀ·gram_power(J Jᵀ, g)`` = ``gram_power(Jᵀ J, Jᵀ g)``.
+
+    Computes in the inputs' dtype; the Gram routes call it on float64 inside their scope."""
     eigenvalues, vectors = jnp.linalg.eigh(gram)
     powers = _kept_powers(jnp.sqrt(jnp.clip(eigenvalues, 0.0, None)), exponent - 1.0, truncation)
     return vectors @ (powers * (vectors.T @ vector))
@@ -71,13 +81,17 @@ def _svd_route(jacobian, grad, exponent, truncation):
 
 
 def _gram_route(jacobian, grad, exponent, truncation):
-    j = jacobian.astype(jnp.float64)
-    g = grad.astype(jnp.float64)
-    m, p = j.shape
-    wide = m <= p
-    if wide:  # Jᵀ U Σ^{κ−1} Uᵀ g
-        return j.T @ gram_power(j @ j.T, g, exponent, truncation)
-    return gram_power(j.T @ j, j.T @ g, exponent, truncation)  # V Σ^{κ−1} Vᵀ Jᵀ g
+    # Constants for differentiation: the float64 scope below cannot be transposed outside it.
+    inputs = jax.lax.stop_gradient((jacobian, grad))
+    with float64_scope():
+        j, g = to_float64(inputs)
+        m, p = j.shape
+        if m <= p:  # wide: Jᵀ U Σ^{κ−1} Uᵀ g
+            direction = j.T @ gram_power(j @ j.T, g, exponent, truncation)
+        else:  # tall: V Σ^{κ−1} Vᵀ Jᵀ g
+            direction = gram_power(j.T @ j, j.T @ g, exponent, truncation)
+        # Back to the Jacobian's dtype inside the scope: no float64 array leaves it.
+        return direction.astype(jacobian.dtype)
 
 
 def half_inverse(
@@ -96,7 +110,8 @@ def half_inverse(
         grad: ``g``, shape (m,); the gradient of the batch-mean loss w.r.t. the outputs.
         exponent: κ; −0.5 half-inverse (HIG), −1 Gauss–Newton, +1 gives ``Jᵀ g``.
         truncation: τ; singular values ``σ ≤ τ·σ_max`` are dropped.
-        route: ``"svd"``, ``"gram"`` (float64 Gram + ``eigh``) or ``"auto"`` (by shape).
+        route: ``"svd"``, ``"gram"`` (float64 Gram + ``eigh``, scoped; not
+            differentiable) or ``"auto"`` (by shape).
 
     Returns:
         The update direction, shape (P,), in the dtype of ``jacobian``. The caller takes
@@ -141,10 +156,17 @@ def sharded_gram_route(
 
     Returns the direction ``J^κ g`` (P,), replicated, in the Jacobian's dtype. Equal to
     :func:`half_inverse` with ``route="gram"`` on the stacked rows up to the order of
-    floating-point sums.
+    floating-point sums. Float64 is scoped as in :func:`half_inverse`, whose Gram route
+    this is (inputs are constants for differentiation).
     """
-    j = jacobian.astype(jnp.float64)
-    g = grad.astype(jnp.float64)
+    inputs = jax.lax.stop_gradient((jacobian, grad))
+    with float64_scope():
+        return _sharded_gram_route(*inputs, axis, devices, exponent, truncation)
+
+
+def _sharded_gram_route(jacobian, grad, axis, devices, exponent, truncation):
+    """:func:`sharded_gram_route`'s body, run inside its float64 scope."""
+    j, g = to_float64((jacobian, grad))
     r, p = j.shape
     m = r * devices
     me = jax.lax.axis_index(axis)

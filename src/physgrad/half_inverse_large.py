@@ -42,6 +42,11 @@ holds all of ``J`` (m × P). Two routes avoid it:
   enough. Each step reports ``‖x_k − x_{k−1}‖ / ‖x_k‖`` (a posteriori estimate of the
   remaining error). The products ``J v``, ``Jᵀ v`` run in the network's dtype, so
   eigenvalues below ~ε_float32·λ_max are not resolved in float32 networks.
+
+Both routes scope their float64 (:func:`physgrad.precision.float64_scope`) and work with
+``jax_enable_x64`` off; the network and simulator are traced outside the scope (in the
+caller's configuration), only the Gram/Lanczos arithmetic is float64. As the Gram route,
+they treat their inputs as constants for differentiation (``stop_gradient``).
 """
 
 from __future__ import annotations
@@ -55,6 +60,7 @@ from jaxtyping import Array, Float, PyTree
 
 from .half_inverse import gram_power
 from .jacobian import flat_output, stacked_jacobian
+from .precision import float64_scope
 
 
 def _groups(batch: PyTree, blocks: int) -> PyTree:
@@ -89,33 +95,44 @@ def blockgram_half_inverse(
         The direction (P,) in the parameters' dtype; equal to
         ``half_inverse(stacked_jacobian(...), g, route="gram")`` up to rounding.
     """
+    # Constants for differentiation: the float64 scope below cannot be transposed outside it.
+    params, batch, grad = jax.lax.stop_gradient((params, batch, grad))
     flat, _ = ravel_pytree(params)
     groups = _groups(batch, blocks)
     rows = grad.shape[0] // blocks
 
-    def jac(index):  # one group's rows (rows, P) in float64, recomputed when needed
+    def group_rows(index):  # one group's rows (rows, P) in the network's dtype
         group = jax.tree.map(lambda a: a[index], groups)
-        return stacked_jacobian(predict, params, group)[0].astype(jnp.float64)
+        return stacked_jacobian(predict, params, group)[0]
 
-    def row_block(a, gram):
-        j_a = jac(a)
+    # Traced now, in the caller's configuration, and only evaluated inside the scope: the
+    # network and simulator never run under x64 (no float64 promotion of their constants).
+    traced_rows, consts = jax.closure_convert(group_rows, jnp.int32(0))
 
-        def pair(b, gram):  # G[A, B] and its mirror G[B, A] for B ≥ A
-            block = j_a @ jac(b).T
-            gram = jax.lax.dynamic_update_slice(gram, block, (a * rows, b * rows))
-            return jax.lax.dynamic_update_slice(gram, block.T, (b * rows, a * rows))
+    with float64_scope():
 
-        return jax.lax.fori_loop(a, blocks, pair, gram)
+        def jac(index):  # one group's rows in float64, recomputed when needed
+            return traced_rows(jnp.asarray(index, jnp.int32), *consts).astype(jnp.float64)
 
-    m = rows * blocks
-    gram = jax.lax.fori_loop(0, blocks, row_block, jnp.zeros((m, m), jnp.float64))
-    w = gram_power(gram, grad.astype(jnp.float64), exponent, truncation).reshape(blocks, rows)
+        def row_block(a, gram):
+            j_a = jac(a)
 
-    def apply(a, direction):  # Jᵀ w = Σ_A J_Aᵀ w_A, in float64 as the Gram route
-        return direction + jac(a).T @ w[a]
+            def pair(b, gram):  # G[A, B] and its mirror G[B, A] for B ≥ A
+                block = j_a @ jac(b).T
+                gram = jax.lax.dynamic_update_slice(gram, block, (a * rows, b * rows))
+                return jax.lax.dynamic_update_slice(gram, block.T, (b * rows, a * rows))
 
-    direction = jax.lax.fori_loop(0, blocks, apply, jnp.zeros(flat.size, jnp.float64))
-    return direction.astype(flat.dtype)
+            return jax.lax.fori_loop(a, blocks, pair, gram)
+
+        m = rows * blocks
+        gram = jax.lax.fori_loop(0, blocks, row_block, jnp.zeros((m, m), jnp.float64))
+        w = gram_power(gram, grad.astype(jnp.float64), exponent, truncation).reshape(blocks, rows)
+
+        def apply(a, direction):  # Jᵀ w = Σ_A J_Aᵀ w_A, in float64 as the Gram route
+            return direction + jac(a).T @ w[a]
+
+        direction = jax.lax.fori_loop(0, blocks, apply, jnp.zeros(flat.size, jnp.float64))
+        return direction.astype(flat.dtype)
 
 
 def batch_output_map(predict: Callable[[PyTree, PyTree], Array], params: PyTree, batch: PyTree):
@@ -147,10 +164,23 @@ def lanczos_half_inverse(
     Returns:
         ``(direction, estimate)``: the direction (P,) and ``‖x_k − x_{k−1}‖ / ‖x_k‖``.
     """
+    # Constants for differentiation: the float64 scope below cannot be transposed outside it.
+    params, batch, grad = jax.lax.stop_gradient((params, batch, grad))
     outputs, flat = batch_output_map(predict, params, batch)
+    # Linearised here, in the caller's configuration: inside the scope the products only
+    # evaluate the traced linear map, in the network's dtype.
     _, jvp = jax.linearize(outputs, flat)
     vjp = jax.linear_transpose(jvp, flat)
-    dtype = flat.dtype
+    # The estimate leaves the scope as the caller's default float (float64 where x64 is on,
+    # as before; float32 otherwise): no float64 array escapes into an x64-off trace.
+    outer_float = jax.dtypes.canonicalize_dtype(jnp.float64)
+    with float64_scope():
+        direction, estimate = _lanczos(jvp, vjp, flat.dtype, grad, steps, exponent, truncation)
+        return direction, estimate.astype(outer_float)
+
+
+def _lanczos(jvp, vjp, dtype, grad, steps, exponent, truncation):
+    """:func:`lanczos_half_inverse`'s iteration, run inside its float64 scope."""
 
     def gram_times(v):  # G v = J (Jᵀ v), products in the network's dtype
         (jtv,) = vjp(v.astype(dtype))
@@ -181,16 +211,16 @@ def lanczos_half_inverse(
         q_next = jnp.where(live, z / jnp.where(live, b, 1.0), 0.0)
         return basis, alpha.at[i].set(a), beta.at[i].set(jnp.where(live, b, 0.0)), q_next
 
-    init = (jnp.zeros((k, m)), jnp.zeros(k), jnp.zeros(k), q0)
+    init = (jnp.zeros((k, m), jnp.float64), jnp.zeros(k, jnp.float64), jnp.zeros(k, jnp.float64), q0)
     basis, alpha, beta, _ = jax.lax.fori_loop(0, k, body, init)
 
     def coefficients(n):  # ‖g‖ f(T_n) e₁ padded to k (f on the Ritz values θ = eig T_n)
         t = jnp.diag(alpha[:n]) + jnp.diag(beta[: n - 1], 1) + jnp.diag(beta[: n - 1], -1)
-        e1 = jnp.zeros(n).at[0].set(1.0)
-        return jnp.zeros(k).at[:n].set(norm_g * gram_power(t, e1, exponent, truncation))
+        e1 = jnp.zeros(n, jnp.float64).at[0].set(1.0)
+        return jnp.zeros(k, jnp.float64).at[:n].set(norm_g * gram_power(t, e1, exponent, truncation))
 
     c = coefficients(k)
-    change = jnp.linalg.norm(c - coefficients(k - 1)) if k > 1 else jnp.array(jnp.inf)
+    change = jnp.linalg.norm(c - coefficients(k - 1)) if k > 1 else jnp.array(jnp.inf, jnp.float64)
     estimate = change / jnp.maximum(jnp.linalg.norm(c), 1e-300)
     (direction,) = vjp((basis.T @ c).astype(dtype))
     return direction, estimate

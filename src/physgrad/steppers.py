@@ -140,8 +140,9 @@ def select(stacked, index):
 
 
 def single_precision(tree):
-    """Float64/complex128 arrays of a pytree cast to float32/complex64 (solvers built with
-    x64 enabled would otherwise promote the float32 states)."""
+    """Float64/complex128 arrays of a pytree cast to float32/complex64: solvers built in
+    float64 (inside :func:`physgrad.precision.float64_scope`, for accurate coefficients)
+    would otherwise promote the float32 states."""
 
     def cast(a):
         if eqx.is_array(a) and a.dtype == jnp.float64:

@@ -7,16 +7,21 @@ local inverse" of the PBDL book's 2D toy and the SIP heat v1 variant, sip.md §2
 Stops when optimistix's Cauchy criterion holds with ``rtol = atol = tol`` or after
 ``max_steps``; converged = optimistix reported success (not out of steps) and x̃ finite.
 Needs a differentiable P (gradients in x only). Runs in float64 whatever the prediction's
-dtype (optimistix's line search mixes in float64 scalars when JAX's x64 mode is on, and a
-tight ``tol`` needs it anyway); x̃ is returned in the prediction's dtype.
+dtype and whether or not the user enabled ``jax_enable_x64``: the solve is scoped with
+:func:`physgrad.precision.float64_scope` (a tight ``tol`` needs float64, and optimistix's
+line search mixes in float64 scalars wherever x64 is on). Its inputs are constants for
+differentiation (a scoped region cannot be transposed outside it; SIP never
+differentiates the solve); x̃ is returned in the prediction's dtype.
 """
 
 from __future__ import annotations
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import optimistix as optx
 
+from ..precision import float64_scope
 from .base import AbstractInverseSolver, InverseResult, all_finite, as_flat_real, flat_physics, half_squared_misfit
 
 
@@ -27,12 +32,14 @@ class LBFGS(AbstractInverseSolver):
     tol: float = eqx.field(static=True, default=1e-6)
 
     def __call__(self, simulate, x, y, y_target, sample):
-        forward, x_flat = flat_physics(simulate, x, sample)
-        objective = half_squared_misfit(forward, as_flat_real(y_target).astype(jnp.float64))
-        solution = optx.minimise(
-            objective, optx.LBFGS(rtol=self.tol, atol=self.tol), x_flat.astype(jnp.float64),
-            max_steps=self.max_steps, throw=False,
-        )  # fmt: skip
-        x_new = solution.value.reshape(x.shape).astype(x.dtype)
-        ok = (solution.result == optx.RESULTS.successful) & all_finite(x_new)
+        x_in, y_target, sample = jax.lax.stop_gradient((x, y_target, sample))
+        with float64_scope():
+            forward, x_flat = flat_physics(simulate, x_in, sample)
+            objective = half_squared_misfit(forward, as_flat_real(y_target).astype(jnp.float64))
+            solution = optx.minimise(
+                objective, optx.LBFGS(rtol=self.tol, atol=self.tol), x_flat.astype(jnp.float64),
+                max_steps=self.max_steps, throw=False,
+            )  # fmt: skip
+            x_new = solution.value.reshape(x.shape).astype(x.dtype)  # cast inside: no float64 escapes
+            ok = (solution.result == optx.RESULTS.successful) & all_finite(x_new)
         return InverseResult(x_new, ok)

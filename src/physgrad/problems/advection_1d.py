@@ -27,6 +27,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..precision import float64_scope
 from ..steppers import Repeated, Solver
 from .time_stepper import TimeStepperProblem, solver_rollout
 
@@ -89,6 +90,10 @@ class Advection1d(TimeStepperProblem):
         return u0[:, None, :]
 
     def generate(self, split):
+        with float64_scope():  # the reference runs in float64 whatever the caller's x64 setting
+            return self._generate(split)
+
+    def _generate(self, split):
         count, seed, frames = {"train": (self.n_train, 0, self.horizon), "val": (4, 1, self.eval_horizon),
                                "test": (self.n_test, 2, max(self.horizon, self.eval_horizon))}[split]  # fmt: skip
         u0 = self.initial_conditions(jax.random.fold_in(jax.random.key(self.data_seed), seed), count)

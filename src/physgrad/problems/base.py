@@ -83,6 +83,16 @@ class AbstractProblem(eqx.Module):
         return self.simulate(self.network_output(network, sample), sample)
 
     # --- what the training engine asks of a problem (declared, never type-tested) -------
+    @property
+    def needs_float64(self) -> bool:
+        """True when the problem's own arrays or physics are float64: the engine then runs
+        the whole training under ``jax.enable_x64(True)``.
+
+        False by default: importing physgrad leaves JAX's configuration alone, and float32
+        problems neither need nor get x64 (their few float64 parts, such as reference
+        solvers for data, scope it themselves)."""
+        return False
+
     def initial_network(self, key: PRNGKeyArray, data: dict[str, Sample]) -> eqx.Module:
         """The network a run starts from (default: :meth:`make_network`; direct
         optimisation starts from the data's initial guesses)."""
@@ -118,7 +128,3 @@ class AbstractProblem(eqx.Module):
         """The problem's settings (dataclass fields) and their defaults."""
         return {f.name: f.default for f in dataclasses.fields(cls) if f.default is not dataclasses.MISSING}
 
-
-def uniform(key: PRNGKeyArray, shape, dtype, low=0.0, high=1.0) -> jax.Array:
-    """``U[low, high)`` samples in an explicit dtype (physgrad runs with x64 enabled)."""
-    return jax.random.uniform(key, shape, jnp.dtype(dtype), low, high)

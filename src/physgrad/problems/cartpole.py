@@ -31,7 +31,6 @@ import jax
 import jax.numpy as jnp
 
 from ..nets import MLP
-from .base import uniform
 from .closed_loop import ClosedLoopProblem, zero_last_kernel
 
 
@@ -62,9 +61,9 @@ class CartPole(ClosedLoopProblem):
     def initial_states(self, key, n):
         kx, kv, kt, kw = jax.random.split(key, 4)
         f32 = jnp.float32
-        cart = jnp.stack([uniform(kx, (n,), f32, -1, 1), uniform(kv, (n,), f32, -1, 1)], axis=-1)
-        theta = math.pi + uniform(kt, (n, self.poles), f32, -1, 1) * (math.pi / 6)
-        omega = uniform(kw, (n, self.poles), f32, -1, 1)
+        cart = jnp.stack([jax.random.uniform(kx, (n,), f32, -1, 1), jax.random.uniform(kv, (n,), f32, -1, 1)], axis=-1)
+        theta = math.pi + jax.random.uniform(kt, (n, self.poles), f32, -1, 1) * (math.pi / 6)
+        omega = jax.random.uniform(kw, (n, self.poles), f32, -1, 1)
         poles = jnp.stack([theta, omega], axis=-1)
         return jnp.concatenate([cart[:, None, :], poles], axis=1)  # (n, 1 + poles, 2)
 

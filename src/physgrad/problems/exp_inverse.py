@@ -25,7 +25,7 @@ import jax
 import jax.numpy as jnp
 
 from ..nets import MLP
-from .base import AbstractProblem, uniform
+from .base import AbstractProblem
 
 
 class ExpInverse(AbstractProblem):
@@ -49,7 +49,7 @@ class ExpInverse(AbstractProblem):
 
     def make_data(self, key):
         def draw(k, n):
-            x_gt = uniform(k, (n, 1), jnp.float32, self.low, self.high)
+            x_gt = jax.random.uniform(k, (n, 1), jnp.float32, self.low, self.high)
             return {"x_gt": x_gt, "y": jnp.exp(x_gt)}
 
         k_train, k_test = jax.random.split(key)

@@ -43,7 +43,6 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..nets import MLP
-from .base import uniform
 from .closed_loop import ClosedLoopProblem, zero_last_kernel
 
 
@@ -91,13 +90,13 @@ class Guidance(ClosedLoopProblem):
     def initial_states(self, key, n):
         f32 = jnp.float32
         k_da, k_dr, k_ca, k_cr, k_off = jax.random.split(key, 5)
-        angle = uniform(k_da, (n, self.drivers), f32, 0, 2 * math.pi)
-        radius = uniform(k_dr, (n, self.drivers), f32, 3, 4)
+        angle = jax.random.uniform(k_da, (n, self.drivers), f32, 0, 2 * math.pi)
+        radius = jax.random.uniform(k_dr, (n, self.drivers), f32, 3, 4)
         drivers = radius[..., None] * jnp.stack([jnp.cos(angle), jnp.sin(angle)], -1)
-        c_angle = uniform(k_ca, (n, 1), f32, 0, 2 * math.pi)
-        c_radius = uniform(k_cr, (n, 1), f32, 1, 2)
+        c_angle = jax.random.uniform(k_ca, (n, 1), f32, 0, 2 * math.pi)
+        c_radius = jax.random.uniform(k_cr, (n, 1), f32, 1, 2)
         centre = c_radius[..., None] * jnp.stack([jnp.cos(c_angle), jnp.sin(c_angle)], -1)
-        evaders = centre + uniform(k_off, (n, self.evaders, 2), f32, -0.5, 0.5)
+        evaders = centre + jax.random.uniform(k_off, (n, self.evaders, 2), f32, -0.5, 0.5)
         positions = jnp.concatenate([drivers, evaders], axis=1)
         return jnp.stack([positions, jnp.zeros_like(positions)], axis=2)  # (n, agents, 2, 2)
 

@@ -3,7 +3,8 @@
 Source: Holl, Koltun, Thuerey, NeurIPS 2022, Fig. 6c,d; ``heat/train_heat.py`` and
 ``heat/inv_diffuse.py``; PBDL book ``physgrad-code.ipynb`` (sip.md §3.2).
 
-Forward physics (float64, as the authors' ``set_global_precision(64)``): exact periodic
+Forward physics (float64, as the authors' ``set_global_precision(64)``; the problem declares
+``needs_float64``, so the engine trains it under ``jax.enable_x64(True)``): exact periodic
 diffusion on a 64×64 grid with unit cells,
 
     ŷ_k = x̂_k · exp(−(2π)² |k|² · ν t),   k = fftfreq(64) per axis,  ν t = 8.
@@ -39,6 +40,7 @@ import jax
 import jax.numpy as jnp
 
 from ..nets import UNet
+from ..precision import require_float64
 from .base import AbstractProblem
 
 
@@ -123,7 +125,14 @@ class Heat(AbstractProblem):
     }
     default_methods: ClassVar[tuple[str, ...]] = ("adam", "sgd", "sip")
 
+    @property
+    def needs_float64(self) -> bool:
+        """The physics and the data's y are float64 (as the authors'): train under x64."""
+        return True
+
     def make_data(self, key):
+        require_float64(self.name)  # else JAX would silently build float32 "float64" physics
+
         def draw(k, n):
             x_gt = jax.vmap(lambda kk: random_boxes(kk, self.resolution))(jax.random.split(k, n))
             y = jax.vmap(lambda x: diffuse(x, self.amount))(x_gt)

@@ -26,7 +26,8 @@ import jax
 import jax.numpy as jnp
 
 from ..nets import MLP
-from .base import AbstractProblem, uniform
+from ..precision import require_float64
+from .base import AbstractProblem
 
 
 class HigToy(AbstractProblem):
@@ -48,12 +49,21 @@ class HigToy(AbstractProblem):
         "hig": {"lr": 1.0, "truncation": 1e-6},
     }
 
+    @property
+    def needs_float64(self) -> bool:
+        """``dtype=float64`` runs the whole problem in double precision (engine scopes x64)."""
+        return jnp.dtype(self.dtype) == jnp.float64
+
     def make_data(self, key):
+        if self.needs_float64:
+            require_float64(f"{self.name} with dtype={self.dtype}")
         k_train, k_test = jax.random.split(key)
-        draw = lambda k, n: {"x": uniform(k, (n, 1), self.dtype, -1.0, 1.0)}  # noqa: E731
+        draw = lambda k, n: {"x": jax.random.uniform(k, (n, 1), jnp.dtype(self.dtype), -1.0, 1.0)}  # noqa: E731
         return {"train": draw(k_train, self.n_train), "test": draw(k_test, self.n_test)}
 
     def make_network(self, key):
+        if self.needs_float64:
+            require_float64(f"{self.name} with dtype={self.dtype}")
         return MLP((1, self.hidden, 2), "tanh", key=key, dtype=jnp.dtype(self.dtype))
 
     def network_output(self, network, sample):

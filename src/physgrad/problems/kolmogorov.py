@@ -30,6 +30,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..nets import ConvResNet
+from ..precision import float64_scope
 from ..steppers import Repeated, single_precision, stack_solvers
 from .time_stepper import TimeStepperProblem, solver_rollout
 
@@ -72,9 +73,17 @@ class Kolmogorov(TimeStepperProblem):
         )
 
     def solvers(self):
-        return stack_solvers([single_precision(Repeated(self._stepper(re, self.n, self.dt))) for re in self.reynolds])
+        # Built in float64 and rounded to float32 (as when x64 was global): the same
+        # solver arrays whether or not the caller enabled x64.
+        with float64_scope():
+            steppers = [Repeated(self._stepper(re, self.n, self.dt)) for re in self.reynolds]
+            return stack_solvers([single_precision(s) for s in steppers])
 
     def generate(self, split):
+        with float64_scope():  # the reference runs in float64 whatever the caller's x64 setting
+            return self._generate(split)
+
+    def _generate(self, split):
         import exponax as ex
 
         fine, sub = self.n * self.refinement, self.refinement**2

@@ -32,6 +32,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..nets import ConvResNet
+from ..precision import float64_scope
 from ..steppers import Repeated, single_precision, stack_solvers
 from .time_stepper import TimeStepperProblem, solver_rollout
 
@@ -80,7 +81,11 @@ class KuramotoSivashinsky(TimeStepperProblem):
         return Repeated(ks_stepper(factor, self.n, self.dt, 2), self.substeps)
 
     def solvers(self):
-        return stack_solvers([single_precision(Repeated(ks_stepper(f, self.n, self.dt, 1), self.substeps)) for f in self.factors])
+        # Built in float64 and rounded to float32 (as when x64 was global): the same
+        # solver arrays whether or not the caller enabled x64.
+        with float64_scope():
+            steppers = [Repeated(ks_stepper(f, self.n, self.dt, 1), self.substeps) for f in self.factors]
+            return stack_solvers([single_precision(s) for s in steppers])
 
     def initial_condition(self, key, factor: float):
         """A random perturbation of the first four cosine modes (amplitude ≤ 1)."""
@@ -102,6 +107,10 @@ class KuramotoSivashinsky(TimeStepperProblem):
         return np.concatenate(out).astype(np.float32)
 
     def generate(self, split):
+        with float64_scope():  # the reference runs in float64 whatever the caller's x64 setting
+            return self._generate(split)
+
+    def _generate(self, split):
         if split == "train":
             frames = max(int(self.frames * self.dataset_fraction), self.m + 1)
             factors, n_per, seed = TRAIN_FACTORS, self.n_ics, 0

@@ -26,7 +26,8 @@ import jax
 
 from ..integrators import integrate, rk4_step
 from ..nets import MLP
-from .base import AbstractProblem, uniform
+from ..precision import require_float64
+from .base import AbstractProblem
 
 
 class Oscillators(AbstractProblem):
@@ -64,6 +65,11 @@ class Oscillators(AbstractProblem):
     default_methods: ClassVar[tuple[str, ...]] = ("adam", "gn", "hig", "sgd", "rmsprop", "adagrad", "adadelta")
 
     @property
+    def needs_float64(self) -> bool:
+        """``dtype=float64`` runs the whole problem in double precision (engine scopes x64)."""
+        return jnp.dtype(self.dtype) == jnp.float64
+
+    @property
     def state_size(self) -> int:
         return 2 * self.n_oscillators
 
@@ -83,11 +89,15 @@ class Oscillators(AbstractProblem):
         return jnp.concatenate([p, force])
 
     def make_data(self, key):
+        if self.needs_float64:
+            require_float64(f"{self.name} with dtype={self.dtype}")
         k_train, k_test = jax.random.split(key)
-        draw = lambda k, n: {"x0": uniform(k, (n, self.state_size), self.dtype)}  # noqa: E731
+        draw = lambda k, n: {"x0": jax.random.uniform(k, (n, self.state_size), jnp.dtype(self.dtype))}  # noqa: E731
         return {"train": draw(k_train, self.n_train), "test": draw(k_test, self.n_test)}
 
     def make_network(self, key):
+        if self.needs_float64:
+            require_float64(f"{self.name} with dtype={self.dtype}")
         sizes = (self.state_size, self.hidden, self.hidden, self.hidden, self.n_steps)
         return MLP(sizes, self.activation, key=key, dtype=jnp.dtype(self.dtype))
 

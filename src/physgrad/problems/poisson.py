@@ -36,6 +36,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..nets import UNet
+from ..precision import require_float64
 from .base import AbstractProblem
 from .poisson_hig import laplace_zero_boundary, phiflow_noise
 
@@ -84,7 +85,14 @@ class Poisson(AbstractProblem):
     }
     default_methods: ClassVar[tuple[str, ...]] = ("adam", "sip")
 
+    @property
+    def needs_float64(self) -> bool:
+        """``dtype=float64`` runs the whole problem in double precision (engine scopes x64)."""
+        return jnp.dtype(self.dtype) == jnp.float64
+
     def make_data(self, key):
+        if self.needs_float64:
+            require_float64(f"{self.name} with dtype={self.dtype}")
         def draw(k, n):
             x_gt = phiflow_noise(k, (n, self.resolution, self.resolution), scale=self.noise_scale,
                                  smoothness=self.noise_smoothness, dtype=jnp.dtype(self.dtype))  # fmt: skip
@@ -94,6 +102,8 @@ class Poisson(AbstractProblem):
         return {"train": draw(k_train, self.n_train), "test": draw(k_test, self.n_test)}
 
     def make_network(self, key):
+        if self.needs_float64:
+            require_float64(f"{self.name} with dtype={self.dtype}")
         return UNet(1, 1, levels=self.levels, filters=self.filters, key=key, dtype=jnp.dtype(self.dtype))
 
     def network_output(self, network, sample):

@@ -32,6 +32,7 @@ import jax
 import jax.numpy as jnp
 
 from ..nets import MLP
+from ..precision import float64_scope, require_float64
 from .base import AbstractProblem
 
 
@@ -47,18 +48,21 @@ def phiflow_noise(key, shape: tuple[int, int], *, scale: float = 10.0, smoothnes
     Fourier coefficients ``(a + i b) · |k|^(−2·smoothness)`` with ``a, b ~ N(0, 1)`` and
     ``k = scale · fftfreq(n)`` per axis (only |k|² > 0.1 kept: the mean mode is removed);
     real part of the inverse FFT, divided by its std, then made zero-mean, per sample.
+    Drawn and transformed in float64, scoped, then cast to ``dtype``: the fields do not
+    depend on the caller's x64 setting.
     """
-    b, nx, ny = shape
-    k_re, k_im = jax.random.split(key)
-    coeffs = jax.random.normal(k_re, shape) + 1j * jax.random.normal(k_im, shape)
-    kx = scale * jnp.fft.fftfreq(nx)[:, None]
-    ky = scale * jnp.fft.fftfreq(ny)[None, :]
-    k2 = kx**2 + ky**2
-    weight = jnp.where(k2 > 0.1, 1.0 / jnp.where(k2 > 0.1, k2, 1.0), 0.0) ** smoothness
-    field = jnp.real(jnp.fft.ifft2(coeffs * weight))
-    field = field / jnp.std(field, axis=(1, 2), keepdims=True)
-    field = field - jnp.mean(field, axis=(1, 2), keepdims=True)
-    return field.astype(dtype)
+    with float64_scope():
+        b, nx, ny = shape
+        k_re, k_im = jax.random.split(key)
+        coeffs = jax.random.normal(k_re, shape, jnp.float64) + 1j * jax.random.normal(k_im, shape, jnp.float64)
+        kx = scale * jnp.fft.fftfreq(nx)[:, None]
+        ky = scale * jnp.fft.fftfreq(ny)[None, :]
+        k2 = kx**2 + ky**2
+        weight = jnp.where(k2 > 0.1, 1.0 / jnp.where(k2 > 0.1, k2, 1.0), 0.0) ** smoothness
+        field = jnp.real(jnp.fft.ifft2(coeffs * weight))
+        field = field / jnp.std(field, axis=(1, 2), keepdims=True)
+        field = field - jnp.mean(field, axis=(1, 2), keepdims=True)
+        return field.astype(dtype)
 
 
 class PoissonHig(AbstractProblem):
@@ -85,10 +89,17 @@ class PoissonHig(AbstractProblem):
     default_methods: ClassVar[tuple[str, ...]] = ("adam", "hig", "adam:1413,hig")
 
     @property
+    def needs_float64(self) -> bool:
+        """``dtype=float64`` runs the whole problem in double precision (engine scopes x64)."""
+        return jnp.dtype(self.dtype) == jnp.float64
+
+    @property
     def size(self) -> int:
         return self.resolution**2
 
     def make_data(self, key):
+        if self.needs_float64:
+            require_float64(f"{self.name} with dtype={self.dtype}")
         def draw(k, n):
             x_gt = phiflow_noise(
                 k, (n, self.resolution, self.resolution), scale=self.noise_scale,
@@ -100,6 +111,8 @@ class PoissonHig(AbstractProblem):
         return {"train": draw(k_train, self.n_train), "test": draw(k_test, self.n_test)}
 
     def make_network(self, key):
+        if self.needs_float64:
+            require_float64(f"{self.name} with dtype={self.dtype}")
         return MLP((self.size, 64, 128, 64, self.size), "tanh", key=key, dtype=jnp.dtype(self.dtype))
 
     def network_output(self, network, sample):

@@ -35,7 +35,6 @@ import jax
 import jax.numpy as jnp
 
 from ..nets import Dense
-from .base import uniform
 from .closed_loop import ClosedLoopProblem
 from .quantum_dipole import QuantumDipole
 
@@ -112,7 +111,7 @@ class QuantumControl(ClosedLoopProblem):
     def initial_states(self, key, n):
         kc, ka = jax.random.split(key)
         c = jax.random.normal(kc, (n, 2), jnp.float32)
-        alpha = uniform(ka, (n, 2), jnp.float32, 0, 2 * math.pi)
+        alpha = jax.random.uniform(ka, (n, 2), jnp.float32, 0, 2 * math.pi)
         phi = jnp.stack([self.box.eigenstate(1), self.box.eigenstate(2)])  # (2, nx)
         coeff = (c * jnp.exp(1j * alpha)).astype(jnp.complex64)
         psi = coeff @ phi.astype(jnp.complex64)

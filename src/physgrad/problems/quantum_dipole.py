@@ -38,6 +38,7 @@ import jax
 import jax.numpy as jnp
 
 from ..nets import MLP
+from ..precision import require_float64
 from .base import AbstractProblem
 
 
@@ -67,6 +68,11 @@ class QuantumDipole(AbstractProblem):
         "gn": {"lr": 0.5, "batch_size": 16, "truncation": 1e-5},
     }
     default_methods: ClassVar[tuple[str, ...]] = ("adam", "hig")
+
+    @property
+    def needs_float64(self) -> bool:
+        """``dtype=float64`` runs the whole problem in double precision (engine scopes x64)."""
+        return jnp.dtype(self.dtype) == jnp.float64
 
     def __check_init__(self):
         if self.n_grid < 4:
@@ -117,6 +123,8 @@ class QuantumDipole(AbstractProblem):
         return solved[:, 0]
 
     def make_data(self, key):
+        if self.needs_float64:
+            require_float64(f"{self.name} with dtype={self.dtype}")
         psi2, psi3 = self.eigenstate(2), self.eigenstate(3)
 
         def draw(k, n):
@@ -130,6 +138,8 @@ class QuantumDipole(AbstractProblem):
         return {"train": draw(k_train, self.n_train), "test": draw(k_test, self.n_test)}
 
     def make_network(self, key):
+        if self.needs_float64:
+            require_float64(f"{self.name} with dtype={self.dtype}")
         sizes = (2 * self.n_interior, self.hidden, self.hidden, self.hidden, self.n_steps)
         return MLP(sizes, "tanh", key=key, dtype=jnp.dtype(self.dtype))
 

@@ -29,7 +29,7 @@ import jax
 import jax.numpy as jnp
 
 from ..nets import MLP
-from .base import AbstractProblem, uniform
+from .base import AbstractProblem
 
 
 class Sine(AbstractProblem):
@@ -64,7 +64,7 @@ class Sine(AbstractProblem):
 
     def make_data(self, key):
         k_train, k_test = jax.random.split(key)
-        draw = lambda k, n: {"y": uniform(k, (n, 2), jnp.float32, -1.0, 1.0)}  # noqa: E731
+        draw = lambda k, n: {"y": jax.random.uniform(k, (n, 2), jnp.float32, -1.0, 1.0)}  # noqa: E731
         return {"train": draw(k_train, self.n_train), "test": draw(k_test, self.n_test)}
 
     def make_network(self, key):

@@ -25,6 +25,7 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array
 
+from ..precision import require_float64
 from .base import AbstractProblem
 
 
@@ -50,11 +51,18 @@ class Toy2d(AbstractProblem):
     }
     default_methods: ClassVar[tuple[str, ...]] = ("sgd", "newton", "sip")
 
+    @property
+    def needs_float64(self) -> bool:
+        """x and y are float64 (the book's NumPy toy): train under x64."""
+        return True
+
     def make_data(self, key):
+        require_float64(self.name)  # else JAX would silently make the float64 arrays float32
         split = {"y_target": jnp.zeros((1, 2), jnp.float64)}
         return {"train": split, "test": split}
 
     def make_network(self, key):
+        require_float64(self.name)
         return FreeVector(jnp.asarray(self.start, jnp.float64))
 
     def initial_guess(self, sample):
