@@ -5,7 +5,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-import physgrad  # noqa: F401  (x64 on)
+import physgrad  # noqa: F401
 from physgrad.rollout import M, N, R, S, closed_loop, cosine, joint_gradients, rollout, sign_mask, value_and_grad
 
 F32 = jnp.float32

@@ -581,7 +581,7 @@ def fit(
     same_run = same_run or (lambda old: {**old, "budget": None} == {**json.loads(json.dumps(record, default=str)), "budget": None})
     run_dir = Path(out)
     identity = {"problem": problem.name, "method": name or ",".join(_name(p) for p in phases), "seed": seed}
-    float64 = getattr(problem, "needs_float64", False)
+    float64 = problem.needs_float64
     with jax.enable_x64(True) if float64 else contextlib.nullcontext():
         return _run(problem, phases, seed, budget, settings, run_dir, resume, progress or NoProgressMeter(),
                     Placement(devices), record, same_run, label or run_dir.name, identity)  # fmt: skip

@@ -1,7 +1,7 @@
 """Neural time-steppers: prediction and correction compositions of a solver and a network.
 
 List, Chen, Bali & Thuerey, "Differentiability in unrolled training of neural physics
-simulators on transient dynamics", CMAME 2025 (shared/papers/unrolling.md §1.3, §5.2).
+simulators on transient dynamics", CMAME 2025.
 One step u ↦ u⁺ of a stepper, with P the (coarse) numerical solver and f_θ the network:
 
 ================  ==============================  =======================================

@@ -3,7 +3,7 @@
     x̃ = argmin_x ½‖P(x) − y_t‖²   by optimistix's L-BFGS from x₀ = x (the current prediction),
 
 so the iterate stays in the basin of the solution closest to the prediction (the "numerical
-local inverse" of the PBDL book's 2D toy and the SIP heat v1 variant, sip.md §2.1, §4).
+local inverse" of the PBDL book's 2D toy and the SIP heat v1 variant).
 Stops when optimistix's Cauchy criterion holds with ``rtol = atol = tol`` or after
 ``max_steps``; converged = optimistix reported success (not out of steps) and x̃ finite.
 Needs a differentiable P (gradients in x only). Runs in float64 whatever the prediction's

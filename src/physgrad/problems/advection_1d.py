@@ -1,4 +1,4 @@
-"""1D periodic advection: learn a 2-tap stencil (trainax's quick-start, unrolling.md §2.1, §6).
+"""1D periodic advection: learn a 2-tap stencil (trainax's quick-start).
 
     u_t + c u_x = 0 on [0, 1),  N = 30,  CFL = c Δt/Δx = −0.75,  Δt = 1,
 
@@ -15,7 +15,7 @@ Correction setup: the coarse solver is **implicit** first-order upwind,
 
 solved by ``iterations`` Jacobi sweeps from u⁺ = u (contraction |C|/(1+|C|) ≈ 0.43 per
 sweep): an iterative solver whose inner iteration count a PRDP schedule can refine
-(Bhatia et al., ICLR 2025; unrolling.md §3). It is differentiable (the sweeps are unrolled).
+(Bhatia et al., ICLR 2025). It is differentiable (the sweeps are unrolled).
 """
 
 from __future__ import annotations
@@ -56,7 +56,7 @@ def fou_distance(network, cfl: float = -0.75) -> float:
 class Advection1d(TimeStepperProblem):
     name: ClassVar[str] = "advection_1d"
     description: ClassVar[str] = "1D advection at CFL -0.75: a 2-tap linear stencil (trainax quick-start), PRDP smoke test"
-    source: ClassVar[str] = "trainax README; List et al. 2025; Bhatia et al. ICLR 2025 (unrolling.md §2.1, §3)"
+    source: ClassVar[str] = "trainax README; List et al. 2025; Bhatia et al. ICLR 2025"
     method_defaults: ClassVar[dict] = {name: {"lr": 1e-2, "batch_size": 32} for name in ("one", "nog", "wig", "adam")}
     default_eval_samples: ClassVar[int] = 0
 

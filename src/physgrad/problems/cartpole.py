@@ -1,7 +1,6 @@
 """Cart-pole swing-up with several poles on one cart (stabilised BPTT's first task).
 
-Source: Schnell & Thuerey, ICLR 2024, cart-pole; the authors' ``CartPole/`` code
-(shared/papers/stablebptt.md §2.3). One unbounded force F (the network output) drives a
+Source: Schnell & Thuerey, ICLR 2024, cart-pole; the authors' ``CartPole/`` code. One unbounded force F (the network output) drives a
 cart carrying ``poles`` poles. With g = 9.8, pole mass m = 0.1, "total mass" M = 1.1 (kept
 for any number of poles, as in the code) and half-length l = 0.5, per pole i:
 
@@ -52,7 +51,7 @@ class CartPole(ClosedLoopProblem):
         "StableBPTT: swing up 1-4 poles (setting poles) on one cart with one unbounded force, "
         "semi-implicit Euler 0.01 x 100, final loss 1 - cos(theta)"
     )
-    source: ClassVar[str] = "Schnell & Thuerey, ICLR 2024, cart-pole; stablebptt.md §2.3"
+    source: ClassVar[str] = "Schnell & Thuerey, ICLR 2024, cart-pole"
 
     def __check_init__(self):
         if self.poles < 1:

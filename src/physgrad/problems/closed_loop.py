@@ -3,7 +3,7 @@
     s_{k+1} = physics(s_k, c_k),   c_k = control(network, s_k),   k = 0 … m−1,
     L = Σ_k w_k ℓ(s_{k+1}, c_k, k)
 
-(shared/design.md, "closed-loop and time-stepper problems"; shared/papers/stablebptt.md §1.1).
+(the closed-loop data flow of physgrad's rollout engine).
 A sample is an initial state s_0. The rollout methods (``bptt``, ``sbptt_m``, ``sbptt_c``,
 ``no_temporal``) train through :meth:`ClosedLoopProblem.system`; every other method sees
 the problem through the open-loop contract as well:
@@ -123,6 +123,6 @@ class ClosedLoopProblem(AbstractProblem):
 
 def zero_last_kernel(network):
     """The network with its last Dense kernel set to 0, so its initial output is 0 (the
-    authors' ``--zero`` flag, on by accident of ``argparse type=bool``: stablebptt.md §2.6.1)."""
+    authors' ``--zero`` flag, on by accident of ``argparse type=bool``)."""
     last = network.layers[-1]
     return eqx.tree_at(lambda n: n.layers[-1].weight, network, jnp.zeros_like(last.weight))

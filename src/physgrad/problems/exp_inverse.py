@@ -1,6 +1,6 @@
 """Learn to invert the exponential: the SIP paper's Fig. 2.
 
-Source: Holl, Koltun, Thuerey, NeurIPS 2022, Fig. 2; ``exp/train_exp.py`` (sip.md §2.3).
+Source: Holl, Koltun, Thuerey, NeurIPS 2022, Fig. 2; ``exp/train_exp.py``.
 
 x* ~ U[−12, 0], y* = e^{x*}; the network f(y*; θ) → x (dense 1-16-64-16-1, sigmoid,
 2,209 parameters) is trained through P(x) = e^x with L = ½ (e^x − y*)². Back-propagated
@@ -38,7 +38,7 @@ class ExpInverse(AbstractProblem):
 
     name: ClassVar[str] = "exp_inverse"
     description: ClassVar[str] = "SIP paper Fig. 2: learn x from y = exp(x), x* ~ U[-12, 0], sigmoid 16-64-16 network"
-    source: ClassVar[str] = "Holl et al., NeurIPS 2022, Fig. 2; sip.md §2.3"
+    source: ClassVar[str] = "Holl et al., NeurIPS 2022, Fig. 2"
     default_batch_size: ClassVar[int] = 100
     method_defaults: ClassVar[dict] = {
         "sgd": {"lr": 1.0},

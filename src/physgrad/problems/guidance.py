@@ -1,7 +1,7 @@
 """Guidance by repulsion (herding): 2 drivers steer 4 evaders to the origin.
 
 Source: Schnell & Thuerey, ICLR 2024, guidance by repulsion; the authors'
-``GuidanceByRepulsion/`` code (shared/papers/stablebptt.md §2.2). The physics is reproduced
+``GuidanceByRepulsion/`` code. The physics is reproduced
 as coded, quirks included (§2.6.3), each marked below.
 
 State (6, 2, 2) = (agent, position/velocity, xy): drivers 0–1, then evaders 2–5. With
@@ -75,7 +75,7 @@ class Guidance(ClosedLoopProblem):
         "StableBPTT: 2 drivers herd 4 evaders by repulsion, explicit Euler 4/60 x 60, "
         "loss mean |x_e|^2 + rc mean c^2 (setting rc)"
     )
-    source: ClassVar[str] = "Schnell & Thuerey, ICLR 2024, guidance by repulsion; stablebptt.md §2.2"
+    source: ClassVar[str] = "Schnell & Thuerey, ICLR 2024, guidance by repulsion"
 
     def __check_init__(self):
         if self.drivers < 1 or self.evaders < 1:

@@ -1,7 +1,7 @@
 """The SIP paper's heat equation: recover sharp initial heat from its diffused state.
 
 Source: Holl, Koltun, Thuerey, NeurIPS 2022, Fig. 6c,d; ``heat/train_heat.py`` and
-``heat/inv_diffuse.py``; PBDL book ``physgrad-code.ipynb`` (sip.md §3.2).
+``heat/inv_diffuse.py``; PBDL book ``physgrad-code.ipynb``.
 
 Forward physics (float64, as the authors' ``set_global_precision(64)``; the problem declares
 ``needs_float64``, so the engine trains it under ``jax.enable_x64(True)``): exact periodic
@@ -116,7 +116,7 @@ class Heat(AbstractProblem):
 
     name: ClassVar[str] = "heat"
     description: ClassVar[str] = "SIP paper: recover box-shaped heat from its 64x64 periodic diffusion (nu t = 8), U-Net"
-    source: ClassVar[str] = "Holl et al., NeurIPS 2022, Fig. 6c,d; sip.md §3.2"
+    source: ClassVar[str] = "Holl et al., NeurIPS 2022, Fig. 6c,d"
     default_batch_size: ClassVar[int] = 128
     method_defaults: ClassVar[dict] = {
         "adam": {"lr": 1e-3},

@@ -1,7 +1,7 @@
 """The HIG paper's toy example: a two-output regression with one output scaled by λ.
 
 Source: Schnell, Holl, Thuerey, ICLR 2022, toy example; PBDL book, "Half-inverse
-gradients" (figures ``physgrad-hig-toy-example-{good,bad}``); hig.md §2.4.
+gradients" (figures ``physgrad-hig-toy-example-{good,bad}``).
 
 Network f: x ∈ [−1, 1] → (y₁, y₂), one hidden layer of 7 tanh units (glorot-uniform,
 zero biases; 30 parameters). The "physics" scales the second output,
@@ -41,7 +41,7 @@ class HigToy(AbstractProblem):
 
     name: ClassVar[str] = "hig_toy"
     description: ClassVar[str] = "HIG paper toy: fit (sin 6x, cos 9x) through P(y) = (y1, lam*y2), 7 tanh units"
-    source: ClassVar[str] = "Schnell, Holl, Thuerey, ICLR 2022, toy example; hig.md §2.4"
+    source: ClassVar[str] = "Schnell, Holl, Thuerey, ICLR 2022, toy example"
     default_batch_size: ClassVar[int] = 256
     method_defaults: ClassVar[dict] = {
         "adam": {"lr": 1e-3},

@@ -1,6 +1,6 @@
 """2D Kolmogorov flow: a conv ResNet corrects a coarse spectral solver against a 4× finer one.
 
-List et al., CMAME 2025, §1.4B of shared/papers/unrolling.md (their KOLM: PISO on 32², a
+List et al., CMAME 2025, the Kolmogorov-flow experiment (their KOLM: PISO on 32², a
 128² reference, Re ∈ {300, 400, 500, 700, 800, 900} for training, 600 and 1000 for testing,
 Re/1000 as an input channel, sequential-with-bypass correction, Δt = 0.02 per network step).
 Here in vorticity form with exponax ``KolmogorovFlowVorticity`` on [0, 2π)²:
@@ -41,7 +41,7 @@ TEST_RE = (600, 1000)
 class Kolmogorov(TimeStepperProblem):
     name: ClassVar[str] = "kolmogorov"
     description: ClassVar[str] = "2D Kolmogorov flow (vorticity): coarse ETDRK2 + conv ResNet vs a 4x finer reference, Re as input"
-    source: ClassVar[str] = "List et al., CMAME 2025 (unrolling.md §1.4B)"
+    source: ClassVar[str] = "List et al., CMAME 2025"
     method_defaults: ClassVar[dict] = {name: {"lr": 1e-4, "batch_size": 8} for name in ("one", "nog", "wig", "adam")}
     default_composition: ClassVar[str] = "bypass"
     default_eval_samples: ClassVar[int] = 64

@@ -1,6 +1,6 @@
 """Kuramoto–Sivashinsky: a neural time-stepper corrects (or replaces) a first-order solver.
 
-List, Chen, Bali & Thuerey, CMAME 2025, §1.4A of shared/papers/unrolling.md:
+List, Chen, Bali & Thuerey, CMAME 2025, the Kuramoto–Sivashinsky experiment:
 
     u_t + ½ ∂ₓ(u²) + u_xx + u_xxxx = 0,   periodic on [0, L),  L = 2π · 8 · f,
 
@@ -52,7 +52,7 @@ def ks_stepper(factor: float, n: int, dt: float, order: int):
 class KuramotoSivashinsky(TimeStepperProblem):
     name: ClassVar[str] = "ks"
     description: ClassVar[str] = "Kuramoto-Sivashinsky N=48: ETD1 + conv ResNet vs ETRK2 reference, domain size as input"
-    source: ClassVar[str] = "List et al., CMAME 2025 (unrolling.md §1.4A)"
+    source: ClassVar[str] = "List et al., CMAME 2025"
     # Adam 1e-4 with ExponentialLR γ = 0.9 every 2000 iterations, batch 16 (the KS code)
     method_defaults: ClassVar[dict] = {
         name: {"lr": 1e-4, "decay": 0.9, "decay_every": 2000} for name in ("one", "nog", "wig")

@@ -1,7 +1,7 @@
 """The PBDL book's linear oscillator chain: the HIG chapter's worked example.
 
 Source: Thuerey et al., *Physics-based Deep Learning*, "Coupled Oscillators with
-Half-Inverse Gradients" (``physgrad-hig-code.ipynb``); hig.md §5.
+Half-Inverse Gradients" (``physgrad-hig-code.ipynb``).
 
 The same controlled chain as :mod:`physgrad.problems.oscillators`, but linear:
 
@@ -14,7 +14,7 @@ task on x₀ ~ U[0,1)⁴; network 4 → 20 → 20 → 20 → 24 with tanh (1,444
 Σ‖y − y*‖² per sample. The book trains on 4,096 samples only; physgrad adds a 4,096-sample
 test set drawn the same way. Book settings: Adam lr 1e-3 batch 256; HIG η 1, batch 32,
 truncation 1e-10; SIP: Adam lr 1e-3 batch 256 on the Gauss–Newton local inverse
-``pinv(J, rcond=1e-5)`` (sip.md §5); budget 100 s. The book's SIP takes the y-step from its
+``pinv(J, rcond=1e-5)``; budget 100 s. The book's SIP takes the y-step from its
 summed-over-batch loss (η ≈ 2/B); physgrad uses the paper's η = 1 (Adam normalises the
 global scale away).
 
@@ -47,7 +47,7 @@ class LinearOscillators(Oscillators):
 
     name: ClassVar[str] = "linear_oscillators"
     description: ClassVar[str] = "PBDL book: 2 linearly coupled oscillators, RK4 0.5 x 24, learn 24 controls to return to start"
-    source: ClassVar[str] = "PBDL book, physgrad-hig-code.ipynb; hig.md §5"
+    source: ClassVar[str] = "PBDL book, physgrad-hig-code.ipynb"
     default_batch_size: ClassVar[int] = 32
     method_defaults: ClassVar[dict] = {
         "adam": {"lr": 1e-3, "batch_size": 256},

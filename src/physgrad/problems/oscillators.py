@@ -1,7 +1,7 @@
 """Nonlinear coupled oscillators: the HIG paper's first benchmark (Fig. 2b).
 
 Source: Schnell, Holl, Thuerey, ICLR 2022, §"Nonlinear oscillators"; the authors' code
-``Nonlinear_oscillators/`` (see shared/papers/hig.md §2.1).
+``Nonlinear_oscillators/``.
 
 State ``s = (q_1..q_n, p_1..p_n)`` (positions first), n oscillators with free ends:
 
@@ -49,10 +49,10 @@ class Oscillators(AbstractProblem):
     description: ClassVar[str] = (
         "HIG paper: 2 cubically coupled oscillators, RK4 0.125 x 96, learn 96 controls to return to start"
     )
-    source: ClassVar[str] = "Schnell, Holl, Thuerey, ICLR 2022, Fig. 2b; hig.md §2.1"
+    source: ClassVar[str] = "Schnell, Holl, Thuerey, ICLR 2022, Fig. 2b"
     default_batch_size: ClassVar[int] = 128
     # The authors' submit_{Adam,GN,HIG}.py. The other optimizers' settings are not in the
-    # released code (hig.md §6): Keras-default learning rates at Adam's batch of 512.
+    # released code: Keras-default learning rates at Adam's batch of 512.
     method_defaults: ClassVar[dict] = {
         "adam": {"lr": 3e-4, "batch_size": 512},
         "gn": {"lr": 1.0, "batch_size": 128, "truncation": 1e-6},

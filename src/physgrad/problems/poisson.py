@@ -1,7 +1,6 @@
 """The SIP paper's Poisson problem: recover x from the solution y of ∇²y = x on 64×64.
 
-Source: Holl, Koltun, Thuerey, NeurIPS 2022, Fig. 6a,b; ``poisson/train_poisson.py``
-(sip.md §3.1).
+Source: Holl, Koltun, Thuerey, NeurIPS 2022, Fig. 6a,b; ``poisson/train_poisson.py``.
 
 Forward physics: y = P(x) solves ∇²y = x with PhiFlow's cell-centred 5-point Laplacian
 (cell size 1, zero values outside the grid). physgrad solves it *exactly* in the sine
@@ -16,7 +15,7 @@ its adjoint (what DP baselines back-propagate) is the same solve. Data: x* = Phi
 filters), input y*, output x. Loss ½‖P(x) − y*‖².
 
 SIP's local inverse is exact (``inverse``): x̃ = x + ∇²(y_t − y) — with η = 1 this is x*,
-so SIP is supervised training with labels made by the inverse (sip.md §1.3). Through the
+so SIP is supervised training with labels made by the inverse. Through the
 solve, DP's gradient P^T(Px − y*) damps an error mode by λ⁻², the "square of the scaling".
 Metrics: ``x_l1`` = Σ|x − x*| per sample (the paper's "MAE"), ``x_mae`` its per-cell mean.
 
@@ -76,7 +75,7 @@ class Poisson(AbstractProblem):
 
     name: ClassVar[str] = "poisson"
     description: ClassVar[str] = "SIP paper: recover x from the solution of laplace(y) = x on 64x64 (zero padding), U-Net"
-    source: ClassVar[str] = "Holl et al., NeurIPS 2022, Fig. 6a,b; sip.md §3.1"
+    source: ClassVar[str] = "Holl et al., NeurIPS 2022, Fig. 6a,b"
     default_batch_size: ClassVar[int] = 128
     method_defaults: ClassVar[dict] = {
         "adam": {"lr": 1e-3},

@@ -1,7 +1,7 @@
 """The HIG paper's inverse Poisson problem on an 8×8 grid.
 
 Source: Schnell, Holl, Thuerey, ICLR 2022, Poisson problem; the authors'
-``Poisson_problem/submit_Poisson.py`` (PhiFlow 2.1 + TensorFlow; hig.md §2.3).
+``Poisson_problem/submit_Poisson.py`` (PhiFlow 2.1 + TensorFlow).
 
 Given a right-hand side y* (8×8), find x with ∇²x = y*. The forward operator is PhiFlow's
 ``field.laplace`` on a cell-centred 8×8 grid with cell size 1 and zero extrapolation:
@@ -77,7 +77,7 @@ class PoissonHig(AbstractProblem):
 
     name: ClassVar[str] = "poisson_hig"
     description: ClassVar[str] = "HIG paper: invert the 8x8 zero-boundary Laplacian, tanh 64-128-64 network"
-    source: ClassVar[str] = "Schnell, Holl, Thuerey, ICLR 2022, Poisson problem; hig.md §2.3"
+    source: ClassVar[str] = "Schnell, Holl, Thuerey, ICLR 2022, Poisson problem"
     default_batch_size: ClassVar[int] = 64
     method_defaults: ClassVar[dict] = {
         "adam": {"lr": 3e-4, "batch_size": 64},

@@ -1,7 +1,7 @@
 """Closed-loop quantum control: steer a particle in a box to an excited eigenstate.
 
 Source: Schnell & Thuerey, ICLR 2024, quantum control; the authors' ``QuantumControl/``
-code (shared/papers/stablebptt.md §2.4). The 1-D Schrödinger equation (ħ = 1, m = ½)
+code. The 1-D Schrödinger equation (ħ = 1, m = ½)
 
     i ∂ψ/∂t = −∂²ψ/∂x² + u(t) x ψ,     x ∈ (0, 2),  ψ(0) = ψ(2) = 0,
 
@@ -97,7 +97,7 @@ class QuantumControl(ClosedLoopProblem):
         "StableBPTT: closed-loop CNN control of the 1-D Schroedinger equation, Crank-Nicolson Nx 32, "
         "0.0625 x 128, to eigenstate 3-5 (setting eigenstate), summed infidelity"
     )
-    source: ClassVar[str] = "Schnell & Thuerey, ICLR 2024, quantum control; stablebptt.md §2.4"
+    source: ClassVar[str] = "Schnell & Thuerey, ICLR 2024, quantum control"
 
     def __check_init__(self):
         if not 1 <= self.eigenstate <= self.nx:

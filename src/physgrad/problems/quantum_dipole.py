@@ -1,7 +1,7 @@
 """Quantum dipole control: the HIG paper's Schrödinger benchmark.
 
 Source: Schnell, Holl, Thuerey, ICLR 2022, quantum dipole; the authors' code
-``Quantum_dipole/`` (see shared/papers/hig.md §2.2).
+``Quantum_dipole/``.
 
 A particle in a box, driven by a dipole field u(t) (ħ = 1, m = ½):
 
@@ -59,7 +59,7 @@ class QuantumDipole(AbstractProblem):
         "HIG paper: 1-D Schroedinger equation, Crank-Nicolson 0.05 x 384, learn 384 dipole controls "
         "from the ground state to a target state"
     )
-    source: ClassVar[str] = "Schnell, Holl, Thuerey, ICLR 2022, quantum dipole; hig.md §2.2"
+    source: ClassVar[str] = "Schnell, Holl, Thuerey, ICLR 2022, quantum dipole"
     default_batch_size: ClassVar[int] = 16
     # The authors' submit_{Adam,HIG}.py; there is no GN script for this problem.
     method_defaults: ClassVar[dict] = {

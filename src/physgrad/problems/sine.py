@@ -1,7 +1,6 @@
 """The SIP paper's characterisation problem: a rotated, ill-conditioned sine.
 
-Source: Holl, Koltun, Thuerey, NeurIPS 2022, Fig. 5; ``sin_characterization/train_sin.py``
-(sip.md §2.4); the code's definition, which differs slightly from the book's formula.
+Source: Holl, Koltun, Thuerey, NeurIPS 2022, Fig. 5; ``sin_characterization/train_sin.py``; the code's definition, which differs slightly from the book's formula.
 
     x̂ = (γ/ξ, γ ξ) ⊙ R_φ x,     P(x) = (sin x̂₁, x̂₂),     L = ½ ‖P(x) − y*‖²,
 
@@ -43,7 +42,7 @@ class Sine(AbstractProblem):
 
     name: ClassVar[str] = "sine"
     description: ClassVar[str] = "SIP paper Fig. 5: invert the rotated ill-conditioned sine (settings xi, phi), relu 32-64-32"
-    source: ClassVar[str] = "Holl et al., NeurIPS 2022, Fig. 5; sip.md §2.4"
+    source: ClassVar[str] = "Holl et al., NeurIPS 2022, Fig. 5"
     default_batch_size: ClassVar[int] = 100
     method_defaults: ClassVar[dict] = {
         "adam": {"lr": 1e-3},

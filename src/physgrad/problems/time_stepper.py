@@ -1,6 +1,6 @@
 """Neural time-stepper problems: learn u^{k+1} = S_θ(u^k) from reference trajectories.
 
-List, Chen, Bali & Thuerey, CMAME 2025 (shared/papers/unrolling.md §1.2–1.5). A training
+List, Chen, Bali & Thuerey, CMAME 2025. A training
 sample is a window of m+1 reference frames ũ⁰…ũᵐ with its conditioning value; the stepper
 S_θ (:mod:`physgrad.steppers`: prediction, or a correction of a coarse solver) is rolled
 out from ũ⁰ and scored by

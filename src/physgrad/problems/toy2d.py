@@ -1,6 +1,6 @@
 """The PBDL book's 2D toy: y = (x₀, x₁²), L = |y|², started at x = (3, 3).
 
-Source: PBDL book ``physgrad-comparison.ipynb``; SIP paper Fig. 1; sip.md §2.1–§2.2.
+Source: PBDL book ``physgrad-comparison.ipynb``; SIP paper Fig. 1.
 
 The problem optimises x itself (no network): the "network" is the free vector x, started
 at (3, 3), and the single sample's target is y* = (0, 0). At the start y = (3, 9), L = 90,
@@ -42,7 +42,7 @@ class Toy2d(AbstractProblem):
 
     name: ClassVar[str] = "toy2d"
     description: ClassVar[str] = "PBDL book 2D toy: y = (x0, x1^2), L = |y|^2 from (3, 3), x optimised directly"
-    source: ClassVar[str] = "PBDL book physgrad-comparison.ipynb; sip.md §2.1"
+    source: ClassVar[str] = "PBDL book physgrad-comparison.ipynb"
     default_batch_size: ClassVar[int] = 1
     method_defaults: ClassVar[dict] = {
         "sgd": {"lr": 0.01},
