@@ -28,7 +28,6 @@ budgets compare update rules, not tracing.
 
 from __future__ import annotations
 
-import contextlib
 import csv
 import dataclasses
 import json
@@ -51,6 +50,7 @@ from . import prdp as prdp_control
 from .errors import ConfigError
 from .methods import AbstractMethod, Objective
 from .nets import parameter_count
+from .precision import float64_scope
 from .problems import AbstractProblem
 from .progress import AbstractProgressMeter, NoProgressMeter
 
@@ -582,7 +582,7 @@ def fit(
     run_dir = Path(out)
     identity = {"problem": problem.name, "method": name or ",".join(_name(p) for p in phases), "seed": seed}
     float64 = problem.needs_float64
-    with jax.enable_x64(True) if float64 else contextlib.nullcontext():
+    with float64_scope(float64):
         return _run(problem, phases, seed, budget, settings, run_dir, resume, progress or NoProgressMeter(),
                     Placement(devices), record, same_run, label or run_dir.name, identity)  # fmt: skip
 

@@ -23,12 +23,11 @@ the batch; physgrad averages (Adam is invariant to the factor; SGD's lr absorbs 
 
 from __future__ import annotations
 
-import contextlib
-
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 
+from ..precision import float64_scope, to_float64
 from ..inverse import AbstractInverseSolver, Analytic, GaussNewton
 from .base import AbstractRule, Estimator, Objective
 
@@ -101,8 +100,8 @@ class ScaleInvariantPhysics(AbstractRule):
         """(x̃, converged) per sample; failed samples get x̃ = x."""
         solver = self.resolve_solver(objective)
         float64 = self.precision == "float64"
-        with jax.enable_x64(True) if float64 else contextlib.nullcontext():
-            cast = _to_float64 if float64 else (lambda a: a)
+        with float64_scope(float64):
+            cast = to_float64 if float64 else (lambda a: a)
             y_, y_star = cast(y), cast(jax.vmap(objective.target)(batch))
             # (1 − η) y + η y*, not y + η (y* − y): exactly y* at η = 1 even when y* ≪ y.
             y_target = (1 - self.eta) * y_ + self.eta * y_star
@@ -111,14 +110,6 @@ class ScaleInvariantPhysics(AbstractRule):
             x_new = result.x.astype(x.dtype)
         mask = ok.reshape((-1,) + (1,) * (x.ndim - 1))
         return jnp.where(mask, x_new, x), ok
-
-
-def _to_float64(a):
-    if jnp.issubdtype(a.dtype, jnp.floating):
-        return a.astype(jnp.float64)
-    if jnp.issubdtype(a.dtype, jnp.complexfloating):
-        return a.astype(jnp.complex128)
-    return a
 
 
 def sip(
