@@ -164,43 +164,55 @@ def sharded_gram_route(
         return _sharded_gram_route(*inputs, axis, devices, exponent, truncation)
 
 
+def on_device_0(fn, *args, axis: str):
+    """``fn(*args)`` computed on device 0 alone and given to every device by a ``psum``
+    (the others add zeros). Replicating the small eigendecomposition would cost nothing on
+    separate accelerators, but N times the work where devices share cores (forced host
+    devices, several processes on one machine). Call in a float64 scope."""
+    me = jax.lax.axis_index(axis)
+    # Both branches must be typed as varying over the devices: adding a device-varying
+    # zero makes them so whether fn's result already is or not.
+    vary = jax.lax.pcast(jnp.zeros((), jnp.float64), axis, to="varying")
+
+    def zeros(*a):
+        return jnp.zeros(jax.eval_shape(fn, *a).shape, jnp.float64) + vary
+
+    return jax.lax.psum(jax.lax.cond(me == 0, lambda *a: fn(*a) + vary, zeros, *args), axis)
+
+
+def ring_gram(block, cross, rows: int, axis: str, devices: int) -> Array:
+    """The whole Gram matrix ``G`` (m × m, m = devices · rows) from row blocks spread over
+    the devices, never gathering the blocks: each device's ``block`` (any pytree: Jacobian
+    rows, or their factors) travels once around a ring (``ppermute``, devices − 1 hops),
+    device i forms its strip ``G[i, :]`` as ``cross(own, visiting)`` (rows × rows, float64)
+    and the strips are all-gathered. Call inside ``shard_map`` and a float64 scope."""
+    me = jax.lax.axis_index(axis)
+    ring = [(k, (k + 1) % devices) for k in range(devices)]
+    strip = jnp.zeros((rows, rows * devices), jnp.float64)
+    visiting = block
+    for hop in range(devices):  # after `hop` hops this device holds the block of device me − hop
+        owner = (me - hop) % devices
+        strip = jax.lax.dynamic_update_slice_in_dim(strip, cross(block, visiting), owner * rows, axis=1)
+        if hop < devices - 1:
+            visiting = jax.lax.ppermute(visiting, axis, ring)
+    return jax.lax.all_gather(strip, axis, tiled=True)
+
+
 def _sharded_gram_route(jacobian, grad, axis, devices, exponent, truncation):
     """:func:`sharded_gram_route`'s body, run inside its float64 scope."""
     j, g = to_float64((jacobian, grad))
     r, p = j.shape
-    m = r * devices
     me = jax.lax.axis_index(axis)
-
-    def on_device_0(fn, *args):
-        # Device 0 alone runs the eigendecomposition; the result reaches every device by a
-        # psum (the others add zeros). Replicating the eigh would cost nothing on separate
-        # accelerators, but N times the work where devices share cores (forced host
-        # devices, several processes on one machine).
-        # Both branches must be typed as varying over the devices: adding a device-varying
-        # zero makes them so whether fn's result already is or not.
-        vary = jax.lax.pcast(jnp.zeros((), jnp.float64), axis, to="varying")
-
-        def zeros(*a):
-            return jnp.zeros(jax.eval_shape(fn, *a).shape, jnp.float64) + vary
-
-        return jax.lax.psum(jax.lax.cond(me == 0, lambda *a: fn(*a) + vary, zeros, *args), axis)
 
     def direction(gram, vector):  # U Σ^{κ−1} Uᵀ v
         return gram_power(gram, vector, exponent, truncation)
 
-    if m > p:  # tall: the P × P Gram matrix is a sum over devices; V Σ^{κ−1} Vᵀ Jᵀ g
+    if r * devices > p:  # tall: the P × P Gram matrix is a sum over devices; V Σ^{κ−1} Vᵀ Jᵀ g
         gram, jtg = jax.lax.psum(j.T @ j, axis), jax.lax.psum(j.T @ g, axis)
-        return on_device_0(direction, gram, jtg).astype(jacobian.dtype)
-    ring = [(k, (k + 1) % devices) for k in range(devices)]
-    strip = jnp.zeros((r, m), jnp.float64)
-    block = jacobian  # travels in its own dtype (half the bytes of float64 for float32 nets)
-    for hop in range(devices):  # after `hop` hops this device holds the block of device me − hop
-        owner = (me - hop) % devices
-        strip = jax.lax.dynamic_update_slice_in_dim(strip, j @ block.astype(jnp.float64).T, owner * r, axis=1)
-        if hop < devices - 1:
-            block = jax.lax.ppermute(block, axis, ring)
-    gram = jax.lax.all_gather(strip, axis, tiled=True)
+        return on_device_0(direction, gram, jtg, axis=axis).astype(jacobian.dtype)
+    # The visiting blocks travel in their own dtype (half the bytes of float64 for float32 nets).
+    gram = ring_gram(jacobian, lambda _, visiting: j @ visiting.astype(jnp.float64).T, r, axis, devices)
     g_all = jax.lax.all_gather(g, axis, tiled=True)
-    w = on_device_0(direction, gram, g_all)  # w = U Λ^{(κ−1)/2} Uᵀ g
+    w = on_device_0(direction, gram, g_all, axis=axis)  # w = U Λ^{(κ−1)/2} Uᵀ g
     own = jax.lax.dynamic_slice_in_dim(w, me * r, r)
     return jax.lax.psum(j.T @ own, axis).astype(jacobian.dtype)

@@ -69,7 +69,7 @@ def adadelta(*, lr: float = 1.0, rho: float = 0.95, eps: float = 1e-7):
 OPTIMIZERS = {f.__name__: (lambda lr, f=f: f(lr=lr).optimizer) for f in (adam, sgd, rmsprop, adagrad, adadelta)}
 
 # --- Gauss–Newton and HIG ---------------------------------------------------------------
-ROUTES = ("auto", "svd", "gram", "blockgram", "lanczos")
+ROUTES = ("auto", "svd", "gram", "structured", "blockgram", "lanczos")
 
 
 def make_route(name: str, *, blocks: int = 8, lanczos_steps: int = 64) -> routes.AbstractRoute:
@@ -80,6 +80,7 @@ def make_route(name: str, *, blocks: int = 8, lanczos_steps: int = 64) -> routes
         "auto": lambda: routes.Auto(),
         "svd": lambda: routes.SVD(),
         "gram": lambda: routes.Gram(),
+        "structured": lambda: routes.Structured(),
         "blockgram": lambda: routes.BlockGram(blocks),
         "lanczos": lambda: routes.Lanczos(lanczos_steps),
     }[name]()
@@ -88,8 +89,9 @@ def make_route(name: str, *, blocks: int = 8, lanczos_steps: int = 64) -> routes
 def hig(*, lr: float = 1.0, truncation: float = 1e-6, route: str = "auto", blocks: int = 8, lanczos_steps: int = 64):
     """Half-inverse gradients: −η V Σ^{-1/2} Uᵀ g, applied by SGD (Schnell et al. 2022).
 
-    ``route``: ``auto``/``svd``/``gram`` hold J; ``blockgram`` (exact, ``blocks`` sample
-    groups) and ``lanczos`` (approximate, ``lanczos_steps``) never form it."""
+    ``route``: ``svd``/``gram`` hold J; ``structured`` (exact, from each dense layer's
+    factors; ``auto`` picks it for networks with dense layers), ``blockgram`` (exact,
+    ``blocks`` sample groups) and ``lanczos`` (approximate, ``lanczos_steps``) never form it."""
     _check_route_sizes(blocks, lanczos_steps)
     rule = JacobianPower(-0.5, truncation, make_route(route, blocks=blocks, lanczos_steps=lanczos_steps))
     return Method(rule, optax.sgd(lr))

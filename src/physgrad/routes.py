@@ -13,7 +13,15 @@ like lineax's solvers decide how a linear system is solved:
   by pair, so only two groups' rows are ever held (J too large for memory);
 - :class:`Lanczos`: a Krylov approximation from Jacobian–vector products (never forms J;
   accurate only for well-conditioned spectra);
-- :class:`Auto`: :class:`Gram` or :class:`SVD` by the shape of J (the default).
+- :class:`Structured`: the exact Gram matrix from each dense layer's back-propagated
+  signals and inputs (:mod:`physgrad.structured`), explicit rows only for the other
+  parameters: never holds J, and costs ``rows² · (Σ d_out + P_other)`` instead of
+  ``rows² · P``;
+- :class:`Auto`: :class:`Structured` when the network has dense layers and J is wide,
+  else :class:`Gram` or :class:`SVD` by the shape of J (the default).
+
+Every route also estimates the memory of its own large arrays (``footprint``), which the
+training engine checks against the device before the first step.
 
 Every route returns ``(direction, loss, stats)``: the flat direction (P,), the batch-mean
 loss and extra statistics (Lanczos logs ``lanczos_change``).
@@ -29,10 +37,14 @@ import jax
 import jax.numpy as jnp
 from jax.sharding import PartitionSpec
 
+from . import structured
 from .distributed import AXIS, data_axis_size
-from .half_inverse import choose_route, half_inverse, sharded_gram_route
+from .half_inverse import choose_route, gram_power, half_inverse, on_device_0, ring_gram, sharded_gram_route
 from .half_inverse_large import batch_output_map, blockgram_half_inverse, lanczos_half_inverse
-from .jacobian import stacked_jacobian
+from .jacobian import flat_output, stacked_jacobian
+from .precision import float64_scope, to_float64
+
+_F64 = 8  # bytes of a float64
 
 
 class AbstractRoute(eqx.Module):
@@ -44,9 +56,23 @@ class AbstractRoute(eqx.Module):
     def check_batch_size(self, batch_size: int) -> None:
         """Raise ``ValueError`` if the route cannot take batches of this size."""
 
+    def footprint(self, objective, params, batch, devices: int = 1) -> int:
+        """Bytes per device of the route's own large arrays for this (global) batch spread
+        over ``devices`` devices, from shapes alone (nothing is computed); 0 when the
+        route cannot tell."""
+        return 0
+
+    def name(self) -> str:
+        return type(self).__name__.lower()
+
 
 class SVD(AbstractRoute):
     """Thin SVD of the whole J (float32 for float32 networks). Under a mesh XLA gathers J."""
+
+    def footprint(self, objective, params, batch, devices=1):
+        (rows, size), itemsize = _jacobian_shape(objective, params, batch), _itemsize(params)
+        # J, its copy in the factorisation and the thin factors U (rows × k), V (P × k).
+        return (2 * rows * size + min(rows, size) * (rows + size)) * itemsize
 
     def __call__(self, objective, params, batch, exponent, truncation):
         jac, g, loss = jacobian_and_gradient(objective, params, batch)
@@ -68,15 +94,70 @@ class Gram(AbstractRoute):
         direction, loss = jax.shard_map(local, in_specs=(PartitionSpec(), spec), out_specs=PartitionSpec())(params, batch)
         return direction, loss, {}
 
+    def footprint(self, objective, params, batch, devices=1):
+        rows, size = _jacobian_shape(objective, params, batch)
+        # the device's rows of J in its dtype and in float64, plus the Gram-side matrices
+        j = -(-rows // devices) * size * (_itemsize(params) + _F64)
+        return j + _gram_bytes((rows, size), devices)
 
-class Auto(AbstractRoute):
-    """:class:`Gram` when one side of J is at least twice the other, else :class:`SVD`,
-    decided on the shape of the whole J (as on one device)."""
+
+class Structured(AbstractRoute):
+    """The exact Gram matrix ``J Jᵀ`` from layer structure (:mod:`physgrad.structured`).
+
+    Each dense layer contributes ``(D Dᵀ) ⊙ (A Aᵀ)⇑`` from its back-propagated signals D
+    (rows × d_out) and inputs A (samples × d_in); the other parameters contribute their
+    explicit Jacobian rows, ``chunk_elements`` numbers at a time. Products accumulate in
+    float64, the kept eigenpairs are as :class:`Gram`'s and ``Jᵀ w`` comes from the same
+    factors, so the update equals :class:`Gram`'s without ever holding J. A tall J
+    (rows > P) goes to :class:`Gram`. Under a device mesh each device keeps its rows'
+    factors and the ring passes D, A and the explicit rows instead of rows of J."""
+
+    chunk_elements: int = eqx.field(static=True, default=structured.CHUNK_ELEMENTS)
 
     def __call__(self, objective, params, batch, exponent, truncation):
-        shape = jax.eval_shape(lambda p, b: stacked_jacobian(objective.predict, p, b)[0], params, batch).shape
-        route = Gram() if choose_route(shape) == "gram" else SVD()
-        return route(objective, params, batch, exponent, truncation)
+        rows, size = _jacobian_shape(objective, params, batch)
+        if rows > size:
+            return Gram()(objective, params, batch, exponent, truncation)
+        devices = data_axis_size()
+        if devices == 1:
+            return _structured_direction(objective, params, batch, self.chunk_elements, exponent, truncation) + ({},)
+        spec = PartitionSpec(AXIS)
+        local = functools.partial(_sharded_structured, objective, devices=devices, exponent=exponent, truncation=truncation)
+        direction, loss = jax.shard_map(local, in_specs=(PartitionSpec(), spec), out_specs=PartitionSpec())(params, batch)
+        return direction, loss, {}
+
+    def footprint(self, objective, params, batch, devices=1):
+        rows, size = _jacobian_shape(objective, params, batch)
+        if rows > size:
+            return Gram().footprint(objective, params, batch, devices)
+        plan = _structure(objective, params, batch, self.chunk_elements)
+        b = jax.tree.leaves(batch)[0].shape[0]
+        local_rows, local_b = -(-rows // devices), -(-b // devices)
+        per_byte = _itemsize(params) + _F64
+        d_out, d_in = sum(u.d_out for u in plan.dense), sum(u.d_in for u in plan.dense)
+        group = max((sum(plan.leaf_sizes[k] for k in g) for g in plan.groups), default=0)
+        explicit = plan.explicit_parameters if devices > 1 else group
+        return (local_rows * (d_out + explicit) + local_b * d_in) * per_byte + _gram_bytes((rows, size), devices)
+
+
+class Auto(AbstractRoute):
+    """:class:`Structured` when J is wide (rows ≤ P/2) and the network has dense layers;
+    otherwise :class:`Gram` when one side of J is at least twice the other, else
+    :class:`SVD`; decided on the shape of the whole J (as on one device)."""
+
+    def choose(self, objective, params, batch) -> AbstractRoute:
+        rows, size = _jacobian_shape(objective, params, batch)
+        if choose_route((rows, size)) == "svd":
+            return SVD()
+        if rows <= size and _structure(objective, params, batch).dense:
+            return Structured()
+        return Gram()
+
+    def __call__(self, objective, params, batch, exponent, truncation):
+        return self.choose(objective, params, batch)(objective, params, batch, exponent, truncation)
+
+    def footprint(self, objective, params, batch, devices=1):
+        return self.choose(objective, params, batch).footprint(objective, params, batch, devices)
 
 
 class BlockGram(AbstractRoute):
@@ -103,6 +184,11 @@ class BlockGram(AbstractRoute):
         )
         return direction, loss, {}
 
+    def footprint(self, objective, params, batch, devices=1):
+        rows, size = _jacobian_shape(objective, params, batch)
+        two_groups = 2 * -(-rows // self.blocks) * size * (_itemsize(params) + _F64)
+        return two_groups + _gram_bytes((rows, size), 1)
+
 
 class Lanczos(AbstractRoute):
     """``steps`` Lanczos steps on J Jᵀ through JVP/VJP products (approximate; exact at
@@ -120,6 +206,93 @@ class Lanczos(AbstractRoute):
             objective.predict, params, batch, g, steps=self.steps, exponent=exponent, truncation=truncation
         )
         return direction, loss, {"lanczos_change": change}
+
+    def footprint(self, objective, params, batch, devices=1):
+        rows, size = _jacobian_shape(objective, params, batch)
+        return 2 * self.steps * (rows + size) * _F64
+
+
+def _itemsize(params) -> int:
+    leaves = jax.tree.leaves(params)
+    return max((jnp.dtype(x.dtype).itemsize for x in leaves), default=4)
+
+
+def _jacobian_shape(objective, params, batch) -> tuple[int, int]:
+    """(rows, P) of the whole stacked Jacobian, from shapes alone."""
+    sample = jax.tree.map(lambda a: a[0], batch)
+    out = jax.eval_shape(lambda p, s: flat_output(objective.predict(p, s)), params, sample)
+    b = jax.tree.leaves(batch)[0].shape[0]
+    return b * out.size, sum(x.size for x in jax.tree.leaves(params))
+
+
+def _gram_bytes(shape: tuple[int, int], devices: int) -> int:
+    """The float64 Gram matrix (m × m, m = the smaller side), its eigenvectors and
+    ``eigh``'s workspace on every device (the ring all-gathers the whole matrix)."""
+    m = min(shape)
+    return 3 * m * m * _F64
+
+
+def _structure(objective, params, batch, chunk_elements: int = structured.CHUNK_ELEMENTS):
+    sample = jax.tree.map(lambda a: a[0], batch)
+    rows, _ = _jacobian_shape(objective, params, batch)
+    return structured.find_structure(objective.predict, params, sample, rows, chunk_elements)
+
+
+def _assemble(params, pieces: dict, cast: bool = True) -> jax.Array:
+    """The flat direction (P,) in ``ravel_pytree`` order from per-leaf pieces (cast to
+    each leaf's dtype, or kept as they are)."""
+    leaves = jax.tree.leaves(params)
+    return jnp.concatenate([pieces[k].reshape(-1).astype(x.dtype if cast else pieces[k].dtype) for k, x in enumerate(leaves)])
+
+
+def _structured_direction(objective, params, batch, chunk_elements, exponent, truncation):
+    """One device: the Gram matrix group by group, ``w = U Σ^{κ−1} Uᵀ g``, then ``Jᵀ w``."""
+    plan = _structure(objective, params, batch, chunk_elements)
+    block, y = structured.factors(plan, params, batch, groups=(0,))
+    loss, g = loss_and_output_gradient(objective, params, batch, y)
+    whole = len(plan.groups) <= 1  # the first pass holds every explicit row
+    # Constants for differentiation: the float64 scopes below cannot be transposed.
+    block, g = jax.lax.stop_gradient((block, g))
+    with float64_scope():
+        gram = structured.cross_gram(block, block)
+    for group in range(1, len(plan.groups)):
+        rows = jax.lax.stop_gradient(structured.explicit_rows(objective.predict, plan, params, batch, group))
+        with float64_scope():
+            rows = to_float64(rows)
+            gram = gram + rows @ rows.T
+    with float64_scope():
+        w = gram_power(gram, to_float64(g), exponent, truncation)
+        pieces = structured.transpose_product(plan, block, w, plan.groups[0] if whole and plan.groups else ())
+        leaves = jax.tree.leaves(params)
+        pieces = {k: v.astype(leaves[k].dtype) for k, v in pieces.items()}
+        w = w.astype(y.dtype)
+    if not whole:
+        rest = tuple(k for group in plan.groups for k in group)
+        pieces.update(structured.vjp_leaves(objective.predict, plan, jax.lax.stop_gradient(params), batch, w, rest))
+    return _assemble(params, pieces), loss
+
+
+def _sharded_structured(objective, params, batch, *, devices, exponent, truncation):
+    """Data parallel: each device keeps its rows' factors (all explicit rows in one block)
+    and the ring passes them (rows/N × (Σ d_out + P_explicit) + samples/N × Σ d_in numbers
+    per hop instead of rows/N × P)."""
+    params = jax.lax.pcast(params, AXIS, to="varying")  # each device keeps its own rows (see _sharded_direction)
+    plan = _structure(objective, params, batch, chunk_elements=2**62)
+    block, y = structured.factors(plan, params, batch, groups=tuple(range(len(plan.groups))))
+    loss, g = loss_and_output_gradient(objective, params, batch, y, devices)
+    block, g = jax.lax.stop_gradient((block, g))
+    r = g.shape[0]
+    explicit = tuple(k for group in plan.groups for k in group)
+    me = jax.lax.axis_index(AXIS)
+    with float64_scope():
+        gram = ring_gram(block, structured.cross_gram, r, AXIS, devices)
+        g_all = jax.lax.all_gather(to_float64(g), AXIS, tiled=True)
+        w = on_device_0(lambda G, v: gram_power(G, v, exponent, truncation), gram, g_all, axis=AXIS)
+        own = jax.lax.dynamic_slice_in_dim(w, me * r, r)
+        pieces = structured.transpose_product(plan, block, own, explicit)
+        direction = jax.lax.psum(_assemble(params, pieces, cast=False), AXIS)
+        direction = direction.astype(jax.tree.leaves(params)[0].dtype)
+    return direction, jax.lax.psum(loss, AXIS)
 
 
 def output_gradient(objective, params, batch):
