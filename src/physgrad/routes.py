@@ -278,7 +278,7 @@ def _sharded_structured(objective, params, batch, *, devices, exponent, truncati
     per hop instead of rows/N × P)."""
     params = jax.lax.pcast(params, AXIS, to="varying")  # each device keeps its own rows (see _sharded_direction)
     plan = _structure(objective, params, batch, chunk_elements=2**62)
-    block, y = structured.factors(plan, params, batch, groups=tuple(range(len(plan.groups))))
+    block, y = structured.factors(plan, params, batch, groups=tuple(range(len(plan.groups))), axis=AXIS)
     loss, g = loss_and_output_gradient(objective, params, batch, y, devices)
     block, g = jax.lax.stop_gradient((block, g))
     r = g.shape[0]

@@ -198,11 +198,15 @@ class Factors(NamedTuple):
     J: Array | None
 
 
-def factors(structure: Structure, params: PyTree, batch: PyTree, groups: tuple[int, ...] = (0,)) -> tuple[Factors, Array]:
+def factors(structure: Structure, params: PyTree, batch: PyTree, groups: tuple[int, ...] = (0,),
+            axis: str | None = None) -> tuple[Factors, Array]:  # fmt: skip
     """The factors of this batch's Jacobian rows and the flat outputs ``y`` (b, d).
 
     One ``vmap(jacrev)`` pass: the derivatives with respect to the perturbations ``ε``
-    (the ``D``'s) and to the explicit leaves of ``groups`` (their rows of J)."""
+    (the ``D``'s) and to the explicit leaves of ``groups`` (their rows of J). Inside
+    ``shard_map`` pass the mesh ``axis``: the perturbations are then device-varying, so
+    each device keeps the derivatives of its own rows (differentiating an invariant input
+    would sum them over the devices)."""
     leaves, _ = _param_leaves(params)
     explicit = [k for g in groups if g < len(structure.groups) for k in structure.groups[g]]
 
@@ -215,6 +219,8 @@ def factors(structure: Structure, params: PyTree, batch: PyTree, groups: tuple[i
         return y, (acts, y)
 
     eps = [jnp.zeros((u.d_out,), structure.jaxpr.jaxpr.eqns[u.eqn].outvars[0].aval.dtype) for u in structure.dense]
+    if axis is not None:
+        eps = jax.lax.pcast(eps, axis, to="varying")
     chosen = [leaves[k] for k in explicit]
     jac, (acts, y) = jax.vmap(jax.jacrev(per_sample, argnums=(0, 1), has_aux=True), in_axes=(None, None, 0))(
         eps, chosen, batch
