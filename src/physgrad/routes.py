@@ -254,7 +254,7 @@ def _structured_direction(objective, params, batch, chunk_elements, exponent, tr
     # Constants for differentiation: the float64 scopes below cannot be transposed.
     block, g = jax.lax.stop_gradient((block, g))
     with float64_scope():
-        gram = structured.cross_gram(block, block)
+        gram = structured.cross_gram(plan, block, block)
     for group in range(1, len(plan.groups)):
         rows = jax.lax.stop_gradient(structured.explicit_rows(objective.predict, plan, params, batch, group))
         with float64_scope():
@@ -285,7 +285,7 @@ def _sharded_structured(objective, params, batch, *, devices, exponent, truncati
     explicit = tuple(k for group in plan.groups for k in group)
     me = jax.lax.axis_index(AXIS)
     with float64_scope():
-        gram = ring_gram(block, structured.cross_gram, r, AXIS, devices)
+        gram = ring_gram(block, functools.partial(structured.cross_gram, plan), r, AXIS, devices)
         g_all = jax.lax.all_gather(to_float64(g), AXIS, tiled=True)
         w = on_device_0(lambda G, v: gram_power(G, v, exponent, truncation), gram, g_all, axis=AXIS)
         own = jax.lax.dynamic_slice_in_dim(w, me * r, r)

@@ -14,6 +14,9 @@ module) contributes its explicit Jacobian rows ``J_o``, one group of leaves at a
 
     J Jᵀ = Σ_dense (D Dᵀ) ⊙ (A Aᵀ)⇑ + Σ_groups J_o J_oᵀ.
 
+A bias added right after the product (``z = W a + b``) has the rows ``D`` itself and folds
+into its layer's term as ``(D Dᵀ) ⊙ (A Aᵀ + 1)⇑``, at no extra cost.
+
 This is exact (not an approximation like K-FAC's): it is the Gram matrix of the same J,
 at the cost of one backward pass per output row to the pre-activations and
 ``rows² · (Σ d_out + P_explicit)`` multiply-adds instead of ``rows² · P``.
@@ -62,6 +65,7 @@ class DenseUse(NamedTuple):
     d_in: int
     d_out: int
     transposed: bool  # the leaf is stored (d_in, d_out): ``a @ W``
+    bias: int | None = None  # leaf added right after the product (its rows are D itself)
 
 
 class Structure(NamedTuple):
@@ -80,7 +84,7 @@ class Structure(NamedTuple):
 
     @property
     def dense_parameters(self) -> int:
-        return sum(self.leaf_sizes[u.leaf] for u in self.dense)
+        return sum(self.leaf_sizes[u.leaf] + (u.d_out if u.bias is not None else 0) for u in self.dense)
 
 
 def _param_leaves(params):
@@ -117,6 +121,24 @@ def find_structure(
         if not isinstance(v, Literal) and v in params_vars:
             uses[params_vars[v]] += 2  # returned as an output: not a layer
 
+    users: dict = {}
+    for e, eqn in enumerate(jaxpr.eqns):
+        for v in eqn.invars:
+            if not isinstance(v, Literal):
+                users.setdefault(v, []).append(e)
+
+    def bias_of(z):
+        """The parameter leaf ``b`` of ``z + b`` when that sum is z's only use."""
+        if len(users.get(z, ())) != 1 or z in jaxpr.outvars:
+            return None
+        eqn = jaxpr.eqns[users[z][0]]
+        if eqn.primitive.name != "add":
+            return None
+        other = eqn.invars[1] if eqn.invars[0] is z else eqn.invars[0]
+        if isinstance(other, Literal) or other not in params_vars or uses[params_vars[other]] != 1:
+            return None
+        return params_vars[other] if other.aval.shape == z.aval.shape and other.aval.dtype == z.aval.dtype else None
+
     dense = []
     for e, eqn in enumerate(jaxpr.eqns):
         if eqn.primitive.name != "dot_general":
@@ -132,9 +154,10 @@ def find_structure(
                 continue
             d_in = w.aval.shape[w_contract]
             d_out = w.aval.shape[1 - w_contract]
-            dense.append(DenseUse(e, params_vars[w], a_pos, d_in, d_out, transposed=w_contract == 0))
+            bias = bias_of(eqn.outvars[0])
+            dense.append(DenseUse(e, params_vars[w], a_pos, d_in, d_out, transposed=w_contract == 0, bias=bias))
             break
-    dense_leaves = {u.leaf for u in dense}
+    dense_leaves = {u.leaf for u in dense} | {u.bias for u in dense if u.bias is not None}
     sizes = tuple(math.prod(x.shape) for x in leaves)
     per_group = max(1, chunk_elements // max(rows, 1))
     groups, current, filled = [], [], 0
@@ -248,14 +271,16 @@ def explicit_rows(predict: Callable, structure: Structure, params: PyTree, batch
     return jnp.concatenate([x.reshape(rows, -1) for x in jac], axis=1)
 
 
-def cross_gram(left: Factors, right: Factors) -> Array:
+def cross_gram(structure: Structure, left: Factors, right: Factors) -> Array:
     """``J_left J_rightᵀ`` (float64) from two blocks' factors; call in a float64 scope."""
     f64 = jnp.float64
     gram = None
-    for d1, a1, d2, a2 in zip(left.D, left.A, right.D, right.A):
+    for use, d1, a1, d2, a2 in zip(structure.dense, left.D, left.A, right.D, right.A):
         b1, b2 = a1.shape[0], a2.shape[0]
         dd = d1.astype(f64) @ d2.astype(f64).T  # (r1, r2)
         aa = a1.astype(f64) @ a2.astype(f64).T  # (b1, b2), repeated over each sample's rows
+        if use.bias is not None:  # the bias's rows are D: (D Dᵀ) ⊙ (A Aᵀ + 1)
+            aa = aa + 1.0
         term = (dd.reshape(b1, -1, b2, dd.shape[1] // b2) * aa[:, None, :, None]).reshape(dd.shape)
         gram = term if gram is None else gram + term
     if left.J is not None:
@@ -277,6 +302,8 @@ def transpose_product(structure: Structure, block: Factors, w: Array, explicit: 
         weighted = (d.astype(f64) * w[:, None]).reshape(b, -1, use.d_out).sum(axis=1)  # (b, d_out)
         grad = weighted.T @ a.astype(f64)  # (d_out, d_in)
         out[use.leaf] = grad.T if use.transposed else grad
+        if use.bias is not None:
+            out[use.bias] = weighted.sum(axis=0)
     if explicit:
         flat = block.J.astype(f64).T @ w
         offset = 0
