@@ -51,3 +51,41 @@ def median_seconds(fn, args, repeats: int) -> float:
         jax.block_until_ready(fn(*args))
         times.append(time.perf_counter() - t0)
     return statistics.median(times)
+
+
+def half_inverse_floor(setup, batch_size: int, repeats: int) -> dict:
+    """The cost floor of an exact half-inverse step at this batch, measured here:
+
+    - ``backward``: one backward pass per Jacobian row to the dense layers'
+      pre-activations (the signals D of the structured route, with the forward pass and
+      no parameter derivatives);
+    - ``eigh``: the float64 eigendecomposition of the m × m Gram matrix, m = min(rows, P)
+      (the structured route's own matrix, so its spectrum is the real one).
+
+    Returns seconds for both, ``floor`` = their sum, and ``rows``, ``P``, ``m``."""
+    from physgrad import routes, structured
+    from physgrad.precision import float64_scope
+
+    batch = jax.tree.map(lambda a: a[:batch_size], setup.data["train"])
+    params, objective = setup.params, setup.objective
+    rows, size = routes._jacobian_shape(objective, params, batch)
+    plan = routes._structure(objective, params, batch)
+    backward = jax.jit(lambda p, b: structured.factors(plan, p, b, groups=())[0].D)
+    t_backward = median_seconds(backward, (params, batch), repeats)
+    if rows <= size:
+        block = jax.jit(lambda p, b: structured.factors(plan, p, b, groups=tuple(range(len(plan.groups))))[0])(params, batch)
+        with float64_scope():
+            gram = jax.jit(lambda f: structured.cross_gram(plan, f, f))(block)
+            t_eigh = median_seconds(jax.jit(jnp.linalg.eigh), (gram,), max(1, repeats // 3))
+    else:  # tall: the P × P matrix
+        with float64_scope():
+            a = jax.random.normal(jax.random.key(0), (size, size), jnp.float64)
+            t_eigh = median_seconds(jax.jit(jnp.linalg.eigh), (a @ a.T,), max(1, repeats // 3))
+    return {"backward": t_backward, "eigh": t_eigh, "floor": t_backward + t_eigh, "rows": rows, "P": size,
+            "m": min(rows, size)}  # fmt: skip
+
+
+def step_bytes(step, args) -> int:
+    """XLA's memory of the compiled step: arguments + outputs + temporaries − aliased."""
+    mem = step.lower(*args).compile().memory_analysis()
+    return int(mem.argument_size_in_bytes + mem.output_size_in_bytes + mem.temp_size_in_bytes - mem.alias_size_in_bytes)

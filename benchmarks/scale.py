@@ -1,7 +1,7 @@
 """Scale: time and memory per training step against devices and against network size.
 
     python benchmarks/scale.py devices [--counts 1,2,4,8] [--repeats 10]
-    python benchmarks/scale.py sizes [--rows 256] [--hidden 20,100,200,370,683] [--routes gram,svd,blockgram,lanczos]
+    python benchmarks/scale.py sizes [--rows 256,1024] [--hidden 20,100,200,370,683] [--routes gram,structured,svd,blockgram,lanczos]
     python benchmarks/scale.py accuracy [--batch 64] [--hidden 20,100] [--steps 16,64,128,256]
 
 ``devices``: each case (method on a problem at its paper batch) on 1, 2, 4, 8 devices; on
@@ -9,8 +9,10 @@ a CPU-only machine these are forced host devices (``XLA_FLAGS=
 --xla_force_host_platform_device_count=N``, one subprocess per count) that share the same
 cores, so the table shows the memory split and the collectives' overhead, not a speed-up.
 ``sizes``: one HIG step on ``oscillators`` with the hidden width set so that P runs from
-3k to 1M parameters (P = 2h² + 103h + 96), for each half-inverse route, at ``--rows``
-Jacobian rows (batch = rows / 4). ``accuracy``: the block-Gram and Lanczos directions
+3k to 1M parameters (P = 2h² + 103h + 96), for each half-inverse route, at each of
+``--rows`` Jacobian rows (batch = rows / 4), beside the floor of an exact step measured in
+the same process (one backward pass per row to the pre-activations + ``eigh`` of the
+m × m Gram matrix, ``common.half_inverse_floor``). ``accuracy``: the block-Gram and Lanczos directions
 against the exact Gram route on one batch where J fits.
 
 Every measurement runs in its own subprocess (fresh memory statistics; a route that runs
@@ -48,7 +50,7 @@ def measure(args) -> dict:
     import numpy as np
 
     sys.path.insert(0, HERE)
-    from common import median_seconds, training_step
+    from common import half_inverse_floor, median_seconds, training_step
 
     from physgrad.distributed import make_mesh, replicate, use_mesh
     from physgrad.train import make_step
@@ -61,6 +63,7 @@ def measure(args) -> dict:
         inputs = (*replicate(step_args[:4], mesh), np.int32(0))
         compiled = step.lower(*inputs).compile()
         seconds = median_seconds(compiled, inputs, args.repeats)
+    floor = half_inverse_floor(setup, config.phases[0].batch_size, args.repeats) if args.floor else None
     mem = compiled.memory_analysis()
     per_device = mem.argument_size_in_bytes + mem.output_size_in_bytes + mem.temp_size_in_bytes - mem.alias_size_in_bytes
     from physgrad.nets import parameter_count
@@ -74,16 +77,17 @@ def measure(args) -> dict:
         "batch": config.phases[0].batch_size,
         "device": str(jax.devices()[0]),
         "devices": args.devices,
+        "floor": floor,
     }
 
 
-def run_case(problem, method, settings, devices=1, repeats=10, timeout=900, forced=None):
+def run_case(problem, method, settings, devices=1, repeats=10, timeout=900, forced=None, floor=False):
     """``measure`` in a subprocess; the result dict, or {"error": ...}."""
     env = dict(os.environ)
     if forced:
         env["XLA_FLAGS"] = f"{env.get('XLA_FLAGS', '')} --xla_force_host_platform_device_count={forced}".strip()
     cmd = [sys.executable, __file__, "measure", "--problem", problem, "--method", method, "--devices", str(devices),
-           "--repeats", str(repeats), *[f"--set={k}={v}" for k, v in settings.items()]]  # fmt: skip
+           "--repeats", str(repeats), *[f"--set={k}={v}" for k, v in settings.items()]] + (["--floor"] if floor else [])  # fmt: skip
     try:
         done = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=timeout)
     except subprocess.TimeoutExpired:
@@ -131,24 +135,33 @@ def cmd_devices(args):
 
 
 def cmd_sizes(args):
-    rows = args.rows
-    batch = rows // 4  # oscillators: 2 oscillators × (q, p) = 4 outputs per sample
     print(header())
-    print(f"HIG step on oscillators, {rows} Jacobian rows (batch {batch}); median of {args.repeats} steps; "
-          f"blockgram blocks={args.blocks}, lanczos k={args.lanczos_steps}")  # fmt: skip
-    print("| P | route | ms/step | XLA MiB | peak RSS GiB | J alone MiB (float32) |")
-    print("|---|---|---|---|---|---|")
-    for h in [int(h) for h in args.hidden.split(",")]:
-        p = 2 * h * h + 103 * h + 96
-        for route in args.routes.split(","):
-            settings = {"hidden": str(h), "batch_size": str(batch), "n_train": str(batch), "n_test": "16",
-                        "route": route, "blocks": str(args.blocks), "lanczos_steps": str(args.lanczos_steps)}  # fmt: skip
-            r = run_case("oscillators", "hig", settings, repeats=args.repeats, timeout=args.timeout)
-            if "error" in r:
-                print(f"| {p:,} | {route} | {r['error']} | | | {rows * p * 4 / 2**20:.0f} |", flush=True)
-                continue
-            print(f"| {r['params']:,} | {route} | {r['seconds'] * 1e3:.1f} | {r['xla_bytes'] / 2**20:.1f} | "
-                  f"{gib(r['peak_rss_bytes'])} | {rows * p * 4 / 2**20:.0f} |", flush=True)  # fmt: skip
+    print(f"HIG step on oscillators; median of {args.repeats} steps; blockgram blocks={args.blocks}, "
+          f"lanczos k={args.lanczos_steps}; floor = backward to pre-activations + eigh(rows), same process")  # fmt: skip
+    print("| rows | P | route | ms/step | × floor | × gram | XLA MiB | peak RSS GiB | J alone MiB (float32) |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    for rows in [int(r) for r in args.rows.split(",")]:
+        batch = rows // 4  # oscillators: 2 oscillators × (q, p) = 4 outputs per sample
+        for h in [int(h) for h in args.hidden.split(",")]:
+            p = 2 * h * h + 103 * h + 96
+            gram = None
+            for k, route in enumerate(args.routes.split(",")):
+                settings = {"hidden": str(h), "batch_size": str(batch), "n_train": str(batch), "n_test": "16",
+                            "route": route, "blocks": str(args.blocks), "lanczos_steps": str(args.lanczos_steps)}  # fmt: skip
+                r = run_case("oscillators", "hig", settings, repeats=args.repeats, timeout=args.timeout, floor=k == 0)
+                if k == 0:
+                    floor = r.get("floor")
+                    if floor:
+                        print(f"| {rows} | {p:,} | floor | {floor['floor'] * 1e3:.1f} (backward {floor['backward'] * 1e3:.1f}"
+                              f" + eigh {floor['eigh'] * 1e3:.1f}) | 1.00 | | | | |", flush=True)  # fmt: skip
+                if "error" in r:
+                    print(f"| {rows} | {p:,} | {route} | {r['error']} | | | | | {rows * p * 4 / 2**20:.0f} |", flush=True)
+                    continue
+                gram = r["seconds"] if route == "gram" else gram
+                x_floor = f"{r['seconds'] / floor['floor']:.2f}" if floor else ""
+                x_gram = f"{r['seconds'] / gram:.2f}" if gram else ""
+                print(f"| {rows} | {r['params']:,} | {route} | {r['seconds'] * 1e3:.1f} | {x_floor} | {x_gram} | "
+                      f"{r['xla_bytes'] / 2**20:.1f} | {gib(r['peak_rss_bytes'])} | {rows * p * 4 / 2**20:.0f} |", flush=True)  # fmt: skip
 
 
 def cmd_accuracy(args):
@@ -194,9 +207,9 @@ def main():
     p.add_argument("--repeats", type=int, default=10)
     p.add_argument("--only", help="comma-separated words: only the cases whose label contains one")
     p = sub.add_parser("sizes")
-    p.add_argument("--rows", type=int, default=256)
+    p.add_argument("--rows", default="256,1024")
     p.add_argument("--hidden", default="20,100,200,370,683")
-    p.add_argument("--routes", default="gram,svd,blockgram,lanczos")
+    p.add_argument("--routes", default="gram,structured,svd,blockgram,lanczos", help="the first also measures the floor")
     p.add_argument("--blocks", type=int, default=8)
     p.add_argument("--lanczos-steps", type=int, default=64)
     p.add_argument("--repeats", type=int, default=3)
@@ -212,6 +225,7 @@ def main():
     p.add_argument("--devices", type=int, default=1)
     p.add_argument("--repeats", type=int, default=10)
     p.add_argument("--set", action="append", default=[])
+    p.add_argument("--floor", action="store_true", help="also measure the floor of an exact half-inverse step")
     args = parser.parse_args()
     if args.command == "measure":
         print(json.dumps(measure(args)))
