@@ -8,7 +8,7 @@ import hashlib
 import json
 from typing import Any
 
-from .engine import Budget
+from .engine import UNGUARDED_SETTINGS, Budget
 from .errors import ConfigError
 from .registry import METHODS, PROBLEMS, hyperparameters
 
@@ -26,6 +26,7 @@ TRAIN_SETTINGS: dict[str, Any] = {
     "prdp_increment": 1,  # iterations added per refinement
     "prdp_tau_step": 0.98,  # plateau: EMA_now / EMA_3-checks-ago above this
     "prdp_tau_stop": 0.9,  # refine only if EMA_now / E_at-last-refinement below this
+    "memory_guard": True,  # refuse a step that cannot fit in memory before it runs (physgrad.memory)
 }
 
 
@@ -156,6 +157,7 @@ class RunConfig:
     prdp_increment: int = 1
     prdp_tau_step: float = 0.98
     prdp_tau_stop: float = 0.9
+    memory_guard: bool = True
 
     def to_dict(self) -> dict[str, Any]:
         out = dataclasses.asdict(self)
@@ -172,8 +174,9 @@ class RunConfig:
         return cls(**{k: v for k, v in data.items() if k in fields})
 
     def canonical_dict(self) -> dict[str, Any]:
-        """``to_dict`` without the settings of ``ADDED_LATER`` that hold their default."""
-        out = self.to_dict()
+        """``to_dict`` without the settings of ``ADDED_LATER`` that hold their default and
+        without those that only guard a run (``UNGUARDED_SETTINGS``: the same run either way)."""
+        out = {k: v for k, v in self.to_dict().items() if k not in UNGUARDED_SETTINGS}
         later = ADDED_LATER["problems"].get(self.problem, {})
         out["problem_settings"] = {k: v for k, v in out["problem_settings"].items() if later.get(k, _ABSENT) != v}
         for phase in out["phases"]:

@@ -14,9 +14,11 @@ HIG from those parameters). One run::
 
 The loop (:func:`_loop`) reads in one screen; everything around it is a small strategy
 object: :class:`StopRule` (the budget), :class:`EvalSchedule`, :class:`Placement` (devices and
-processes), :class:`Fidelity` (PRDP's solver refinement), :class:`Recorder` (evaluation and
-``metrics.csv``), :class:`Checkpointer`, and the progress meter. The loop state is one typed
-value, :class:`TrainState`, which is what a checkpoint holds.
+processes), :class:`Steps` (the training data, batch order and each stage's compiled step,
+checked by the memory guard, :mod:`physgrad.memory`), :class:`Fidelity` (PRDP's solver
+refinement), :class:`Recorder` (evaluation and ``metrics.csv``), :class:`Checkpointer`, and
+the progress meter. The loop state is one typed value, :class:`TrainState`, which is what a
+checkpoint holds.
 
 A run directory holds ``config.json`` (what the caller says identifies the run; the command
 line writes its :class:`~physgrad.config.RunConfig`), ``metrics.csv`` (long format: step,
@@ -30,6 +32,7 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import functools
 import json
 import math
 import os
@@ -45,7 +48,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import distributed
+from . import distributed, memory
 from . import prdp as prdp_control
 from .errors import ConfigError
 from .methods import AbstractMethod, Objective
@@ -119,6 +122,12 @@ class TrainSettings:
     prdp_increment: int = 1
     prdp_tau_step: float = 0.98
     prdp_tau_stop: float = 0.9
+    memory_guard: bool = True  # refuse a step that cannot fit in memory before it runs (physgrad.memory)
+
+
+# Settings that change how a run is guarded, not what it computes: a run resumes under
+# either value (they are not part of a run's identity).
+UNGUARDED_SETTINGS = ("memory_guard",)
 
 
 # --- built before the first step -------------------------------------------------------------
@@ -190,6 +199,12 @@ def build_setup(problem: AbstractProblem, phases: Sequence[Phase], seed: int) ->
         raise ConfigError(f"{problem.name}: {e}") from None
     params, static = eqx.partition(problem.initial_network(jax.random.fold_in(key, 1), data), eqx.is_inexact_array)
     objective = problem.objective(static)
+    return Setup(problem, data, params, static, objective, _stages(problem, phases, objective, data))
+
+
+def _stages(problem: AbstractProblem, phases: Sequence[Phase], objective: Objective, data, check: bool = True) -> list[Stage]:
+    """The phases as stages (curricula expanded), each method checked against the problem
+    (unless ``check`` is False)."""
     n_train = jax.tree.leaves(data["train"])[0].shape[0]
     stages, start = [], 0
     for phase in phases:
@@ -198,7 +213,8 @@ def build_setup(problem: AbstractProblem, phases: Sequence[Phase], seed: int) ->
         if batch_size > n_train:
             raise ConfigError(f"batch_size {batch_size} exceeds the {n_train} training samples")
         try:
-            phase.method.check(objective)
+            if check:
+                phase.method.check(objective)
             phase.method.check_batch_size(batch_size)
         except ValueError as e:
             raise ConfigError(f"{name} on {problem.name}: {e}") from None
@@ -214,7 +230,54 @@ def build_setup(problem: AbstractProblem, phases: Sequence[Phase], seed: int) ->
             label = name + (f"[{stage_method.stage_label()}]" if len(expanded) > 1 else "")
             stages.append(Stage(stage_method, batch_size, per_epoch, start, steps, label))
             start += steps or 0
-    return Setup(problem, data, params, static, objective, stages)
+    return stages
+
+
+def preflight(problem: AbstractProblem, phases: Sequence[Phase], seed: int, mesh=None) -> None:
+    """The memory guard's first look, before any data exist: every stage's footprint
+    (:meth:`~physgrad.AbstractMethod.footprint`) from the shapes of the data and the
+    network alone (``eqx.filter_eval_shape``: nothing is generated or initialised), so a
+    step that cannot fit is refused in seconds, not after minutes of data generation.
+
+    Problems whose data cannot be traced abstractly (made by NumPy code or read from a
+    cache) are skipped here; their steps are checked after the data exist, before
+    compiling (:class:`Steps`); so are settings that :func:`build_setup` refuses (it says why)."""
+    key = jax.random.key(seed)
+    try:
+        data = eqx.filter_eval_shape(problem.make_data, jax.random.fold_in(key, 0))
+        network = eqx.filter_eval_shape(problem.initial_network, jax.random.fold_in(key, 1), data)
+        abstract = lambda x: isinstance(x, jax.ShapeDtypeStruct) and jnp.issubdtype(x.dtype, jnp.inexact)  # noqa: E731
+        params, static = eqx.partition(network, abstract)
+        # Non-float arrays stay with the network's static part: zero views of their shape.
+        static = jax.tree.map(lambda x: memory.stand_in(x, None) if isinstance(x, jax.ShapeDtypeStruct) else x, static)
+        objective = _deferred_objective(lambda: problem.objective(static))
+        stages = _stages(problem, phases, objective, data, check=False)  # build_setup checks (some checks build solvers)
+    except Exception:  # noqa: BLE001 — not traceable abstractly, or a setting build_setup will report
+        return
+    for stage in stages:
+        if stage.batch_size % distributed.mesh_size(mesh):
+            continue  # reported by the run's own check
+        batch = memory.stand_in(data["train"], stage.batch_size)
+        try:
+            memory.check_step_fits(stage.method, objective, params, batch, devices=_devices(mesh), label=stage.label)
+        except ConfigError:
+            raise
+        except Exception:  # noqa: BLE001 — a footprint that needs concrete values: checked once they exist
+            return
+
+
+def _deferred_objective(make: Callable[[], Objective]) -> Objective:
+    """An :class:`Objective` whose functions build ``make()`` on first use: a problem's
+    objective may construct solvers (seconds), which only methods that estimate memory need."""
+    real = functools.cache(make)
+    deferred = lambda name: lambda *args: getattr(real(), name)(*args)  # noqa: E731
+    return Objective(**{name: deferred(name) for name in ("predict", "loss", "network_output", "simulate", "target",
+                                                          "inverse", "unrolled")})  # fmt: skip
+
+
+def _devices(mesh) -> list | None:
+    """The devices a batch is split over (None: the default device)."""
+    return None if mesh is None else list(mesh.devices.flat)
 
 
 def make_step(setup: Setup, batch_size: int, method: AbstractMethod | None = None):
@@ -364,6 +427,51 @@ class Placement:
             from jax.experimental import multihost_utils
 
             multihost_utils.sync_global_devices(name)
+
+
+class Steps:
+    """The training data on the devices, each epoch's sample order, and each stage's step
+    compiled ahead of time (compilation is counted in ``compile_seconds``).
+
+    With ``settings.memory_guard`` a stage's step is checked before it first runs
+    (:mod:`physgrad.memory`): the method's footprint before compiling, XLA's memory
+    analysis of the compiled step after; a step that cannot fit raises ConfigError."""
+
+    def __init__(self, setup: Setup, placement: Placement, settings: TrainSettings, seed: int):
+        self.placement, self.settings = placement, settings
+        self.n_train = jax.tree.leaves(setup.data["train"])[0].shape[0]
+        self.data = placement.put(setup.data["train"])
+        self.shuffle_key = jax.random.fold_in(jax.random.key(seed), 2)
+
+    def order(self, stage: int, epoch: int):
+        """The sample order of a stage's epoch (fixed unless ``shuffle``)."""
+        if not self.settings.shuffle:
+            return self.placement.put(jnp.arange(self.n_train, dtype=jnp.int32))
+        key = jax.random.fold_in(jax.random.fold_in(self.shuffle_key, stage), epoch)
+        return self.placement.put(jax.random.permutation(key, self.n_train).astype(jnp.int32))
+
+    def compile(self, state: TrainState, setup: Setup) -> tuple[Any, TrainState]:
+        """The current stage's step, compiled (and checked by the memory guard)."""
+        stage = setup.stages[state.stage]
+        t0 = time.perf_counter()
+        lower = lambda size: self._lower(state, setup, stage, size)  # noqa: E731
+        guard = self.settings.memory_guard
+        if guard:  # the footprint alone, before spending time on compilation
+            self._check(setup, stage)
+        compiled = lower(stage.batch_size).compile()
+        if guard:
+            self._check(setup, stage, compiled, lambda size: memory.compiled_bytes(lower(size).compile(), arguments=False))
+        return compiled, state._replace(compile_seconds=state.compile_seconds + time.perf_counter() - t0)
+
+    def _lower(self, state, setup, stage, batch_size):
+        with self.placement.scope():
+            fn = make_step(setup, batch_size, stage.method)
+            return fn.lower(state.params, state.opt_state, self.data, self.order(state.stage, 0), np.int32(0))
+
+    def _check(self, setup, stage, compiled=None, measure=None):
+        batch = memory.stand_in(setup.data["train"], stage.batch_size)
+        memory.check_step_fits(stage.method, setup.objective, setup.params, batch, devices=_devices(self.placement.mesh),
+                               compiled=compiled, measure=measure, label=stage.label)  # fmt: skip
 
 
 @dataclasses.dataclass
@@ -578,13 +686,20 @@ def fit(
     """
     phases = _phases(method, batch_size)
     record = record or _describe(problem, phases, seed, budget, settings)
-    same_run = same_run or (lambda old: {**old, "budget": None} == {**json.loads(json.dumps(record, default=str)), "budget": None})
+    same_run = same_run or (lambda old: _identity(old) == _identity(json.loads(json.dumps(record, default=str))))
     run_dir = Path(out)
     identity = {"problem": problem.name, "method": name or ",".join(_name(p) for p in phases), "seed": seed}
     float64 = problem.needs_float64
     with float64_scope(float64):
         return _run(problem, phases, seed, budget, settings, run_dir, resume, progress or NoProgressMeter(),
                     Placement(devices), record, same_run, label or run_dir.name, identity)  # fmt: skip
+
+
+def _identity(record: dict[str, Any]) -> dict[str, Any]:
+    """What must match for a run to resume: the record without its budget and without the
+    settings that change only how the run is guarded."""
+    settings = {k: v for k, v in record.get("settings", {}).items() if k not in UNGUARDED_SETTINGS}
+    return {**record, "budget": None, "settings": settings}
 
 
 def _name(phase: Phase) -> str:
@@ -619,15 +734,15 @@ def _run(problem, phases, seed, budget, settings, run_dir, resume, progress, pla
             raise ConfigError(f"run directory {run_dir} holds a different configuration; choose another --out")
     has_ckpt = resume and (run_dir / "checkpoint" / "counters.json").exists()
     placement.barrier(f"physgrad.fit:{run_dir}")  # every process has looked before process 0 writes
-    if placement.writer:
-        run_dir.mkdir(parents=True, exist_ok=True)
-    else:  # other processes compute alike and write nothing
+    if not placement.writer:  # other processes compute alike and write nothing
         progress = NoProgressMeter()
     done = read_summary(run_dir) if has_ckpt else None
     if done and (done["status"] == "diverged" or (done["status"] == "finished" and done.get("budget") == budget.to_dict())):
         return done  # nothing to do (checked before building data and network)
 
     fidelity = Fidelity.of(problem, settings)
+    if settings.memory_guard:
+        preflight(problem, phases, seed, placement.mesh)  # before minutes of data generation
     setup = build_setup(problem, phases, seed)
     for stage in setup.stages:
         distributed.check_batch(stage.batch_size, placement.mesh)
@@ -643,17 +758,20 @@ def _run(problem, phases, seed, budget, settings, run_dir, resume, progress, pla
             raise ConfigError(f"the processes see different checkpoints in {run_dir}; a multi-process --resume "
                               "needs --out on a file system every process shares")  # fmt: skip
     setup = fidelity.problem_at(setup, state)
+    state = state._replace(params=placement.put(state.params), opt_state=placement.put(state.opt_state))
+    steps = Steps(setup, placement, settings, seed)
+    compiled, state = steps.compile(state, setup)  # a step the memory guard refuses leaves no files behind
     if placement.writer:
+        run_dir.mkdir(parents=True, exist_ok=True)
         write_json(config_path, record)
         write_json(run_dir / "env.json", {**environment(), "mesh_devices": distributed.mesh_size(placement.mesh)})
     log = MetricsLog(run_dir / "metrics.csv", keep_until_step=state.step if has_ckpt else None, enabled=placement.writer)
     recorder = Recorder(setup, settings, placement, fidelity, log)
-    state = state._replace(params=placement.put(state.params), opt_state=placement.put(state.opt_state))
     progress.start(budget=budget, steps_per_epoch=setup.steps_per_epoch, step=state.step, train_time=state.train_time, label=label)
     try:
         state, setup, status, diverged_step, last_finite = _loop(
-            state, setup, StopRule(budget, setup), EvalSchedule(settings), placement, fidelity, recorder,
-            checkpointer, progress, settings, seed,
+            state, setup, steps, compiled, StopRule(budget, setup), EvalSchedule(settings), placement, fidelity,
+            recorder, checkpointer, progress,
         )  # fmt: skip
     finally:
         progress.close()
@@ -669,43 +787,25 @@ def _run(problem, phases, seed, budget, settings, run_dir, resume, progress, pla
     return summary
 
 
-def _loop(state, setup, stop, schedule, placement, fidelity, recorder, checkpointer, progress, settings, seed):
-    """Steps until the budget is met or the loss stops being finite (the training loop)."""
-    n_train = jax.tree.leaves(setup.data["train"])[0].shape[0]
-    train_data = placement.put(setup.data["train"])
-    shuffle_key = jax.random.fold_in(jax.random.key(seed), 2)
-
-    def order_for(stage: int, epoch: int):
-        if not settings.shuffle:
-            return placement.put(jnp.arange(n_train, dtype=jnp.int32))
-        key = jax.random.fold_in(jax.random.fold_in(shuffle_key, stage), epoch)
-        return placement.put(jax.random.permutation(key, n_train).astype(jnp.int32))
-
-    def compile_stage(state, setup):
-        stage = setup.stages[state.stage]
-        t0 = time.perf_counter()
-        with placement.scope():
-            fn = make_step(setup, stage.batch_size, stage.method)
-            compiled = fn.lower(state.params, state.opt_state, train_data, order_for(state.stage, 0), np.int32(0)).compile()
-        return compiled, state._replace(compile_seconds=state.compile_seconds + time.perf_counter() - t0)
-
+def _loop(state, setup, steps, compiled, stop, schedule, placement, fidelity, recorder, checkpointer, progress):
+    """Steps until the budget is met or the loss stops being finite (the training loop);
+    ``compiled`` is the current stage's step."""
     if state.step == 0:
         state, _ = recorder(state, final=False)
     schedule.start(state.train_time)
-    compiled, state = compile_stage(state, setup)
     order_key, order, last_finite = None, None, None
     try:
         while not stop.met(state.step, state.train_time):
             index = setup.stage_index(state.step)
             if index != state.stage:  # switch method: the parameters carry over, the new method starts fresh
                 opt_state = placement.put(setup.stages[index].method.init(distributed.to_host(state.params)))
-                compiled, state = compile_stage(state._replace(stage=index, opt_state=opt_state), setup)
+                compiled, state = steps.compile(state._replace(stage=index, opt_state=opt_state), setup)
             stage = setup.stages[index]
             epoch, batch = divmod(state.step - stage.start, stage.steps_per_epoch)
             if (index, epoch) != order_key:
-                order, order_key = order_for(index, epoch), (index, epoch)
+                order, order_key = steps.order(index, epoch), (index, epoch)
             t_start = time.perf_counter()
-            params, opt_state, stats = compiled(state.params, state.opt_state, train_data, order, np.int32(batch))
+            params, opt_state, stats = compiled(state.params, state.opt_state, steps.data, order, np.int32(batch))
             loss = float(stats["loss"])  # waits for the step: the timing is honest
             train_time = placement.clock(state.train_time + time.perf_counter() - t_start)
             if not math.isfinite(loss) and not float(stats.get("skipped", 0.0)):
@@ -724,11 +824,14 @@ def _loop(state, setup, stop, schedule, placement, fidelity, recorder, checkpoin
                 if refined is not setup:  # PRDP refined the solver: new problem, new step
                     setup = refined
                     recorder.use(setup)
-                    compiled, state = compile_stage(state, setup)
+                    compiled, state = steps.compile(state, setup)
             checkpointer.maybe(state)
             progress.update(step=state.step, train_time=state.train_time, loss=loss)
     except KeyboardInterrupt:
         return state, setup, "interrupted", None, last_finite
+    except ConfigError:  # the memory guard refused a later stage's step: keep what was done for --resume
+        checkpointer.save(state)
+        raise
     return state, setup, "finished", None, last_finite
 
 

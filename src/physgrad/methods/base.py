@@ -24,11 +24,17 @@ Three layers of objects:
   friends return): ``estimate(params, batch) -> (direction, stats)``.
 - :class:`AbstractMethod`: what the training engine runs: a rule and an optax
   transformation, ``init`` and one pure ``step``; :class:`Method` is the plain pairing.
+
+Rules and methods may also estimate the memory of their own large arrays
+(``footprint``, from shapes alone) and name lighter variants of themselves (``lighter``):
+the engine's memory guard (:mod:`physgrad.memory`) checks a step against the device
+before the first step and says what would fit.
 """
 
 from __future__ import annotations
 
 import abc
+import dataclasses
 from collections.abc import Callable
 from typing import Any, NamedTuple
 
@@ -102,6 +108,22 @@ class AbstractRule(eqx.Module):
     def check_batch_size(self, batch_size: int) -> None:
         """Raise ``ValueError`` if the rule cannot take batches of this size."""
 
+    def footprint(self, objective: Objective, params: PyTree, batch: PyTree, devices: int = 1) -> int:
+        """Bytes per device of the rule's own large arrays for this (global) batch split
+        over ``devices`` devices, from shapes alone (``batch`` may hold stand-ins of the
+        right shapes); 0, the default, when the rule cannot tell."""
+        return 0
+
+    def footprint_note(self, objective: Objective, params: PyTree, batch: PyTree) -> str:
+        """What :meth:`footprint` counts, in a few words for the memory guard's message
+        (e.g. ``route gram: 4096 × 37249 Jacobian``); empty by default."""
+        return ""
+
+    def lighter(self, batch_size: int) -> list[tuple[str, AbstractRule]]:
+        """Variants of this rule that may need less memory at ``batch_size``, each with the
+        setting that selects it (``route=lanczos``), the most faithful first; none by default."""
+        return []
+
 
 class Estimator(eqx.Module):
     """A rule bound to a user's functions: ``estimate(params, batch) -> (direction, stats)``.
@@ -148,6 +170,20 @@ class AbstractMethod(eqx.Module):
     def check_batch_size(self, batch_size: int) -> None:
         """Raise ``ValueError`` if this method cannot take batches of this size."""
 
+    def footprint(self, objective: Objective, params: PyTree, batch: PyTree, devices: int = 1) -> int:
+        """Bytes per device of the step's own large arrays, from shapes alone (see
+        :meth:`AbstractRule.footprint`); 0, the default, when the method cannot tell."""
+        return 0
+
+    def footprint_note(self, objective: Objective, params: PyTree, batch: PyTree) -> str:
+        """What :meth:`footprint` counts, in a few words; empty by default."""
+        return ""
+
+    def lighter(self, batch_size: int) -> list[tuple[str, AbstractMethod]]:
+        """``(setting, method)`` variants that may need less memory at ``batch_size``, the
+        most faithful first; none by default."""
+        return []
+
     def stages(self) -> list[tuple[AbstractMethod, float | None]]:
         """``(method, epochs)`` stages; the last runs until the budget is spent."""
         return [(self, None)]
@@ -174,6 +210,17 @@ class Method(AbstractMethod):
 
     def check_batch_size(self, batch_size):
         self.rule.check_batch_size(batch_size)
+
+    # The optimizer's state is a few copies of the parameters, small next to what the
+    # rules that estimate memory hold (Jacobians): the rule's footprint is the method's.
+    def footprint(self, objective, params, batch, devices=1):
+        return self.rule.footprint(objective, params, batch, devices)
+
+    def footprint_note(self, objective, params, batch):
+        return self.rule.footprint_note(objective, params, batch)
+
+    def lighter(self, batch_size):
+        return [(setting, dataclasses.replace(self, rule=rule)) for setting, rule in self.rule.lighter(batch_size)]
 
     def step(self, objective, params, state, batch):
         direction, stats = self.rule(objective, params, batch)

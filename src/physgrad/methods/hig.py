@@ -16,10 +16,12 @@ is computed is a route object (:mod:`physgrad.routes`).
 
 from __future__ import annotations
 
+import dataclasses
+
 import equinox as eqx
 from jax.flatten_util import ravel_pytree
 
-from ..routes import AbstractRoute, Auto
+from ..routes import SVD, AbstractRoute, Auto, BlockGram, Gram, Lanczos, Structured, _jacobian_shape
 from .base import AbstractRule, Estimator, Objective
 
 
@@ -43,6 +45,25 @@ class JacobianPower(AbstractRule):
 
     def check_batch_size(self, batch_size):
         self.route.check_batch_size(batch_size)
+
+    def footprint(self, objective, params, batch, devices=1):
+        return self.route.footprint(objective, params, batch, devices)
+
+    def footprint_note(self, objective, params, batch):
+        rows, size = _jacobian_shape(objective, params, batch)
+        name = self.route.name()
+        if isinstance(self.route, Auto):  # say which route auto takes for this batch
+            name += f" ({self.route.choose(objective, params, batch).name()})"
+        return f"route {name}: {rows} × {size} Jacobian"
+
+    def lighter(self, batch_size):
+        """The other routes: the exact ones by speed (structured, gram, svd, then blockgram
+        with ever more sample groups), then lanczos (approximate). Settings as the command
+        line names them (``--set route=blockgram --set blocks=16``)."""
+        exact = [("route=structured", Structured()), ("route=gram", Gram()), ("route=svd", SVD())]
+        groups = [(f"route=blockgram blocks={k}", BlockGram(k)) for k in range(2, batch_size + 1) if batch_size % k == 0]
+        variants = exact + groups + [("route=lanczos", Lanczos())]
+        return [(setting, dataclasses.replace(self, route=route)) for setting, route in variants if route != self.route]
 
     def __call__(self, objective, params, batch):
         direction, loss, stats = self.route(objective, params, batch, self.exponent, self.truncation)

@@ -1,0 +1,266 @@
+"""The memory guard: will a training step fit on the device? Checked before its first step.
+
+A step that cannot fit should be refused in one line, not found out by the operating
+system's out-of-memory killer after minutes of data generation and compilation (HIG on
+the SIP paper's heat problem would build a 524,288 × 37,249 Jacobian, over 200 GB). Two
+estimates, cheapest first:
+
+1. **The method's footprint** (:meth:`physgrad.AbstractMethod.footprint`): the bytes of
+   its own large arrays from shapes alone (a half-inverse route's Jacobian and Gram
+   matrices; 0 for methods that cannot tell). Instant, no compilation, and it works on
+   stand-in batches, so the engine checks it before generating any data.
+2. **XLA's figure for the compiled step** (``compiled.memory_analysis()``): outputs and
+   temporaries, less outputs aliased to inputs. The engine compiles every stage's step
+   ahead of time anyway, so this costs no extra compilation. The step's inputs
+   (parameters, optimizer state, training data) are left out: they are already on the
+   device when the available memory is read.
+
+The step needs ``max(compiled, footprint)``: XLA's temporaries already hold the route's
+arrays, so adding both would count them twice, while the footprint also covers what XLA
+leaves out of its analysis (the workspace of library calls such as LAPACK's ``eigh``).
+The step fits when that is at most :data:`SAFETY` of the available memory (the device's
+limit less what is in use on a GPU; ``MemAvailable`` and the cgroup limit on a CPU host,
+whose devices all share the host's memory).
+
+A refused step raises :class:`physgrad.ConfigError` with what would fit: the largest batch
+size found (halving, then bisecting; confirmed by compiling when the compiled figure
+decided), a lighter variant of the method at this batch size (another half-inverse route),
+or a device count where the run could use more devices. Before the data exist only the
+footprint is known, so a batch size suggested then fits the method's own arrays; the
+compiled check that follows may still lower it. ``memory_guard=False``
+(:class:`physgrad.TrainSettings`, ``--set memory_guard=false``) turns the guard off.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import jax
+import numpy as np
+
+from .errors import ConfigError
+
+SAFETY = 0.9  # a step may take this fraction of the available memory (fragmentation, runtime)
+_CONFIRMATIONS = 3  # compilations at most to confirm a suggested batch size
+
+
+def available_bytes(device: jax.Device | None = None) -> int | None:
+    """Bytes free on ``device`` (default: the first local device), or None if unknown.
+
+    A GPU/TPU reports its allocator's limit and use (``device.memory_stats()``); a CPU
+    device is the host: ``MemAvailable`` from ``/proc/meminfo`` (else ``os.sysconf``),
+    capped by a cgroup-v2 memory limit when the process runs in one (containers)."""
+    device = device or jax.local_devices()[0]
+    if device.platform != "cpu":
+        try:
+            stats = device.memory_stats()
+        except Exception:  # noqa: BLE001 — a backend without allocator statistics
+            return None
+        if not stats or "bytes_limit" not in stats:
+            return None
+        return int(stats["bytes_limit"]) - int(stats.get("bytes_in_use", 0))
+    return _host_available()
+
+
+def _host_available() -> int | None:
+    free = []
+    try:
+        for line in Path("/proc/meminfo").read_text().splitlines():
+            if line.startswith("MemAvailable:"):
+                free.append(int(line.split()[1]) * 1024)  # reported in kB
+    except (OSError, ValueError, IndexError):
+        pass
+    if not free:
+        try:
+            free.append(os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE"))
+        except (OSError, ValueError, AttributeError):
+            pass
+    try:  # a container's own limit, below what the host has free
+        limit = Path("/sys/fs/cgroup/memory.max").read_text().strip()
+        if limit != "max":
+            free.append(int(limit) - int(Path("/sys/fs/cgroup/memory.current").read_text()))
+    except (OSError, ValueError):
+        pass
+    return min(free) if free else None
+
+
+def compiled_bytes(compiled: Any, arguments: bool = True) -> int | None:
+    """Bytes a compiled function needs per device by XLA's ``memory_analysis()``:
+    arguments + outputs + temporaries − outputs aliased to (donated) arguments; with
+    ``arguments=False`` without the arguments (already in memory). None where the backend
+    gives no analysis."""
+    try:
+        analysis = compiled.memory_analysis()
+    except Exception:  # noqa: BLE001 — not every backend implements it
+        return None
+    analyses = analysis if isinstance(analysis, (list, tuple)) else [analysis]
+    sizes = []
+    for a in analyses:
+        if a is None:
+            continue
+        size = a.output_size_in_bytes + a.temp_size_in_bytes - a.alias_size_in_bytes
+        sizes.append(size + (a.argument_size_in_bytes if arguments else 0))
+    return max(sizes) if sizes else None
+
+
+def stand_in(batch: Any, batch_size: int | None) -> Any:
+    """A batch of ``batch_size`` samples shaped like ``batch`` (arrays or
+    ``jax.ShapeDtypeStruct``s) for footprints, which read shapes only: broadcast views of
+    one zero, so even a huge batch takes no memory. ``batch_size=None`` keeps the shapes."""
+
+    def like(a):
+        shape = a.shape if batch_size is None else (batch_size, *a.shape[1:])
+        return np.broadcast_to(np.zeros((), a.dtype), shape)
+
+    return jax.tree.map(like, batch)
+
+
+def check_step_fits(
+    method,
+    objective,
+    params,
+    batch,
+    *,
+    devices: list[jax.Device] | None = None,
+    compiled: Any = None,
+    measure: Callable[[int], int | None] | None = None,
+    label: str = "",
+) -> int:
+    """Raise :class:`~physgrad.ConfigError` (one line, with what would fit) unless one
+    step of ``method`` on ``batch`` fits in memory; return the bytes it needs per device.
+
+    Arguments:
+        method: an :class:`~physgrad.AbstractMethod` (its ``footprint``, ``footprint_note``,
+            ``lighter`` and ``check_batch_size``).
+        objective, params: the problem's pieces and the parameters (arrays or
+            ``jax.ShapeDtypeStruct``s).
+        batch: the global batch, or a :func:`stand_in` of it.
+        devices: the devices the batch is split over (default: the first device).
+        compiled: the compiled step, if there is one: its XLA memory analysis joins the
+            footprint. Without it only the footprint is checked.
+        measure: ``measure(batch_size)`` compiles the step at another batch size and
+            returns its :func:`compiled_bytes` without arguments; used to confirm a
+            suggested batch size when the compiled figure decided.
+        label: the method's name in the message.
+    """
+    devices = devices or [jax.local_devices()[0]]
+    mine = [d for d in devices if d.process_index == jax.process_index()] or devices
+    free = [available_bytes(d) for d in mine]
+    if any(f is None for f in free):
+        return 0  # this backend does not say: no check
+    # CPU devices are one host's memory: every local device's share lands in the same pool.
+    shared = len(mine) if mine[0].platform == "cpu" else 1
+    budget = SAFETY * min(free)
+    n, b = len(devices), _batch_size(batch)
+    step = compiled_bytes(compiled, arguments=False) if compiled is not None else None
+    footprint = method.footprint(objective, params, batch, n)
+    need = max(footprint, step or 0)
+    if need * shared <= budget:
+        return need
+
+    def fits(bytes_per_device):
+        return bytes_per_device * shared <= budget
+
+    def footprint_at(size):
+        return method.footprint(objective, params, _first(batch, size), n)
+
+    # The compiled step at another batch size, by a line through the last two compiled
+    # figures (through zero while there is one): confirmations refine it like a secant.
+    points = [] if step is None else [(b, step)]
+
+    def batch_need(size):
+        if not points:
+            return footprint_at(size)
+        (b1, n1), (b2, n2) = points[-2:] if len(points) > 1 else ((0, 0), points[0])
+        return max(footprint_at(size), n2 + (n2 - n1) / (b2 - b1) * (size - b2))
+
+    suggestions = []
+    size = _largest_batch(method, b, n, lambda s: fits(batch_need(s)))
+    if measure is not None and step is not None:  # the compiled figure counted: confirm by compiling
+        for _ in range(_CONFIRMATIONS):
+            measured = None if size is None else measure(size)
+            if size is None or measured is None or fits(max(footprint_at(size), measured)):
+                break
+            points.append((size, measured))
+            size = _largest_batch(method, size, n, lambda s: fits(batch_need(s)))
+        else:
+            size = None  # not confirmed
+    if size is not None:
+        suggestions.append(f"batch_size={size}")
+    rest = max((step or 0) - footprint, 0)  # what the compiled step holds besides the method's arrays
+    for setting, variant in method.lighter(b):
+        if _accepts(variant, b, n) and fits(variant.footprint(objective, params, batch, n) + rest):
+            suggestions.append(setting)
+            break
+    if mine[0].platform != "cpu":  # more accelerators add memory; more CPU devices do not
+        for more in range(n + 1, jax.device_count() + 1):
+            if b % more == 0 and fits(max(method.footprint(objective, params, batch, more), (step or 0) * n / more)):
+                suggestions.append(f"--devices {more}")
+                break
+    note = method.footprint_note(objective, params, batch)
+    if step is not None and step > footprint:
+        note = "compiled step" + (f"; {note}" if note else "")
+    where = "the host" if mine[0].platform == "cpu" else "the device"
+    fit = f"would fit: {' or '.join(suggestions)}" if suggestions else "found no batch size, variant or device count that fits"
+    raise ConfigError(
+        f"{label or 'the'} step needs ~{_size(need * shared)}" + (f" ({note})" if note else "")
+        + f" but {where} has {_size(min(free))} available; {fit} (memory_guard=false skips this check)"
+    )  # fmt: skip
+
+
+def _batch_size(batch) -> int:
+    return jax.tree.leaves(batch)[0].shape[0]
+
+
+def _first(batch, size: int):
+    return jax.tree.map(lambda a: a[:size], batch)
+
+
+def _accepts(method, batch_size: int, devices: int) -> bool:
+    if batch_size % devices:
+        return False
+    try:
+        method.check_batch_size(batch_size)
+    except ValueError:
+        return False
+    return True
+
+
+def _largest_batch(method, below: int, devices: int, fits: Callable[[int], bool]) -> int | None:
+    """The largest valid batch size under ``below`` that ``fits``: halve until one fits,
+    then bisect between it and the last that did not (assuming need grows with the batch
+    there); every size returned was checked."""
+    valid = [s for s in range(below - 1, 0, -1) if _accepts(method, s, devices)]
+    if not valid:
+        return None
+    # halving: the largest valid size at or below below/2, below/4, ...
+    hi, target = None, below
+    while True:
+        target //= 2
+        candidates = [s for s in valid if s <= target]
+        if not candidates:
+            return None
+        lo = candidates[0]
+        if fits(lo):
+            break
+        hi = lo
+    # bisect the valid sizes strictly between lo (fits) and hi (does not, or ``below``)
+    between = [s for s in valid if lo < s < (hi or below)][::-1]  # ascending
+    left, right = 0, len(between)
+    while left < right:
+        mid = (left + right) // 2
+        if fits(between[mid]):
+            lo, left = between[mid], mid + 1
+        else:
+            right = mid
+    return lo
+
+
+def _size(n: float) -> str:
+    for unit, scale in (("GiB", 2**30), ("MiB", 2**20), ("KiB", 2**10)):
+        if n >= scale:
+            return f"{n / scale:.1f} {unit}"
+    return f"{int(n)} B"
