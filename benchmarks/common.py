@@ -68,7 +68,7 @@ def half_inverse_floor(setup, batch_size: int, repeats: int) -> dict:
 
     batch = jax.tree.map(lambda a: a[:batch_size], setup.data["train"])
     params, objective = setup.params, setup.objective
-    rows, size = routes._jacobian_shape(objective, params, batch)
+    rows, size = routes.jacobian_shape(objective, params, batch)
     plan = routes._structure(objective, params, batch)
     backward = jax.jit(lambda p, b: structured.factors(plan, p, b, groups=())[0].D)
     t_backward = median_seconds(backward, (params, batch), repeats)

@@ -70,7 +70,7 @@ class SVD(AbstractRoute):
     """Thin SVD of the whole J (float32 for float32 networks). Under a mesh XLA gathers J."""
 
     def footprint(self, objective, params, batch, devices=1):
-        (rows, size), itemsize = _jacobian_shape(objective, params, batch), _itemsize(params)
+        (rows, size), itemsize = jacobian_shape(objective, params, batch), _itemsize(params)
         # J, its copy in the factorisation and the thin factors U (rows × k), V (P × k).
         return (2 * rows * size + min(rows, size) * (rows + size)) * itemsize
 
@@ -95,7 +95,7 @@ class Gram(AbstractRoute):
         return direction, loss, {}
 
     def footprint(self, objective, params, batch, devices=1):
-        rows, size = _jacobian_shape(objective, params, batch)
+        rows, size = jacobian_shape(objective, params, batch)
         # the device's rows of J in its dtype and in float64, plus the Gram-side matrices
         j = -(-rows // devices) * size * (_itemsize(params) + _F64)
         return j + _gram_bytes((rows, size), devices)
@@ -115,7 +115,7 @@ class Structured(AbstractRoute):
     chunk_elements: int = eqx.field(static=True, default=structured.CHUNK_ELEMENTS)
 
     def __call__(self, objective, params, batch, exponent, truncation):
-        rows, size = _jacobian_shape(objective, params, batch)
+        rows, size = jacobian_shape(objective, params, batch)
         if rows > size:
             return Gram()(objective, params, batch, exponent, truncation)
         devices = data_axis_size()
@@ -127,7 +127,7 @@ class Structured(AbstractRoute):
         return direction, loss, {}
 
     def footprint(self, objective, params, batch, devices=1):
-        rows, size = _jacobian_shape(objective, params, batch)
+        rows, size = jacobian_shape(objective, params, batch)
         if rows > size:
             return Gram().footprint(objective, params, batch, devices)
         plan = _structure(objective, params, batch, self.chunk_elements)
@@ -146,7 +146,7 @@ class Auto(AbstractRoute):
     :class:`SVD`; decided on the shape of the whole J (as on one device)."""
 
     def choose(self, objective, params, batch) -> AbstractRoute:
-        rows, size = _jacobian_shape(objective, params, batch)
+        rows, size = jacobian_shape(objective, params, batch)
         if choose_route((rows, size)) == "svd":
             return SVD()
         if rows <= size and _structure(objective, params, batch).dense:
@@ -185,7 +185,7 @@ class BlockGram(AbstractRoute):
         return direction, loss, {}
 
     def footprint(self, objective, params, batch, devices=1):
-        rows, size = _jacobian_shape(objective, params, batch)
+        rows, size = jacobian_shape(objective, params, batch)
         two_groups = 2 * -(-rows // self.blocks) * size * (_itemsize(params) + _F64)
         return two_groups + _gram_bytes((rows, size), 1)
 
@@ -208,7 +208,7 @@ class Lanczos(AbstractRoute):
         return direction, loss, {"lanczos_change": change}
 
     def footprint(self, objective, params, batch, devices=1):
-        rows, size = _jacobian_shape(objective, params, batch)
+        rows, size = jacobian_shape(objective, params, batch)
         return 2 * self.steps * (rows + size) * _F64
 
 
@@ -217,7 +217,7 @@ def _itemsize(params) -> int:
     return max((jnp.dtype(x.dtype).itemsize for x in leaves), default=4)
 
 
-def _jacobian_shape(objective, params, batch) -> tuple[int, int]:
+def jacobian_shape(objective, params, batch) -> tuple[int, int]:
     """(rows, P) of the whole stacked Jacobian, from shapes alone."""
     sample = jax.tree.map(lambda a: a[0], batch)
     out = jax.eval_shape(lambda p, s: flat_output(objective.predict(p, s)), params, sample)
@@ -234,7 +234,7 @@ def _gram_bytes(shape: tuple[int, int], devices: int) -> int:
 
 def _structure(objective, params, batch, chunk_elements: int = structured.CHUNK_ELEMENTS):
     sample = jax.tree.map(lambda a: a[0], batch)
-    rows, _ = _jacobian_shape(objective, params, batch)
+    rows, _ = jacobian_shape(objective, params, batch)
     return structured.find_structure(objective.predict, params, sample, rows, chunk_elements)
 
 

@@ -21,7 +21,7 @@ import dataclasses
 import equinox as eqx
 from jax.flatten_util import ravel_pytree
 
-from ..routes import SVD, AbstractRoute, Auto, BlockGram, Gram, Lanczos, Structured, _jacobian_shape
+from ..routes import SVD, AbstractRoute, Auto, BlockGram, Gram, Lanczos, Structured, jacobian_shape
 from .base import AbstractRule, Estimator, Objective
 
 
@@ -50,7 +50,7 @@ class JacobianPower(AbstractRule):
         return self.route.footprint(objective, params, batch, devices)
 
     def footprint_note(self, objective, params, batch):
-        rows, size = _jacobian_shape(objective, params, batch)
+        rows, size = jacobian_shape(objective, params, batch)
         name = self.route.name()
         if isinstance(self.route, Auto):  # say which route auto takes for this batch
             name += f" ({self.route.choose(objective, params, batch).name()})"
