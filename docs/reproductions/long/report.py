@@ -28,18 +28,34 @@ import numpy as np  # noqa: E402
 HERE = Path(__file__).resolve().parent
 DATA = HERE.parent / "data"
 FIGURES = HERE.parent / "figures"
-STUDY_PROBLEM = {"oscillators_60min": ("oscillators", 60), "quantum_dipole_90min": ("quantum_dipole", 90)}
+STUDY_PROBLEM = {"oscillators_60min": ("oscillators", 60), "quantum_dipole_90min": ("quantum_dipole", 90),
+                 "poisson_hig_b64": ("poisson_hig", None)}  # fmt: skip
+# the half-inverse route each study's physgrad took (the oscillator and dipole studies ran
+# before the structured route existed)
+STUDY_ROUTE = {"poisson_hig_b64": "structured"}
 
 
-def calibration() -> dict[tuple[str, str], float]:
-    """(problem, method) -> seconds per step measured alone (the default route)."""
-    out = {}
+def calibration() -> dict[tuple[str, str, str], float]:
+    """(problem, method, route) -> seconds per step measured alone (route '' for the others)."""
     with (HERE / "calibration.csv").open() as f:
-        for row in csv.DictReader(f):
-            if row["method"] in ("gn", "hig") and row["route"] != "gram":
-                continue
-            out[(row["problem"], row["method"])] = float(row["ms_per_step"]) / 1e3
-    return out
+        return {(r["problem"], r["method"], r["route"]): float(r["ms_per_step"]) / 1e3 for r in csv.DictReader(f)}
+
+
+def seconds(cal, study: str, method: str, step):
+    """Calibrated time at ``step`` of a method directory: a sequence such as
+    ``adam-1413-hig`` spends its first 1,413 steps at Adam's rate, the rest at HIG's."""
+    problem = STUDY_PROBLEM.get(study, (study, None))[0]
+    route = STUDY_ROUTE.get(study, "gram")
+
+    def rate(m):
+        return cal.get((problem, m, route if m in ("gn", "hig") else ""), math.nan)
+
+    parts = method.split("-")
+    if len(parts) == 3:  # first-STEPS-second
+        first, n, second = parts[0], int(parts[1]), parts[2]
+        step = np.asarray(step, float)
+        return np.minimum(step, n) * rate(first) + np.maximum(step - n, 0) * rate(second)
+    return np.asarray(step, float) * rate(method)
 
 
 def runs(study: Path, method: str) -> list[dict]:
@@ -78,7 +94,8 @@ def table(study: Path, cal) -> tuple[list[str], dict]:
         state = ", ".join(f"seed {r['seed']}: {r['status']} at step {r['last_step']}"
                           for r in rs if r["status"] != "finished") or "all finished"  # fmt: skip
         mean = f"{values.mean():.3e} ± {values.std(ddof=1) if len(values) > 1 else 0:.1e}" if len(values) else "-"
-        lines.append(f"| {m} | {cal.get((problem, m), math.nan):.4f} | {rs[0]['budget'] if rs else '-'} | "
+        per_step = float(seconds(cal, study.name, m, 1)) if "-" not in m else math.nan
+        lines.append(f"| {m} | {per_step:.4f} | {rs[0]['budget'] if rs else '-'} | "
                      f"{len(done)} finished, {len(div)} diverged | {mean} | RATIO_{m} | {state} |")  # fmt: skip
     base = finals.get("adam")
     for i, line in enumerate(lines):
@@ -96,7 +113,7 @@ def figure(study: Path, data: dict, cal, out: Path):
         for r in rs:
             if not len(r["loss"]):
                 continue
-            t = r["step"] * cal.get((problem, m), math.nan) / 60
+            t = seconds(cal, study.name, m, r["step"]) / 60
             style = dict(alpha=0.8, lw=1, label=f"{m} seed {r['seed']}" + (" (diverged)" if r["status"] == "diverged" else ""))
             axes[0].semilogy(t, r["loss"], **style)
             axes[1].semilogy(r["wall"] / 60, r["loss"], **style)

@@ -29,26 +29,47 @@ if [ ! -d "$CODE/src/physgrad" ]; then
 fi
 [ "$(git -C "$CODE" rev-parse --short=7 HEAD)" = "${STUDY_COMMIT:0:7}" ] || { echo "worktree $CODE is not at $STUDY_COMMIT" >&2; exit 2; }
 
-pg() { PYTHONPATH="$CODE/src" nice -n 10 taskset -c "$CORE" "$PY" -m physgrad "$@"; }
+pg() { PYTHONPATH="${LANE_CODE:-$CODE}/src" nice -n 10 taskset -c "$CORE" "$PY" -m physgrad "$@"; }
+
+# a lane that needs a later physgrad than STUDY_COMMIT runs it from its own worktree
+# usage: use_commit DIR COMMIT  (sets LANE_CODE for the lane's runs)
+use_commit() {
+  local dir=$1 commit=$2
+  [ -d "$dir/src/physgrad" ] || git -C "$ROOT" worktree add --detach "$dir" "$commit"
+  [ "$(git -C "$dir" rev-parse --short=7 HEAD)" = "${commit:0:7}" ] || { echo "worktree $dir is not at $commit" >&2; exit 2; }
+  LANE_CODE="$dir"
+}
 
 # one method of a study, seeds 0..K-1 grown one seed at a time across the methods, so that
 # an interrupted lane always has the same seeds for every method
-# usage: lane_study STUDY PROBLEM "method:steps:eval_every ..." [--set ...]
+# usage: lane_study STUDY PROBLEM "method@steps@eval_every ..." [--set ...]
+# (a method may be a sequence such as adam:1413,hig; its directory name is the spec's method
+# with ':' and ',' replaced by '-')
 lane_study() {
   local study=$1 problem=$2 specs=$3; shift 3
   for k in 1 2 3; do
     for spec in $specs; do
-      IFS=: read -r method steps every <<<"$spec"
+      IFS=@ read -r method steps every <<<"$spec"
+      local dir="${method//[:,]/-}"
       pg compare "$problem" --methods "$method" --seeds "$k" --steps "$steps" \
-        --set eval_every="$every" "$@" --out "$DATA/$study/$method" --quiet
+        --set eval_every="$every" "$@" --out "$DATA/$study/$dir" --quiet
     done
   done
 }
 
 # Claim 1, HIG paper Fig. 2b: 60 min per run (calibrated: adam 5.14 ms, hig 100.3 ms, gn 94.7 ms)
-lane_oscillators() { lane_study oscillators_60min oscillators "gn:38000:380 hig:36000:360 adam:700000:7000"; }
+lane_oscillators() { lane_study oscillators_60min oscillators "gn@38000@380 hig@36000@360 adam@700000@7000"; }
 # Claim 3, HIG paper dipole: 90 min per run (calibrated: adam 145.3 ms, hig 262.6 ms)
-lane_dipole() { lane_study quantum_dipole_90min quantum_dipole "hig:20500:205 adam:37000:370"; }
+lane_dipole() { lane_study quantum_dipole_90min quantum_dipole "hig@20500@205 adam@37000@370"; }
+# Issue 16 item 5, HIG paper Poisson 8×8 at the paper's batch 64 with the structured route
+# (physgrad after it landed, POISSON_COMMIT): 100 HIG steps per run (calibrated: hig structured
+# 18.77 s per step, adam 0.60 ms per step at batch 64, one core), Adam for the same calibrated
+# time (1,877 s = 3.13M steps), and HIG for 100 steps after 1,413 Adam steps (the authors'
+# pretrained network).
+lane_poisson() {
+  use_commit "$ROOT/../studycode-poisson" "${POISSON_COMMIT:-2bee393}"
+  lane_study poisson_hig_b64 poisson_hig "hig@100@2 adam:1413,hig@1513@10 adam@3128000@31280"
+}
 
 LANES=("$@")
 [ ${#LANES[@]} -gt 0 ] || LANES=(oscillators dipole)
