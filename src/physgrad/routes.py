@@ -89,16 +89,13 @@ class Gram(AbstractRoute):
             return half_inverse(jac, g, exponent=exponent, truncation=truncation, route="gram"), loss, {}
         # Data parallel: each device forms the Jacobian rows of its own samples and the
         # Gram matrix is assembled by collectives (half_inverse.sharded_gram_route).
-        spec = PartitionSpec(AXIS)
-        local = functools.partial(_sharded_direction, objective, devices=devices, exponent=exponent, truncation=truncation)
-        direction, loss = jax.shard_map(local, in_specs=(PartitionSpec(), spec), out_specs=PartitionSpec())(params, batch)
-        return direction, loss, {}
+        return _over_devices(_sharded_direction, objective, params, batch, devices, exponent, truncation)
 
     def footprint(self, objective, params, batch, devices=1):
         rows, size = jacobian_shape(objective, params, batch)
         # the device's rows of J in its dtype and in float64, plus the Gram-side matrices
         j = -(-rows // devices) * size * (_itemsize(params) + _F64)
-        return j + _gram_bytes((rows, size), devices)
+        return j + _gram_bytes((rows, size))
 
 
 class Structured(AbstractRoute):
@@ -121,10 +118,7 @@ class Structured(AbstractRoute):
         devices = data_axis_size()
         if devices == 1:
             return _structured_direction(objective, params, batch, self.chunk_elements, exponent, truncation) + ({},)
-        spec = PartitionSpec(AXIS)
-        local = functools.partial(_sharded_structured, objective, devices=devices, exponent=exponent, truncation=truncation)
-        direction, loss = jax.shard_map(local, in_specs=(PartitionSpec(), spec), out_specs=PartitionSpec())(params, batch)
-        return direction, loss, {}
+        return _over_devices(_sharded_structured, objective, params, batch, devices, exponent, truncation)
 
     def footprint(self, objective, params, batch, devices=1):
         rows, size = jacobian_shape(objective, params, batch)
@@ -137,7 +131,7 @@ class Structured(AbstractRoute):
         d_out, d_in = sum(u.d_out for u in plan.dense), sum(u.d_in for u in plan.dense)
         group = max((sum(plan.leaf_sizes[k] for k in g) for g in plan.groups), default=0)
         explicit = plan.explicit_parameters if devices > 1 else group
-        return (local_rows * (d_out + explicit) + local_b * d_in) * per_byte + _gram_bytes((rows, size), devices)
+        return (local_rows * (d_out + explicit) + local_b * d_in) * per_byte + _gram_bytes((rows, size))
 
 
 class Auto(AbstractRoute):
@@ -187,7 +181,7 @@ class BlockGram(AbstractRoute):
     def footprint(self, objective, params, batch, devices=1):
         rows, size = jacobian_shape(objective, params, batch)
         two_groups = 2 * -(-rows // self.blocks) * size * (_itemsize(params) + _F64)
-        return two_groups + _gram_bytes((rows, size), 1)
+        return two_groups + _gram_bytes((rows, size))
 
 
 class Lanczos(AbstractRoute):
@@ -212,6 +206,16 @@ class Lanczos(AbstractRoute):
         return 2 * self.steps * (rows + size) * _F64
 
 
+def _over_devices(local, objective, params, batch, devices, exponent, truncation):
+    """``local(objective, params, batch, devices=, exponent=, truncation=)`` run by every
+    device on its share of the batch (``shard_map``), parameters replicated; returns the
+    replicated ``(direction, loss, {})``."""
+    spec = PartitionSpec(AXIS)
+    body = functools.partial(local, objective, devices=devices, exponent=exponent, truncation=truncation)
+    direction, loss = jax.shard_map(body, in_specs=(PartitionSpec(), spec), out_specs=PartitionSpec())(params, batch)
+    return direction, loss, {}
+
+
 def _itemsize(params) -> int:
     leaves = jax.tree.leaves(params)
     return max((jnp.dtype(x.dtype).itemsize for x in leaves), default=4)
@@ -225,7 +229,7 @@ def jacobian_shape(objective, params, batch) -> tuple[int, int]:
     return b * out.size, sum(x.size for x in jax.tree.leaves(params))
 
 
-def _gram_bytes(shape: tuple[int, int], devices: int) -> int:
+def _gram_bytes(shape: tuple[int, int]) -> int:
     """The float64 Gram matrix (m × m, m = the smaller side), its eigenvectors and
     ``eigh``'s workspace on every device (the ring all-gathers the whole matrix)."""
     m = min(shape)

@@ -82,10 +82,6 @@ class Structure(NamedTuple):
     def explicit_parameters(self) -> int:
         return sum(self.leaf_sizes[k] for group in self.groups for k in group)
 
-    @property
-    def dense_parameters(self) -> int:
-        return sum(self.leaf_sizes[u.leaf] + (u.d_out if u.bias is not None else 0) for u in self.dense)
-
 
 def _param_leaves(params):
     # None leaves (the static part of an eqx.partition) stay None: they are not inputs.
@@ -112,20 +108,15 @@ def find_structure(
     closed, out_shape = jax.make_jaxpr(program, return_shape=True)(*leaves, *sample_leaves)
     jaxpr = closed.jaxpr
     params_vars = {v: k for k, v in enumerate(jaxpr.invars[:n])}
-    uses: dict[int, int] = {k: 0 for k in range(n)}
-    for eqn in jaxpr.eqns:
-        for v in eqn.invars:
-            if not isinstance(v, Literal) and v in params_vars:
-                uses[params_vars[v]] += 1
-    for v in jaxpr.outvars:
-        if not isinstance(v, Literal) and v in params_vars:
-            uses[params_vars[v]] += 2  # returned as an output: not a layer
-
-    users: dict = {}
+    users: dict = {}  # var -> the equations reading it, once per operand slot
     for e, eqn in enumerate(jaxpr.eqns):
         for v in eqn.invars:
             if not isinstance(v, Literal):
                 users.setdefault(v, []).append(e)
+
+    def sole_parameter_use(v) -> bool:
+        """``v`` is a parameter leaf read by exactly one operand and not returned."""
+        return not isinstance(v, Literal) and v in params_vars and len(users.get(v, ())) == 1 and v not in jaxpr.outvars
 
     def bias_of(z):
         """The parameter leaf ``b`` of ``z + b`` when that sum is z's only use."""
@@ -135,7 +126,7 @@ def find_structure(
         if eqn.primitive.name != "add":
             return None
         other = eqn.invars[1] if eqn.invars[0] is z else eqn.invars[0]
-        if isinstance(other, Literal) or other not in params_vars or uses[params_vars[other]] != 1:
+        if not sole_parameter_use(other):
             return None
         return params_vars[other] if other.aval.shape == z.aval.shape and other.aval.dtype == z.aval.dtype else None
 
@@ -148,7 +139,7 @@ def find_structure(
             continue
         for w_pos, a_pos, w_contract, a_contract in ((0, 1, lc[0], rc[0]), (1, 0, rc[0], lc[0])):
             w, a = eqn.invars[w_pos], eqn.invars[a_pos]
-            if isinstance(w, Literal) or w not in params_vars or uses[params_vars[w]] != 1:
+            if not sole_parameter_use(w):
                 continue
             if w.aval.ndim != 2 or a.aval.ndim != 1 or a_contract != 0 or w is a:
                 continue
