@@ -31,7 +31,7 @@ from .methods import (
 )
 from .problems import (
     AbstractProblem, Advection1d, CartPole, ExpInverse, Guidance, Heat, HigToy, Kolmogorov, KuramotoSivashinsky,
-    LinearOscillators, Oscillators, Poisson, PoissonHig, QuantumControl, QuantumDipole, Sine, Toy2d,
+    LinearOscillators, NavierStokes, Oscillators, Poisson, PoissonHig, QuantumControl, QuantumDipole, Sine, Toy2d,
 )  # fmt: skip
 from .rollout import Combined, M, R, S
 
@@ -245,7 +245,7 @@ def wig(*, lr: float = 1e-3, lr_warmup: int = 0, decay: float = 1.0, decay_every
 PROBLEMS: dict[str, type[AbstractProblem]] = {
     cls.name: cls for cls in (
         HigToy, Oscillators, QuantumDipole, PoissonHig, LinearOscillators,
-        Toy2d, ExpInverse, Sine, Poisson, Heat,
+        Toy2d, ExpInverse, Sine, Poisson, Heat, NavierStokes,
         CartPole, Guidance, QuantumControl,
         KuramotoSivashinsky, Kolmogorov, Advection1d,
     )  # fmt: skip

@@ -12,6 +12,7 @@ from .sine import Sine
 from .toy2d import Toy2d
 from .hig_toy import HigToy
 from .linear_oscillators import LinearOscillators
+from .navier_stokes import NavierStokes
 from .oscillators import Oscillators
 from .poisson_hig import PoissonHig
 from .quantum_dipole import QuantumDipole
@@ -20,4 +21,4 @@ from .ks import KuramotoSivashinsky
 from .kolmogorov import Kolmogorov
 from .advection_1d import Advection1d
 
-__all__ = ["TimeStepperProblem", "KuramotoSivashinsky", "Kolmogorov", "Advection1d", "AbstractProblem", "CartPole", "ClosedLoopProblem", "Guidance", "QuantumControl", "ExpInverse", "Heat", "Poisson", "Sine", "Toy2d", "HigToy", "LinearOscillators", "Oscillators", "PoissonHig", "QuantumDipole"]
+__all__ = ["TimeStepperProblem", "KuramotoSivashinsky", "Kolmogorov", "Advection1d", "AbstractProblem", "CartPole", "ClosedLoopProblem", "Guidance", "QuantumControl", "ExpInverse", "Heat", "Poisson", "Sine", "Toy2d", "HigToy", "LinearOscillators", "NavierStokes", "Oscillators", "PoissonHig", "QuantumDipole"]

@@ -35,10 +35,6 @@ m steps. Metrics on trajectories at least ``eval_horizon`` long (§1.5):
 from __future__ import annotations
 
 import abc
-import hashlib
-import json
-import os
-from pathlib import Path
 from typing import ClassVar
 
 import equinox as eqx
@@ -46,16 +42,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..cache import cached_arrays
 from ..rollout import System
 from ..steppers import NonDifferentiable, check_composition, select, stepper_step
 from .base import AbstractProblem
 
 DATA_VERSION = 1  # bump when a generator changes, so cached data are regenerated
-
-
-def cache_dir() -> Path:
-    """Where generated datasets are cached (``$PHYSGRAD_CACHE`` or ``~/.cache/physgrad``)."""
-    return Path(os.environ.get("PHYSGRAD_CACHE", Path.home() / ".cache" / "physgrad"))
 
 
 def _exponax_version() -> str:
@@ -158,20 +150,9 @@ class TimeStepperProblem(AbstractProblem):
     # --- data ------------------------------------------------------------------------------
     def trajectories(self, split: str) -> dict[str, np.ndarray]:
         """A split's reference trajectories, generated once and cached on disk."""
-        key = json.dumps(
-            {"problem": self.name, "split": split, "version": DATA_VERSION, "exponax": _exponax_version(),
-             **self.data_settings()}, sort_keys=True, default=str,
-        )  # fmt: skip
-        path = cache_dir() / f"{self.name}-{split}-{hashlib.sha256(key.encode()).hexdigest()[:12]}.npz"
-        if path.exists():
-            with np.load(path) as f:
-                return {k: f[k] for k in f.files}
-        data = {k: np.asarray(v) for k, v in self.generate(split).items()}
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(path.name + f".{os.getpid()}.tmp.npz")
-        np.savez(tmp, **data)
-        os.replace(tmp, path)
-        return data
+        key = {"problem": self.name, "split": split, "version": DATA_VERSION, "exponax": _exponax_version(),
+               **self.data_settings()}  # fmt: skip
+        return cached_arrays(f"{self.name}-{split}", key, lambda: self.generate(split))
 
     def make_data(self, key):
         del key  # the data are fixed by data_seed; the run seed initialises the network
