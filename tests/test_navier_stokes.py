@@ -1,0 +1,113 @@
+"""The navier_stokes problem (SIP paper Fig. 7) on a small grid: data, loss, the authors'
+local inverse, and training with adam and sip from the command line."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from physgrad import fluid
+from physgrad.cli import main
+from physgrad.problems import NavierStokes
+from physgrad.problems.navier_stokes import frequency_loss, threshold_top
+
+# a quarter of the paper's grid: lengths and the loss's falloff (in cycles per cell) scaled by 1/4
+SMALL = dict(resolution=16, size=32.0, box=14.0, swirl_sigma=5.0, falloff=20.0, levels=3, filters=4, n_train=8, n_test=4)
+
+
+@pytest.fixture(scope="module")
+def problem():
+    return NavierStokes(**SMALL)
+
+
+@pytest.fixture(scope="module")
+def samples(problem):
+    return problem.examples(jax.random.key(0), 4)
+
+
+def one(samples, i=0):
+    return {k: jnp.asarray(v[i]) for k, v in samples.items()}
+
+
+def test_frequency_loss_equals_numpy_formula():
+    rng = np.random.default_rng(0)
+    d = rng.normal(size=(16, 16)).astype(np.float32)
+    k = np.fft.fftfreq(16)
+    weight = np.exp(-0.5 * (k[:, None] ** 2 + k[None, :] ** 2) * 80.0**2)
+    amplitude = np.abs(np.fft.fft2(d - d.mean()) * weight)
+    expected = np.sum(np.maximum(amplitude, np.sqrt(1e-5)))
+    assert float(frequency_loss(jnp.asarray(d), 80.0)) == pytest.approx(expected, rel=1e-5)
+    assert float(frequency_loss(jnp.asarray(d) + 3.0, 80.0)) == pytest.approx(expected, rel=1e-5)  # mean ignored
+
+
+def test_threshold_keeps_the_top_fraction():
+    values = jnp.arange(100.0).reshape(10, 10)[::-1]
+    marked = threshold_top(values, 0.07)
+    assert int(marked.sum()) == 7 and float(values[marked == 1].min()) == 93.0
+
+
+def test_data_are_consistent(problem, samples):
+    s = one(samples)
+    m0 = np.asarray(s["m0"])
+    assert m0.min() >= 0 and m0.max() <= 1  # 1 inside the box, the covered fraction on its edge cells
+    assert 1 <= int((m0 > 0).sum()) <= round(0.15 * 256)  # at most the top 15 % of the cells
+    # m_T is the simulation of the true v₀: the loss there is PhiFlow's floor √1e-5 per mode
+    simulate = jax.jit(problem.simulate)
+    y = simulate(s["v0"], s)
+    np.testing.assert_allclose(np.asarray(y), np.asarray(s["mT"]), atol=1e-5)
+    assert float(problem.loss(y, s)) == pytest.approx(256 * np.sqrt(1e-5), rel=1e-3)
+    # the drift part of v₀ carries the marker's centre of mass to the centre of the domain
+    drift = (problem.centre - fluid.centre_of_mass(s["m0"], problem.dx)) / problem.time
+    mean_v = jnp.mean(s["v0"], axis=(1, 2))
+    np.testing.assert_allclose(np.asarray(mean_v), np.asarray(drift), atol=0.05)  # swirl and noise average ~0
+    assert float(problem.loss(simulate(jnp.zeros_like(s["v0"]), s), s)) > 3 * float(problem.loss(y, s))
+
+
+def test_vorticity_recovers_a_swirl_exactly(problem):
+    for strength in (-1.3, 0.4):
+        assert float(problem.vorticity(problem.swirl(strength))) == pytest.approx(strength, rel=1e-5)
+    uniform = jnp.ones((2, 16, 16)) * jnp.array([1.5, -2.0])[:, None, None]
+    assert abs(float(problem.vorticity(uniform))) < 1e-6  # a uniform flow carries no swirl
+
+
+def test_paper_swirl_normaliser():
+    """At the paper's sizes the computed N_σ is the authors' hard-coded 120.5."""
+    assert float(NavierStokes().swirl_norm()) == pytest.approx(120.5, abs=0.05)
+
+
+def test_inverse_lies_in_the_prior_family_and_improves_a_bad_guess(problem, samples):
+    inverse, simulate = jax.jit(problem.inverse), jax.jit(problem.simulate)
+    for i in range(3):
+        s = one(samples, i)
+        guess = jnp.zeros_like(s["v0"])
+        x_tilde = inverse(guess, simulate(guess, s), s["mT"], s)
+        drift = (problem.centre - fluid.centre_of_mass(s["m0"], problem.dx)) / problem.time
+        swirl = x_tilde - drift[:, None, None]
+        strength = problem.vorticity(swirl)
+        np.testing.assert_allclose(np.asarray(swirl), np.asarray(problem.swirl(strength)), atol=1e-5)
+        err = lambda x: float(problem.metrics(x, None, s)["v0_l1"])  # noqa: E731
+        assert err(x_tilde) < 0.5 * err(guess)
+
+
+def test_inverse_at_the_truth_stays_near_it(problem, samples):
+    """From the true v₀ the forward and reversed centres of mass agree, so x̃ is the true
+    drift + swirl: what remains is the 0.1 noise the prior cannot express."""
+    no_noise = NavierStokes(**{**SMALL, "fluctuations": 0.0})
+    data = no_noise.examples(jax.random.key(1), 2)
+    for i in range(2):
+        s = one(data, i)
+        x_tilde = jax.jit(no_noise.inverse)(s["v0"], s["mT"], s["mT"], s)
+        rel = float(jnp.abs(x_tilde - s["v0"]).max() / jnp.abs(s["v0"]).max())
+        assert rel < 0.02, rel
+
+
+def test_compare_adam_and_sip_from_the_command_line(tmp_path, monkeypatch, capsys):
+    monkeypatch.setenv("PHYSGRAD_CACHE", str(tmp_path / "cache"))
+    settings = [f"--set={k}={v}" for k, v in SMALL.items()] + ["--set=batch_size=4", "--set=eval_every=2"]
+    code = main(["compare", "navier_stokes", "--methods", "adam,sip", "--seeds", "1", "--steps", "2",
+                 "--out", str(tmp_path / "study"), "--quiet", *settings])  # fmt: skip
+    assert code == 0
+    out = capsys.readouterr().out
+    assert "adam" in out and "sip" in out
+    assert main(["train", "navier_stokes", "--method", "sip", "--set", "projection=spectral", "--steps", "1"]) == 2
+    assert "valid choices: fft, cg" in capsys.readouterr().err
