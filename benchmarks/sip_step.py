@@ -9,6 +9,14 @@ same network).
 
     python benchmarks/sip_step.py [--problem sine] [--solvers analytic,gauss_newton,...]
                                   [--batch-size B] [--repeats 30] [--set name=value ...]
+                                  [--vary name=v1,v2]
+
+``--vary`` repeats every case for each value of one problem setting, back to back in the
+same process, with ratios to Adam at the first value: e.g. the Navier–Stokes step with
+physgrad's JAX solver and with the same step written in PhiFlow,
+
+    python benchmarks/sip_step.py --problem navier_stokes --set n_train=64 --repeats 5 \
+        --vary simulator=jax,phiflow
 """
 
 from __future__ import annotations
@@ -27,14 +35,18 @@ DEFAULT_SOLVERS = {
     "poisson": "analytic,linear_solve",
     "heat": "analytic",
     "toy2d": "analytic,gauss_newton,saddle_free_newton,lbfgs",
+    "navier_stokes": "analytic",
 }
 
 
 def main():
     parser = benchmark_parser(__doc__.splitlines()[0], "sine")
     parser.add_argument("--solvers", help="comma-separated (default: those that apply to the problem)")
+    parser.add_argument("--vary", metavar="NAME=V1,V2", help="repeat every case for each value of one setting")
     args = parser.parse_args()
-    settings = settings_from(args)
+    base = settings_from(args)
+    name, values = args.vary.split("=", 1) if args.vary else (None, "")
+    variants = [{**base, name: v} for v in values.split(",")] if name else [base]
     solvers = (args.solvers or DEFAULT_SOLVERS.get(args.problem, "auto")).split(",")
     # linear_solve on the Poisson problem: P = ∇⁻² is symmetric negative definite, and CG on
     # its condition number (≈ 1,700) stalls in float32; the oscillators' J is 4 × 24.
@@ -45,16 +57,18 @@ def main():
 
     cases = [("adam", {})] + [("sip", {"solver": s, **(krylov if s == "linear_solve" else {})}) for s in solvers]
     rows = []
-    for method, extra in cases:
-        try:
-            config, _, step, step_args = training_step(args.problem, method, {**settings, **extra})
-        except ConfigError as e:
-            rows.append((method, extra.get("solver", ""), None, str(e)))
-            continue
-        t = median_seconds(step, step_args, args.repeats)
-        stats = step(*step_args)[2]
-        failed = f", {int(stats['inverse_failures'])} failed solves" if "inverse_failures" in stats else ""
-        rows.append((method, extra.get("solver", ""), t, f"batch {config.phases[0].batch_size}{failed}"))
+    for settings in variants:
+        label = f", {name}={settings[name]}" if name else ""
+        for method, extra in cases:
+            try:
+                config, _, step, step_args = training_step(args.problem, method, {**settings, **extra})
+            except ConfigError as e:
+                rows.append((method, extra.get("solver", ""), None, str(e) + label))
+                continue
+            t = median_seconds(step, step_args, args.repeats)
+            stats = step(*step_args)[2]
+            failed = f", {int(stats['inverse_failures'])} failed solves" if "inverse_failures" in stats else ""
+            rows.append((method, extra.get("solver", ""), t, f"batch {config.phases[0].batch_size}{failed}{label}"))
 
     adam = rows[0][2]
     print(f"{args.problem}: median seconds per training step, {args.repeats} repeats "

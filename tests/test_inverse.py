@@ -125,6 +125,17 @@ def test_lbfgs_reports_running_out_of_steps():
     assert not bool(result.converged)
 
 
+def test_lbfgs_accept_last_keeps_an_unconverged_iterate_that_helped():
+    """The SIP authors' 16-iteration L-BFGS inverse: the budget's last iterate is used."""
+    args = (simulate, jnp.asarray(X), jnp.asarray(Y), jnp.asarray(Y_TARGET), SAMPLE)
+    plain = LBFGS(max_steps=3, tol=1e-12)(*args)
+    last = LBFGS(max_steps=3, tol=1e-12, accept_last=True)(*args)
+    assert not bool(plain.converged) and bool(last.converged)
+    np.testing.assert_array_equal(np.asarray(last.x), np.asarray(plain.x))
+    misfit = lambda x: 0.5 * np.sum((np_simulate(np.asarray(x)) - Y_TARGET) ** 2)  # noqa: E731
+    assert misfit(last.x) < misfit(X)
+
+
 @pytest.mark.parametrize("krylov", ["gmres", "bicgstab", "normal_cg"])
 def test_linear_solve_equals_numpy_solve_for_a_general_matrix(krylov):
     M = RNG.normal(size=(6, 6)) + 6 * np.eye(6)

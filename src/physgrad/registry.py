@@ -118,7 +118,8 @@ def newton(*, lr: float = 1.0, damping: float = 0.0):
 INVERSE_SOLVERS = ("auto", "analytic", "gauss_newton", "saddle_free_newton", "lbfgs", "linear_solve")
 
 
-def make_solver(name: str, *, analytic=None, rcond=1e-5, max_loss_change=0.2, max_steps=100, tol=1e-6, krylov="gmres"):
+def make_solver(name: str, *, analytic=None, rcond=1e-5, max_loss_change=0.2, max_steps=100, tol=1e-6, krylov="gmres",
+                accept_last=False):  # fmt: skip
     """A local inverse solver by name; ``auto`` is ``analytic`` when ``analytic`` (a
     problem's inverse function) is given, else Gauss–Newton. ``analytic`` with no function
     stands for the problem's own inverse, bound by SIP. ``max_loss_change <= 0`` disables
@@ -133,7 +134,7 @@ def make_solver(name: str, *, analytic=None, rcond=1e-5, max_loss_change=0.2, ma
     if name == "saddle_free_newton":
         return SaddleFreeNewton(max_loss_change if max_loss_change > 0 else None)
     if name == "lbfgs":
-        return LBFGS(max_steps, tol)
+        return LBFGS(max_steps, tol, accept_last)
     return LinearSolve(krylov, rtol=tol, max_steps=max_steps)
 
 
@@ -150,10 +151,12 @@ def sip(
     tol: float = 1e-6,
     krylov: str = "gmres",
     precision: str = "float32",
+    accept_last: bool = False,
 ):
     """Scale-invariant physics: fit the network to a local inverse x̃ = P⁻¹(y + η(y* − y); x) (Holl et al. 2022)."""
     _choose("optimizer", optimizer, OPTIMIZERS)
-    settings = dict(rcond=rcond, max_loss_change=max_loss_change, max_steps=max_steps, tol=tol, krylov=krylov)
+    settings = dict(rcond=rcond, max_loss_change=max_loss_change, max_steps=max_steps, tol=tol, krylov=krylov,
+                    accept_last=accept_last)  # fmt: skip
     inverse = None if solver == "auto" else make_solver(solver, **settings)  # auto: decided by the problem
     if solver == "auto":
         make_solver("gauss_newton", **settings)  # the fallback's settings are checked now

@@ -71,10 +71,20 @@ lane_poisson() {
   lane_study poisson_hig_b64 poisson_hig "hig@100@2 adam:1413,hig@1513@10 adam@3128000@31280"
 }
 
+# Issue 17, SIP paper Fig. 7: Adam vs SIP (the authors' estimate_v0 inverse) on navier_stokes at the
+# paper's batch 64, 500 steps per run (physgrad after the problem landed, NS_COMMIT); drawn against
+# the calibrated time axis (calibration.csv: per-step times measured alone). Run it on the other
+# core beside the other lanes: CORE=1 bash studies.sh navier_stokes
+lane_navier_stokes() {
+  use_commit "$ROOT/../studycode-ns" "${NS_COMMIT:-5bef186}"
+  lane_study sip_navier_stokes navier_stokes "sip@500@25 adam@500@25"
+}
+
 LANES=("$@")
 [ ${#LANES[@]} -gt 0 ] || LANES=(oscillators dipole)
 for lane in "${LANES[@]}"; do
   echo "== lane $lane ($(date -u +%FT%TZ))"
+  unset LANE_CODE  # a lane runs STUDY_COMMIT unless it picks its own (use_commit)
   "lane_$lane"
 done
 echo "== all lanes done ($(date -u +%FT%TZ))"
