@@ -1,10 +1,15 @@
-"""Per-sample Jacobians of the simulator output, stacked sample-major."""
+"""Per-sample Jacobians of the simulator output, stacked sample-major; and the helpers
+that let Jacobian- and Hessian-based pieces handle reverse-mode-only simulators
+(:func:`is_reverse_only`, :func:`supports_forward_mode`, :func:`dense_jacobian`,
+:func:`dense_hessian`)."""
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 
 import jax
+import jax.extend.core as jax_core
 import jax.numpy as jnp
 from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, PyTree
@@ -40,3 +45,147 @@ def stacked_jacobian(
 
     jac, y = jax.vmap(jax.jacrev(per_sample, has_aux=True), in_axes=(None, 0))(flat, batch)
     return jac.reshape(-1, flat.size), y
+
+
+# --- simulators without forward mode -------------------------------------------------------
+# A function built on ``jax.custom_vjp`` (e.g. PhiFlow/PhiML's implicit-adjoint linear solves,
+# :mod:`physgrad.phiflow`) has reverse-mode derivatives only: ``jax.jvp``/``jacfwd`` raise
+# "can't apply forward-mode autodiff (jvp) to a custom_vjp function" (while tracing, or only
+# when the traced computation is evaluated or lowered). The helpers below let
+# the Jacobian-based pieces pick reverse mode for such functions, and let the pieces that
+# need forward mode say so in one line instead of JAX's internal error.
+
+REVERSE_ONLY_ATTRIBUTE = "reverse_only"
+MODES = ("auto", "forward", "reverse")
+
+
+def mark_reverse_only(fn: Callable) -> Callable:
+    """``fn`` marked as reverse-mode only (``fn.reverse_only = True``; a wrapper if ``fn``
+    takes no attributes). :func:`is_reverse_only` reads the mark."""
+    try:
+        setattr(fn, REVERSE_ONLY_ATTRIBUTE, True)
+        return fn
+    except (AttributeError, TypeError):
+
+        @functools.wraps(fn)
+        def wrapper(*args, **kwargs):
+            return fn(*args, **kwargs)
+
+        wrapper.reverse_only = True  # type: ignore[attr-defined]
+        return wrapper
+
+
+def is_reverse_only(fn) -> bool:
+    """Whether ``fn`` (or the function it wraps: ``functools.partial``/``eqx.Partial``'s
+    ``func``, ``functools.wraps``' ``__wrapped__``) is marked reverse-mode only. A mark
+    is a hint only: a closure around a marked function is found by :func:`supports_forward_mode`."""
+    seen = set()
+    while fn is not None and id(fn) not in seen:
+        seen.add(id(fn))
+        if getattr(fn, REVERSE_ONLY_ATTRIBUTE, False) is True:
+            return True
+        fn = getattr(fn, "func", None) or getattr(fn, "__wrapped__", None)
+    return False
+
+
+def is_forward_mode_error(error: BaseException) -> bool:
+    """Whether ``error`` is JAX's refusal to apply forward mode to a ``custom_vjp``."""
+    message = str(error)
+    return isinstance(error, TypeError) and "forward-mode" in message and "custom_vjp" in message
+
+
+def supports_forward_mode(fn: Callable, *primals, transform: Callable | None = None, source=None) -> bool:
+    """Whether ``fn`` can be differentiated in forward mode at ``primals`` (trace time only).
+
+    False for a function marked reverse-only (``fn``, or ``source``: the user's function that
+    ``fn`` is built from); otherwise the answer of an abstract probe: ``transform(fn)``
+    (default: a JVP) is traced to a jaxpr, and no means either JAX's custom_vjp error during
+    tracing (e.g. under vmap) or a ``custom_lin`` equation left in the jaxpr (a custom_vjp's
+    tangent, which JAX only refuses when it is evaluated or lowered). Works on tracers (inside
+    jit/vmap); costs one extra trace of ``fn``, no computation."""
+    if is_reverse_only(fn) or (source is not None and is_reverse_only(source)):
+        return False
+    if transform is None:
+        probe = lambda *p: jax.jvp(fn, p, p)  # noqa: E731
+    else:
+        probe = transform(fn)
+    try:
+        closed = jax.make_jaxpr(probe)(*primals)
+    except TypeError as error:
+        if is_forward_mode_error(error):
+            return False
+        raise
+    return not _uses_primitive(closed.jaxpr, "custom_lin")
+
+
+def _uses_primitive(jaxpr, name: str) -> bool:
+    """Whether ``jaxpr`` or any jaxpr nested in its equations (jit, scan, cond, ...) binds ``name``."""
+    for eqn in jaxpr.eqns:
+        if eqn.primitive.name == name:
+            return True
+        for sub in jax_core.jaxprs_in_params(eqn.params):
+            if _uses_primitive(sub, name):
+                return True
+    return False
+
+
+def forward_mode_error(what: str, alternative: str) -> ValueError:
+    """The one-line error of a piece that needs forward mode, met with a reverse-only function."""
+    return ValueError(
+        f"{what} needs forward-mode derivatives (jax.jvp), which this simulator does not have "
+        f"(reverse-mode only: a jax.custom_vjp such as PhiFlow's linear solves); {alternative}"
+    )
+
+
+def require_forward_mode(fn: Callable, *primals, what: str, alternative: str, source=None) -> None:
+    """Raise :func:`forward_mode_error` unless ``fn`` supports forward mode at ``primals``."""
+    if not supports_forward_mode(fn, *primals, source=source):
+        raise forward_mode_error(what, alternative) from None
+
+
+def jacobian_mode(fn: Callable, x: Array, output_size: int, mode: str = "auto", *, source=None) -> str:
+    """``"forward"`` or ``"reverse"`` for the dense Jacobian of ``fn`` at the flat ``x``.
+
+    ``auto``: reverse when ``fn`` has no forward mode (:func:`supports_forward_mode`) or
+    when ``output_size < x.size`` (fewer VJPs than JVPs), else forward."""
+    if mode not in MODES:
+        raise ValueError(f"unknown jacobian mode {mode!r}; valid choices: {', '.join(MODES)}")
+    if mode != "auto":
+        return mode
+    if output_size < x.size or not supports_forward_mode(fn, x, source=source):
+        return "reverse"
+    return "forward"
+
+
+def dense_jacobian(
+    fn: Callable, x: Array, output_size: int, mode: str = "auto", *, source=None, what: str = "jacobian='forward'"
+):
+    """``∂fn/∂x`` (output_size × x.size) of a flat-vector map by :func:`jacobian_mode`.
+
+    An explicit ``"forward"`` on a reverse-only ``fn`` raises a one-line ``ValueError``."""
+    mode = jacobian_mode(fn, x, output_size, mode, source=source)
+    if mode == "forward":
+        require_forward_mode(fn, x, what=what, alternative="use jacobian='reverse' or 'auto'", source=source)
+        return jax.jacfwd(fn)(x)
+    return jax.jacrev(fn)(x)
+
+
+def dense_hessian(fn: Callable, x: Array, *, what: str, alternative: str, source=None) -> Array:
+    """The Hessian of a scalar ``fn`` at the flat ``x``: ``jax.hessian`` (forward over
+    reverse), or reverse over reverse where forward mode fails (a custom_vjp whose backward
+    pass is not forward-differentiable, e.g. PhiML's adjoint solve). When both fail, a
+    one-line ``ValueError`` naming ``alternative``."""
+    try:
+        forward_over_reverse = supports_forward_mode(fn, x, transform=jax.hessian, source=source)
+    except Exception:  # noqa: BLE001  (any other failure of jax.hessian: try reverse over reverse)
+        forward_over_reverse = False
+    if forward_over_reverse:
+        return jax.hessian(fn)(x)
+    try:
+        return jax.jacrev(jax.jacrev(fn))(x)
+    except Exception as error:  # noqa: BLE001  (any failure of the fallback: report it in one line)
+        first = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
+        raise ValueError(
+            f"{what} needs a Hessian; forward-over-reverse fails on this reverse-mode-only simulator and "
+            f"reverse-over-reverse failed too ({type(error).__name__}: {first[:200]}); {alternative}"
+        ) from None

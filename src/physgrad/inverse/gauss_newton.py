@@ -5,27 +5,42 @@
 with singular values below ``rcond · σ_max`` dropped (NumPy's ``pinv(rcond)``). Exact in one
 step for affine P; the minimum-norm solution of an under-determined P is the one closest
 to x. The PBDL book's SIP on the linear oscillators uses ``pinv(J, rcond=1e-5)``
-(its linear-oscillators notebook). Assumes real x; complex outputs enter as (Re, Im) pairs. Cost: one
-Jacobian (forward mode, dim x JVPs) and one SVD per sample. Converged = finite.
+(its linear-oscillators notebook). Assumes real x; complex outputs enter as (Re, Im) pairs.
+Cost: one Jacobian and one SVD per sample. Converged = finite.
+
+The Jacobian is built in forward mode (dim x JVPs) or reverse mode (dim y VJPs):
+``jacobian="auto"`` (default) takes reverse mode when the simulator has no forward mode
+(a ``jax.custom_vjp`` such as PhiFlow's solves, :mod:`physgrad.phiflow`: detected at trace
+time, :func:`physgrad.jacobian.supports_forward_mode`) or when dim y < dim x, else forward
+mode. Both give the same J up to rounding.
 """
 
 from __future__ import annotations
 
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 
+from ..jacobian import MODES, dense_jacobian
 from .base import AbstractInverseSolver, InverseResult, all_finite, as_flat_real, flat_physics
 
 
 class GaussNewton(AbstractInverseSolver):
-    """x̃ = x + pinv(∂P/∂x, rcond) (y_t − y)."""
+    """x̃ = x + pinv(∂P/∂x, rcond) (y_t − y); ``jacobian``: ``"auto" | "forward" | "reverse"``."""
 
     rcond: float = eqx.field(static=True, default=1e-5)
+    jacobian: str = eqx.field(static=True, default="auto")
+
+    def __check_init__(self):
+        if self.jacobian not in MODES:
+            raise ValueError(f"unknown jacobian {self.jacobian!r}; valid choices: {', '.join(MODES)}")
 
     def __call__(self, simulate, x, y, y_target, sample):
         forward, x_flat = flat_physics(simulate, x, sample)
-        jac = jax.jacfwd(forward)(x_flat)
-        step = jnp.linalg.pinv(jac, rtol=self.rcond) @ (as_flat_real(y_target) - as_flat_real(y))
+        residual = as_flat_real(y_target) - as_flat_real(y)
+        jac = dense_jacobian(
+            forward, x_flat, residual.size, self.jacobian, source=simulate, what="GaussNewton(jacobian='forward')"
+        )
+        step = jnp.linalg.pinv(jac, rtol=self.rcond) @ residual
         x_new = (x_flat + step).reshape(x.shape)
         return InverseResult(x_new, all_finite(x_new))
+

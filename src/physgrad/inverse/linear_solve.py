@@ -16,7 +16,9 @@ Converged = lineax reported success within ``max_steps`` at ``rtol``/``atol`` an
 For nonlinear P this is one Newton–Krylov step, not the exact inverse. Krylov methods in
 float32 stall on ill-conditioned operators (the 64×64 Poisson P = ∇⁻², condition ≈ 1,700,
 never reaches rtol 1e-4 in float32 but converges in ≤ 300 steps in float64): run SIP with
-``precision=float64`` there; failures are reported either way.
+``precision=float64`` there; failures are reported either way. A = ∂P/∂x is applied in
+forward mode: a reverse-mode-only simulator (PhiFlow, :mod:`physgrad.phiflow`) gets a
+one-line ``ValueError`` naming ``GaussNewton``/``LBFGS``.
 """
 
 from __future__ import annotations
@@ -25,6 +27,7 @@ import equinox as eqx
 import jax
 import lineax as lx
 
+from ..jacobian import require_forward_mode
 from .base import AbstractInverseSolver, InverseResult, all_finite
 
 KRYLOV = ("cg", "cg_negative", "gmres", "bicgstab", "normal_cg")
@@ -53,6 +56,11 @@ class LinearSolve(AbstractInverseSolver):
             raise ValueError(f"unknown krylov {self.krylov!r}; valid choices: {', '.join(KRYLOV)}")
 
     def __call__(self, simulate, x, y, y_target, sample):
+        require_forward_mode(
+            lambda z: simulate(z, sample), x, what="LinearSolve", source=simulate,
+            alternative="use GaussNewton() (reverse-mode Jacobian, dense) or LBFGS() for this simulator",
+        )  # fmt: skip
+
         def apply(v):  # in x's dtype: a float64 simulator on float32 x stays a square operator
             return jax.jvp(lambda z: simulate(z, sample), (x,), (v,))[1].astype(x.dtype)
 

@@ -11,7 +11,9 @@ Directions of small or negative curvature would otherwise get huge steps; the li
 the first-order loss change there at ``max_loss_change`` (0.2: the SIP authors' setting
 for the rotated sine of their Fig. 5); a zero eigenvalue gets the capped step. Without a
 limit, zero divisions give zero steps (``divide_no_nan``, as the authors'). Assumes a small x (dense
-d × d Hessian per sample). Converged = finite.
+d × d Hessian per sample). Converged = finite. The Hessian is forward over reverse
+(``jax.hessian``), or reverse over reverse for a simulator without forward mode
+(:func:`physgrad.jacobian.dense_hessian`); a one-line ``ValueError`` if both fail.
 """
 
 from __future__ import annotations
@@ -20,6 +22,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
+from ..jacobian import dense_hessian
 from .base import AbstractInverseSolver, InverseResult, all_finite, as_flat_real, flat_physics, half_squared_misfit
 
 
@@ -52,6 +55,9 @@ class SaddleFreeNewton(AbstractInverseSolver):
         forward, x_flat = flat_physics(simulate, x, sample)
         objective = half_squared_misfit(forward, as_flat_real(y_target))
         grad = jax.grad(objective)(x_flat)
-        hessian = jax.hessian(objective)(x_flat)
+        hessian = dense_hessian(
+            objective, x_flat, what="SaddleFreeNewton", source=simulate,
+            alternative="use GaussNewton() (reverse-mode Jacobian) or LBFGS() for this simulator",
+        )  # fmt: skip
         x_new = (x_flat + saddle_free_newton_step(grad, hessian, self.max_loss_change)).reshape(x.shape)
         return InverseResult(x_new, all_finite(x_new))

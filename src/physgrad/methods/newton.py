@@ -6,7 +6,9 @@ with L the batch-mean loss; ``optax.sgd(η)`` then takes θ ← θ − η d. Thi
 baseline of the SIP paper's 2D toy (η = 1/3; Holl et al. 2022, Fig. 1) and is meant for
 direct optimisation of a few variables (``--no-network``): the dense Hessian costs
 O(dim θ²) memory. A singular H gives a non-finite direction, which the engine records as
-divergence.
+divergence. The Hessian is forward over reverse, or reverse over reverse for a simulator
+without forward mode (:func:`physgrad.jacobian.dense_hessian`; a one-line ``ValueError``
+naming the alternatives if both fail).
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ import jax
 import jax.numpy as jnp
 from jax.flatten_util import ravel_pytree
 
+from ..jacobian import dense_hessian
 from .base import AbstractRule, Estimator, Objective
 
 
@@ -36,7 +39,11 @@ class Newton(AbstractRule):
             return objective.batch_loss(unravel(theta), batch)
 
         loss, grad = jax.value_and_grad(loss_fn)(flat)
-        hessian = jax.hessian(loss_fn)(flat) + self.damping * jnp.eye(flat.size, dtype=flat.dtype)
+        hessian = dense_hessian(
+            loss_fn, flat, what="newton", source=objective.predict,
+            alternative="use gauss_newton or hig (reverse-mode Jacobians) or dp",
+        )  # fmt: skip
+        hessian = hessian + self.damping * jnp.eye(flat.size, dtype=flat.dtype)
         return unravel(jnp.linalg.solve(hessian, grad)), {"loss": loss}
 
 
