@@ -64,6 +64,10 @@ What importing PhiFlow changes, and what :func:`import_phiflow` does about it (P
   handler (no change to the root logger or other loggers); the modules of PhiFlow, PhiML
   and SciPy stay imported. The root logger, NumPy's print/error settings and the
   environment are untouched.
+- PhiML warns (``DeprecationWarning``, "symmetric-gradient extrapolation is experimental")
+  about one of its own module constants at import: silenced during the import only.
+- The flags are read and restored at their *global* values, so a first import inside
+  ``jax.enable_x64(True)`` (SIP's float64 inverse) leaves x64 off outside the scope.
 - PhiML's JAX backend re-enables x64 by itself if asked to compute at 64 bits with x64
   off; wrapped functions only ask for 64 bits when their inputs are already float64.
 """
@@ -108,11 +112,13 @@ def import_phiflow():
     with _LOCK:
         if _FLOW is not None:
             return _FLOW
-        config = dict(jax.config.values)
+        config = _global_jax_config()
         try:
-            phiml_backend = importlib.import_module("phiml.backend")
-            default_backend, precision = phiml_backend.default_backend(), phiml_backend.get_precision()
-            flow = importlib.import_module("phi.jax.flow")
+            with warnings.catch_warnings():  # PhiML's own, about one of its module constants
+                warnings.filterwarnings("ignore", message="symmetric-gradient extrapolation is experimental")
+                phiml_backend = importlib.import_module("phiml.backend")
+                default_backend, precision = phiml_backend.default_backend(), phiml_backend.get_precision()
+                flow = importlib.import_module("phi.jax.flow")
         except ImportError as error:
             _restore_jax_config(config)
             raise ImportError(f"{INSTALL_HINT} ({error})") from error
@@ -128,9 +134,21 @@ def import_phiflow():
         return flow
 
 
+def _global_jax_config() -> dict:
+    """JAX's flags as set globally: not the values of an enclosing scope such as
+    ``jax.enable_x64(True)`` (the first import may well happen inside SIP's float64 scope)."""
+    holders = getattr(jax.config, "_value_holders", {})
+    values = dict(jax.config.values)
+    for name, holder in holders.items():
+        if hasattr(holder, "get_global"):
+            values[name] = holder.get_global()
+    return values
+
+
 def _restore_jax_config(before: dict) -> None:
+    after = _global_jax_config()
     for name, value in before.items():
-        if jax.config.values.get(name, value) != value:
+        if after.get(name, value) != value:
             jax.config.update(name, value)
 
 
