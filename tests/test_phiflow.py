@@ -11,8 +11,7 @@ dx = 2, dt = 0.25, 1 to 8 steps, float32):
   velocity after one step; after 8 steps |Δv| reaches 0.44 of max |v| ≈ 2 and the marker
   0.06 (gradients ~25 % apart). The marker advection (cell centred), the projection and
   the energy rescale agree to float32 rounding.
-- :func:`reference_rollout` below is physgrad's fluid built from :mod:`physgrad.fluid`'s own
-  pieces with PhiFlow's limiter. Against it the PhiFlow rollout agrees to ≤ 4e-5 in the
+- ``fluid.rollout(..., limiter="cells")`` is physgrad's fluid with PhiFlow's limiter. Against it the PhiFlow rollout agrees to ≤ 4e-5 in the
   states and ≤ 3e-4 relative in the gradients (this test: 8×8, 2 steps; 16×16, 8 steps:
   states 2.3e-5), whether the JAX side projects exactly (FFT) or by CG at 1e-4 (lineax,
   max-norm residual; PhiML stops on the L2 residual of a Lagrange-augmented system, so the
@@ -21,8 +20,7 @@ dx = 2, dt = 0.25, 1 to 8 steps, float32):
   clamping and the energy rescale. Tolerances: states 1e-4 absolute (values O(1)),
   gradients 1e-3 of max |g|.
 - ``physgrad.fluid.rollout`` differs from PhiFlow by the limiter alone: the difference
-  PhiFlow − fluid equals reference − fluid to the same 1e-4 (so the test keeps holding if
-  fluid.py adopts PhiFlow's limiter); a strict xfail records that fluid.py does not (yet).
+  PhiFlow − fluid equals reference − fluid to the same 1e-4.
 
 PhiFlow is slow to trace and XLA slow to compile these graphs on one core, so everything
 runs on an 8 × 8 grid, 2 steps, 2 samples, each computation compiled once (module fixtures).
@@ -83,39 +81,11 @@ def readme_example() -> str:
     return found.group(1) if found else README_EXAMPLE
 
 
-# --- the JAX reference with PhiFlow's limiter ----------------------------------------------------
-def mac_cormack_phiflow_limiter(values, offset, velocity, dt, dx):
-    """:func:`physgrad.fluid.mac_cormack`, clamped to the cell-centred 2 × 2 neighbourhood of the
-    back-traced point (PhiFlow 3.4's ``closest_values``) instead of the field's own one."""
-    points = fluid.sample_points(values.shape[0], dx, offset, values.dtype)
-    v = fluid.sample_velocity(velocity, points, dx)
-    semi, _ = fluid.bilinear(values, offset, points - dt * v, dx)
-    _, corners = fluid.bilinear(values, fluid.CENTRED, points - dt * v, dx)
-    back, _ = fluid.bilinear(semi, offset, points + dt * v, dx)
-    return jnp.clip(semi + 0.5 * (values - back), jnp.min(corners, axis=0), jnp.max(corners, axis=0))
-
-
-def reference_rollout(marker, velocity, steps, dt, dx, solver=fluid.FFTProjection()):
-    """``fluid.rollout`` with PhiFlow's velocity limiter (the marker is cell centred: same limiter)."""
-
-    def step(carry, _):
-        marker, velocity, pressure = carry
-        e0 = fluid.energy(velocity)
-        velocity = jnp.stack([mac_cormack_phiflow_limiter(velocity[a], fluid.STAGGERED[a], velocity, dt, dx) for a in range(2)])
-        velocity, pressure = fluid.project(velocity, dx, solver, pressure)
-        velocity = fluid.rescale_energy(velocity, e0)
-        marker = fluid.mac_cormack(marker, fluid.CENTRED, velocity, dt, dx)
-        return (marker, velocity, pressure), marker
-
-    (marker, velocity, _), markers = jax.lax.scan(step, (marker, velocity, jnp.zeros_like(marker)), None, length=steps)
-    return marker, velocity, markers
-
-
 def jax_rollouts(steps, dt, dx):
     """The JAX fluids compared with PhiFlow: ``name -> rollout(marker, velocity)``."""
     return {
-        "reference_cg": lambda m, v: reference_rollout(m, v, steps, dt, dx, fluid.CGProjection(1e-4)),
-        "reference_fft": lambda m, v: reference_rollout(m, v, steps, dt, dx),
+        "reference_cg": lambda m, v: fluid.rollout(m, v, steps, dt, dx, fluid.CGProjection(1e-4), limiter="cells"),
+        "reference_fft": lambda m, v: fluid.rollout(m, v, steps, dt, dx, limiter="cells"),
         "fluid": lambda m, v: fluid.rollout(m, v, steps, dt, dx),
     }
 
@@ -230,13 +200,6 @@ def test_fluid_rollout_differs_from_phiflow_by_the_limiter_alone(phiflow_states,
         assert max_abs(got - base, ref - base) < 1e-4
     scale = float(jnp.max(jnp.abs(fluid_grads)))
     assert max_abs(fresh[1]["grads"] - fluid_grads, ref_grads - fluid_grads) < 1e-3 * scale
-
-
-@pytest.mark.xfail(strict=True, reason="fluid.py clamps staggered MacCormack to the faces' own 2x2 "
-                   "neighbourhood, PhiFlow 3.4 to the cell-centred one (module docstring)")
-def test_fluid_rollout_equals_phiflow(phiflow_states, references):
-    fluid_states, _ = references["fluid"]
-    assert max(max_abs(a, b) for a, b in zip(phiflow_states, fluid_states)) < 1e-4
 
 
 def test_readme_example(fresh):

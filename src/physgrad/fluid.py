@@ -24,7 +24,10 @@ velocity interpolated there, v_p,
     φ̂ = φ(p − Δt v_p),   φ̌ = φ̂(p + Δt v_p),   φ⁺ = φ̂ + ½ (φ − φ̌),
 
 clamped to the range of the 2 × 2 values of φ that surround the back-traced point
-p − Δt v_p (no new extrema). All sampling is bilinear with periodic wrap.
+p − Δt v_p (no new extrema). All sampling is bilinear with periodic wrap. ``limiter="cells"``
+reproduces PhiFlow 3.4, whose limiter picks a staggered component's 2 × 2 values as if the
+component were cell centred (half a cell off along its own axis); the default ``"faces"``
+uses the component's own neighbours. The two differ only where the limiter is active.
 
 Projection: the discrete divergence ``(u[i+1,j] − u[i,j] + v[i,j+1] − v[i,j]) / Δx`` and
 the face gradient ``(p[i,j] − p[i−1,j]) / Δx`` compose to the 5-point Laplacian, so
@@ -158,21 +161,32 @@ def project(velocity, dx: float, solver: AbstractPressureSolver = FFTProjection(
 
 
 # --- advection ---------------------------------------------------------------------------
-def mac_cormack(values: Float[Array, "n n"], offset, velocity, dt: float, dx: float, clamp: bool = True):
-    """One MacCormack step of a periodic field sampled at ``offset`` (module docstring)."""
+def mac_cormack(values: Float[Array, "n n"], offset, velocity, dt: float, dx: float, clamp: bool = True,
+                limiter_offset=None):  # fmt: skip
+    """One MacCormack step of a periodic field sampled at ``offset`` (module docstring); the
+    clamp's 2 × 2 neighbourhood is found as for a field at ``limiter_offset`` (default: ``offset``)."""
     points = sample_points(values.shape[0], dx, offset, values.dtype)
     v = sample_velocity(velocity, points, dx)
     semi, corners = bilinear(values, offset, points - dt * v, dx)
     back, _ = bilinear(semi, offset, points + dt * v, dx)
     new = semi + 0.5 * (values - back)
     if clamp:
+        if limiter_offset is not None and tuple(limiter_offset) != tuple(offset):
+            _, corners = bilinear(values, limiter_offset, points - dt * v, dx)
         new = jnp.clip(new, jnp.min(corners, axis=0), jnp.max(corners, axis=0))
     return new
 
 
-def advect_velocity(velocity, dt: float, dx: float, clamp: bool = True):
-    """MacCormack self-advection of a staggered velocity, component by component."""
-    return jnp.stack([mac_cormack(velocity[a], STAGGERED[a], velocity, dt, dx, clamp) for a in range(2)])
+LIMITERS = ("faces", "cells")
+
+
+def advect_velocity(velocity, dt: float, dx: float, clamp: bool = True, limiter: str = "faces"):
+    """MacCormack self-advection of a staggered velocity, component by component
+    (``limiter``: the clamp's neighbourhood, module docstring)."""
+    if limiter not in LIMITERS:
+        raise ValueError(f"unknown limiter {limiter!r}; valid choices: {', '.join(LIMITERS)}")
+    at = (lambda a: STAGGERED[a]) if limiter == "faces" else (lambda a: CENTRED)  # noqa: E731
+    return jnp.stack([mac_cormack(velocity[a], STAGGERED[a], velocity, dt, dx, clamp, at(a)) for a in range(2)])
 
 
 def energy(velocity) -> Float[Array, ""]:
@@ -187,28 +201,30 @@ def rescale_energy(velocity, target_energy):
     return velocity * jnp.where(e > 0, jnp.sqrt(target_energy / safe), 0.0)
 
 
-def step(marker, velocity, pressure, dt: float, dx: float, solver: AbstractPressureSolver = FFTProjection()):
+def step(marker, velocity, pressure, dt: float, dx: float, solver: AbstractPressureSolver = FFTProjection(),
+         limiter: str = "faces"):  # fmt: skip
     """One energy-conserving inviscid step: ``(marker, velocity, pressure) -> same``.
 
     ``marker`` (n, n) cell centred, ``velocity`` (2, n, n) staggered and divergence free,
     ``pressure`` (n, n) the previous step's (the CG solver's warm start)."""
     dtypes = marker.dtype, velocity.dtype, pressure.dtype
     e0 = energy(velocity)
-    velocity = advect_velocity(velocity, dt, dx)  # first, so the marker moves with the returned velocity
+    velocity = advect_velocity(velocity, dt, dx, limiter=limiter)  # first: the marker moves with the returned velocity
     velocity, pressure = project(velocity, dx, solver, pressure)
     velocity = rescale_energy(velocity, e0)
     marker = mac_cormack(marker, CENTRED, velocity, dt, dx)
     return tuple(a.astype(d) for a, d in zip((marker, velocity, pressure), dtypes))
 
 
-def rollout(marker, velocity, steps: int, dt: float, dx: float, solver: AbstractPressureSolver = FFTProjection()):
+def rollout(marker, velocity, steps: int, dt: float, dx: float, solver: AbstractPressureSolver = FFTProjection(),
+            limiter: str = "faces"):  # fmt: skip
     """``steps`` steps from a divergence-free staggered velocity, pressure guess 0.
 
     Returns the final ``(marker, velocity)`` and the markers after every step
     ``(steps, n, n)``."""
 
     def body(carry, _):
-        carry = step(*carry, dt, dx, solver)
+        carry = step(*carry, dt, dx, solver, limiter)
         return carry, carry[0]
 
     (marker, velocity, _), markers = jax.lax.scan(body, (marker, velocity, jnp.zeros_like(velocity[0])), None, length=steps)

@@ -17,7 +17,8 @@ Data, per sample (the authors' ``generate_example``):
 - v₀* = (64 − COM(m₀)) / T  (the drift that brings the marker's centre of mass to the
   centre) + a Gaussian swirl s · exp(−|d|²/2σ²) · (−d_y, d_x) about (64, 64), σ = 20,
   s ~ U[−2, 2]  + 0.1 × vector noise;
-- m_T* = the simulation of (m₀, v₀*).
+- m_T* = the simulation of (m₀, v₀*) by the JAX fluid (also when ``simulator="phiflow"``:
+  pair it with ``limiter="cells"`` for data that PhiFlow's step reproduces).
 
 Loss (DP / Adam): the authors' ``frequency_loss(m_T − m_T*, n=1, frequency_falloff=80,
 ignore_mean=True)``: with d = m_T − m_T* − mean, D̂ = FFT(d) and k in cycles per cell,
@@ -49,6 +50,10 @@ Differences from the authors' code (all documented in docs/reproductions/sip.md)
 
 - the projection is the exact FFT solve (``projection="cg"`` for the authors' CG with
   absolute tolerance 1e-4, warm started);
+- MacCormack's limiter clamps a staggered velocity component to its own faces' 2 × 2
+  neighbourhood; ``limiter="cells"`` uses PhiFlow 3.4's (as if cell centred), and
+  ``simulator="phiflow"`` runs the same step written with PhiFlow itself
+  (:mod:`physgrad.phiflow`; reverse-mode only, CG at 1e-4);
 - the reference simulation runs on the same staggered grid as the predictions (the
   authors ran the ground truth on a centred grid without an initial projection), and the
   metric compares the centred v₀ directly;
@@ -121,6 +126,7 @@ class NavierStokes(AbstractProblem):
     noise_scale: float = eqx.field(static=True, default=10.0)
     falloff: float = eqx.field(static=True, default=80.0)
     projection: str = eqx.field(static=True, default="fft")
+    limiter: str = eqx.field(static=True, default="faces")
     simulator: str = eqx.field(static=True, default="jax")
     levels: int = eqx.field(static=True, default=5)
     filters: int = eqx.field(static=True, default=16)
@@ -137,7 +143,9 @@ class NavierStokes(AbstractProblem):
     default_methods: ClassVar[tuple[str, ...]] = ("adam", "sip")
 
     def __check_init__(self):
-        for setting, value, valid in (("projection", self.projection, PROJECTIONS), ("simulator", self.simulator, SIMULATORS)):
+        choices = (("projection", self.projection, PROJECTIONS), ("simulator", self.simulator, SIMULATORS),
+                   ("limiter", self.limiter, fluid.LIMITERS))  # fmt: skip
+        for setting, value, valid in choices:
             if value not in valid:
                 raise ValueError(f"unknown {setting} {value!r}; valid choices: {', '.join(valid)}")
         if self.resolution % 2 ** (self.levels - 1):
@@ -164,13 +172,17 @@ class NavierStokes(AbstractProblem):
         ``make_incompressible(StaggeredGrid(v0))``)."""
         return fluid.project(fluid.stagger(v0), self.dx, self.pressure_solver())[0]
 
+    def reference_rollout(self, marker, velocity):
+        """The JAX fluid, which makes the data whatever ``simulator`` trains on."""
+        return fluid.rollout(marker, velocity, self.steps, self.dt, self.dx, self.pressure_solver(), self.limiter)
+
     def rollout(self, marker, velocity):
         """``(m_T, v_T, markers)`` after ``steps`` steps from a staggered, divergence-free velocity."""
-        if self.simulator == "phiflow":
+        if self.simulator == "phiflow":  # PhiFlow's own step (CG, its limiter): physgrad.phiflow
             from .. import phiflow
 
             return phiflow.rollout(marker, velocity, self.steps, self.dt, self.dx)
-        return fluid.rollout(marker, velocity, self.steps, self.dt, self.dx, self.pressure_solver())
+        return self.reference_rollout(marker, velocity)
 
     def swirl(self, strength):
         """The Gaussian swirl about the domain centre, cell centred (2, n, n)."""
@@ -207,7 +219,7 @@ class NavierStokes(AbstractProblem):
         drift = (self.centre - fluid.centre_of_mass(m0, dx)) / self.time
         strength = (jax.random.uniform(k_swirl, (), jnp.float32) - 0.5) * 2 * self.swirl_strength
         v0 = drift[:, None, None] + self.swirl(strength) + self.fluctuations * fluctuations
-        m_t, _, _ = self.rollout(m0, self.initial_velocity(v0))
+        m_t, _, _ = self.reference_rollout(m0, self.initial_velocity(v0))
         return {"m0": m0, "mT": m_t, "v0": v0}
 
     def examples(self, key, count: int, chunk: int = 256) -> dict[str, np.ndarray]:
@@ -223,7 +235,7 @@ class NavierStokes(AbstractProblem):
         return {name: np.concatenate([np.asarray(p[name]) for p in parts]) for name in parts[0]}
 
     def make_data(self, key):
-        skip = ("levels", "filters", "simulator")  # settings that leave the data unchanged
+        skip = ("levels", "filters", "simulator")  # settings that leave the data unchanged (always the JAX fluid)
 
         def draw(split, k, count):
             settings = {f: getattr(self, f) for f in self.settings() if f not in skip}
