@@ -4,7 +4,7 @@ networks predict (the SIP paper's Fig. 7 panels), re-drawn from run directories.
     python docs/reproductions/sip_fluid_figure.py RUN_DIR [RUN_DIR ...] [--sample 0]
         [--out docs/reproductions/figures/sip_navier_stokes_sample.png]
 
-Each RUN_DIR is a finished (or checkpointed: its last ``params.eqx``) ``physgrad`` run of
+Each RUN_DIR is a finished ``physgrad`` run (its ``params.eqx``) of
 ``navier_stokes``; its label is the run's method. Colour: |v|; arrows: v every 4th cell.
 """
 
