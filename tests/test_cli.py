@@ -127,7 +127,7 @@ def test_diverged_run_is_recorded_and_the_study_goes_on(tmp_path, capsys):
 @pytest.mark.parametrize(
     "argv,message",
     [
-        (["train", "nope", "--method", "adam"], "unknown problem 'nope'; valid choices: advection_1d, cartpole, exp_inverse, guidance, heat, hig_toy, kolmogorov, ks, linear_oscillators, oscillators, poisson, poisson_hig, quantum_control, quantum_dipole, sine, toy2d"),
+        (["train", "nope", "--method", "adam"], "unknown problem 'nope'; valid choices: advection_1d, cartpole, exp_inverse, guidance, heat, hig_toy, kolmogorov, ks, linear_oscillators, navier_stokes, oscillators, poisson, poisson_hig, quantum_control, quantum_dipole, sine, toy2d"),
         (["train", "sine", "--method", "sip", "--set", "solver=magic", "--steps", "1"], "unknown inverse solver 'magic'; valid choices: auto, analytic"),
         (["train", "sine", "--method", "sip", "--set", "solver=analytic", "--steps", "1"], "sip on sine: this problem has no analytic inverse; valid choices: gauss_newton"),
         (["train", "quantum_dipole", "--method", "sip", "--steps", "1"], "sip on quantum_dipole: sip needs a problem with a y-space target"),
