@@ -33,11 +33,12 @@ def test_frequency_loss_equals_numpy_formula():
     rng = np.random.default_rng(0)
     d = rng.normal(size=(16, 16)).astype(np.float32)
     k = np.fft.fftfreq(16)
-    weight = np.exp(-0.5 * (k[:, None] ** 2 + k[None, :] ** 2) * 80.0**2)
+    weight = np.exp(-0.5 * (k[:, None] ** 2 + k[None, :] ** 2) * 20.0**2)  # 80 on 64² = 20 on 16²
     amplitude = np.abs(np.fft.fft2(d - d.mean()) * weight)
-    expected = np.sum(np.maximum(amplitude, np.sqrt(1e-5)))
-    assert float(frequency_loss(jnp.asarray(d), 80.0)) == pytest.approx(expected, rel=1e-5)
-    assert float(frequency_loss(jnp.asarray(d) + 3.0, 80.0)) == pytest.approx(expected, rel=1e-5)  # mean ignored
+    expected = np.sum(np.maximum(amplitude, np.sqrt(1e-5))) - 256 * np.sqrt(1e-5)  # PhiFlow's, minus its floor
+    assert expected > 1.0  # several modes above the threshold
+    assert float(frequency_loss(jnp.asarray(d), 20.0)) == pytest.approx(expected, rel=1e-5)
+    assert float(frequency_loss(jnp.asarray(d) + 3.0, 20.0)) == pytest.approx(expected, rel=1e-5)  # mean ignored
 
 
 def test_threshold_keeps_the_top_fraction():
@@ -51,16 +52,16 @@ def test_data_are_consistent(problem, samples):
     m0 = np.asarray(s["m0"])
     assert m0.min() >= 0 and m0.max() <= 1  # 1 inside the box, the covered fraction on its edge cells
     assert 1 <= int((m0 > 0).sum()) <= round(0.15 * 256)  # at most the top 15 % of the cells
-    # m_T is the simulation of the true v₀: the loss there is PhiFlow's floor √1e-5 per mode
+    # m_T is the simulation of the true v₀: the loss there is 0 (PhiFlow's floor √1e-5 per mode removed)
     simulate = jax.jit(problem.simulate)
     y = simulate(s["v0"], s)
     np.testing.assert_allclose(np.asarray(y), np.asarray(s["mT"]), atol=1e-5)
-    assert float(problem.loss(y, s)) == pytest.approx(256 * np.sqrt(1e-5), rel=1e-3)
+    assert abs(float(problem.loss(y, s))) < 1e-4
     # the drift part of v₀ carries the marker's centre of mass to the centre of the domain
     drift = (problem.centre - fluid.centre_of_mass(s["m0"], problem.dx)) / problem.time
     mean_v = jnp.mean(s["v0"], axis=(1, 2))
     np.testing.assert_allclose(np.asarray(mean_v), np.asarray(drift), atol=0.05)  # swirl and noise average ~0
-    assert float(problem.loss(simulate(jnp.zeros_like(s["v0"]), s), s)) > 3 * float(problem.loss(y, s))
+    assert float(problem.loss(simulate(jnp.zeros_like(s["v0"]), s), s)) > 0.1
 
 
 def test_vorticity_recovers_a_swirl_exactly(problem):

@@ -23,9 +23,10 @@ Data, per sample (the authors' ``generate_example``):
 Loss (DP / Adam): the authors' ``frequency_loss(m_T − m_T*, n=1, frequency_falloff=80,
 ignore_mean=True)``: with d = m_T − m_T* − mean, D̂ = FFT(d) and k in cycles per cell,
 
-    L = Σ_k max(|D̂_k| · exp(−½ |k|² · 80²), √1e-5),
+    L = Σ_k max(|D̂_k| · exp(−½ |k|² · 80²), √1e-5)  −  N √1e-5,
 
-an L1 norm of Gaussian-weighted Fourier amplitudes that sees only the lowest 1–2 modes.
+an L1 norm of Gaussian-weighted Fourier amplitudes that sees only the lowest 1–2 modes
+(physgrad subtracts PhiFlow's floor N√1e-5 = 12.95 on 64², so L = 0 at the target).
 Metric: ``v0_l1`` = Σ_cells |v₀ − v₀*| (vector norm per cell, summed: the authors'
 ``gt_v0_l1``) and ``v0_mae`` its per-cell mean.
 
@@ -104,12 +105,13 @@ def threshold_top(values, fraction):
 
 
 def frequency_loss(d, falloff: float = 80.0, threshold: float = 1e-5):
-    """PhiFlow's ``frequency_loss(d, n=1, frequency_falloff, ignore_mean=True)`` of one field."""
+    """PhiFlow's ``frequency_loss(d, n=1, frequency_falloff, ignore_mean=True)`` of one field,
+    minus its floor N·√threshold (so that it is 0 at the target; the gradient is PhiFlow's)."""
     n = d.shape[0]
     k = jnp.fft.fftfreq(n).astype(d.dtype)
     weight = jnp.exp(-0.5 * (k[:, None] ** 2 + k[None, :] ** 2) * falloff**2)
     amplitude = jnp.abs(jnp.fft.fft2(d - jnp.mean(d)) * weight)
-    return jnp.sum(jnp.sqrt(jnp.maximum(amplitude**2, threshold)))
+    return jnp.sum(jnp.sqrt(jnp.maximum(amplitude**2, threshold))) - d.size * jnp.sqrt(jnp.asarray(threshold, d.dtype))
 
 
 class NavierStokes(AbstractProblem):
