@@ -222,12 +222,20 @@ def rollout(marker, velocity, steps: int, dt: float, dx: float, solver: Abstract
 
     Returns the final ``(marker, velocity)`` and the markers after every step
     ``(steps, n, n)``."""
+    one_step = lambda m, v, p: step(m, v, p, dt, dx, solver, limiter)  # noqa: E731
+    return unroll(one_step, marker, velocity, jnp.zeros_like(velocity[0]), steps)
+
+
+def unroll(one_step, marker, velocity, pressure, steps: int):
+    """``steps`` applications of ``one_step(marker, velocity, pressure) -> same`` in one
+    ``lax.scan``: the final ``(marker, velocity)`` and the markers after every step. Shared
+    by :func:`rollout` and the PhiFlow step (:func:`physgrad.phiflow.rollout`)."""
 
     def body(carry, _):
-        carry = step(*carry, dt, dx, solver, limiter)
+        carry = one_step(*carry)
         return carry, carry[0]
 
-    (marker, velocity, _), markers = jax.lax.scan(body, (marker, velocity, jnp.zeros_like(velocity[0])), None, length=steps)
+    (marker, velocity, _), markers = jax.lax.scan(body, (marker, velocity, pressure), None, length=steps)
     return marker, velocity, markers
 
 

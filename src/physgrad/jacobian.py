@@ -163,9 +163,10 @@ def dense_jacobian(
     """``∂fn/∂x`` (output_size × x.size) of a flat-vector map by :func:`jacobian_mode`.
 
     An explicit ``"forward"`` on a reverse-only ``fn`` raises a one-line ``ValueError``."""
-    mode = jacobian_mode(fn, x, output_size, mode, source=source)
-    if mode == "forward":
-        require_forward_mode(fn, x, what=what, alternative="use jacobian='reverse' or 'auto'", source=source)
+    chosen = jacobian_mode(fn, x, output_size, mode, source=source)
+    if chosen == "forward":
+        if mode == "forward":  # an explicit choice is checked here; "auto" has probed already
+            require_forward_mode(fn, x, what=what, alternative="use jacobian='reverse' or 'auto'", source=source)
         return jax.jacfwd(fn)(x)
     return jax.jacrev(fn)(x)
 

@@ -89,6 +89,7 @@ import jax
 import jax.extend.core as jax_core
 import jax.numpy as jnp
 
+from .fluid import unroll
 from .jacobian import mark_reverse_only
 
 INSTALL_HINT = "PhiFlow is not installed; install it with `pip install physgrad[phiflow]` (phiflow>=3.4, phiml>=1.16)"
@@ -457,14 +458,7 @@ def rollout(marker, velocity, steps: int, dt: float, dx: float, solver_tol: floa
 
     Returns the final ``(marker, velocity)`` and the markers after every step
     ``(steps, n, n)``. Reverse mode only (see the module docstring)."""
-    f = step_function(marker.shape[0], dt, dx, solver_tol)
-
-    def body(carry, _):
-        carry = f(*carry)
-        return carry, carry[0]
-
-    (marker, velocity, _), markers = jax.lax.scan(body, (marker, velocity, jnp.zeros_like(marker)), None, length=steps)
-    return marker, velocity, markers
+    return unroll(step_function(marker.shape[0], dt, dx, solver_tol), marker, velocity, jnp.zeros_like(marker), steps)
 
 
 mark_reverse_only(rollout)

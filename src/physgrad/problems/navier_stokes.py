@@ -271,8 +271,8 @@ class NavierStokes(AbstractProblem):
         com = lambda m: fluid.centre_of_mass(m, dx)  # noqa: E731
         s0 = self.vorticity(x)
         _, v_t, markers = self.rollout(sample["m0"], self.initial_velocity(x))
-        com_fwd = jnp.concatenate([com(sample["m0"])[None], jax.vmap(com)(markers)])  # (steps + 1, 2)
         com0 = com(sample["m0"])
+        com_fwd = jnp.concatenate([com0[None], jax.vmap(com)(markers)])  # (steps + 1, 2)
         drift = (c - com0) / self.time
         com_rev_end = com(y_target)
         errors = [fluid.cross(com_fwd[-1] - com_rev_end, com_rev_end - (c + (c - com0)))]
