@@ -154,6 +154,10 @@ def cmd_list(args, console):
     console.print("[bold]methods[/bold]")
     for name in METHODS:
         console.print(f"  {name:<19} {describe(name)}", markup=False)
+    from .registry import optax_names
+
+    console.print("[bold]optax optimizers on DP gradients[/bold] (hyperparameters by --set, learning_rate as lr)")
+    console.print("  " + ", ".join(optax_names()), markup=False, soft_wrap=False)
     console.print("  a sequence such as adam:2000,hig runs Adam for 2000 steps, then HIG from those parameters")
     from .registry import INVERSE_SOLVERS
 

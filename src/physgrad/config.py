@@ -10,7 +10,7 @@ from typing import Any
 
 from .engine import UNGUARDED_SETTINGS, Budget
 from .errors import ConfigError
-from .registry import METHODS, PROBLEMS, hyperparameters
+from .registry import METHODS, PROBLEMS, hyperparameters, is_optax_name, optax_method, paper_defaults
 
 # Training-engine settings, settable with --set like problem and method settings.
 TRAIN_SETTINGS: dict[str, Any] = {
@@ -77,8 +77,14 @@ def parse_method(spec: str) -> list[tuple[str, int | None]]:
     parts = [p.strip() for p in str(spec).split(",")]
     phases = []
     for i, part in enumerate(parts):
-        name, sep, count = part.partition(":")
-        choose("method", name, METHODS)
+        name, sep, count = split_stage(part)
+        if is_optax_name(name):
+            try:
+                optax_method(name)
+            except ValueError as e:
+                raise ConfigError(str(e)) from None
+        else:
+            choose("method", name, [*METHODS, "optax:NAME", "optax.contrib:NAME"])
         last = i == len(parts) - 1
         if sep:
             if last:
@@ -95,6 +101,17 @@ def parse_method(spec: str) -> list[tuple[str, int | None]]:
     return phases
 
 
+def split_stage(part: str) -> tuple[str, str, str]:
+    """``"adam:2000"`` → ``("adam", ":", "2000")``; an optax zoo name keeps its own colon:
+    ``"optax:lion:2000"`` → ``("optax:lion", ":", "2000")``, ``"optax:lion"`` → ``("optax:lion", "", "")``."""
+    prefix = ""
+    if is_optax_name(part):
+        prefix, _, part = part.partition(":")
+        prefix += ":"
+    name, sep, count = part.partition(":")
+    return prefix + name, sep, count
+
+
 def split_methods(text: str) -> list[str]:
     """A comma-separated list of methods where ``name:N,`` binds to the next entry:
     ``"adam,hig,adam:2000,hig"`` → ``["adam", "hig", "adam:2000,hig"]``."""
@@ -103,7 +120,7 @@ def split_methods(text: str) -> list[str]:
         if not part:
             continue
         pending.append(part)
-        if ":" not in part:
+        if not split_stage(part)[1]:
             out.append(",".join(pending))
             pending = []
     if pending:
@@ -244,7 +261,7 @@ def make_config(
 
     phases = []
     for name, steps in stages:
-        paper = problem_cls.defaults_for(name)
+        paper = paper_defaults(problem_cls, name)
         hyper = {k: stage_value(name, k, d, paper) for k, d in hyperparameters(name).items()}
         try:  # the method checks its own hyperparameters (e.g. route choices) on construction
             METHODS[name](**hyper)

@@ -10,7 +10,9 @@ For a Jacobian ``J`` (m × P) with thin SVD ``J = U Σ Vᵀ`` and a gradient ``g
 
 keeping only singular values ``σ > truncation · σ_max`` (strict) and *dropping* the
 others (not clamping them). κ = +1 gives ``Jᵀ g`` (gradient descent), κ = −1 the
-Gauss–Newton / pseudo-inverse step, κ = −½ the half-inverse gradient.
+Gauss–Newton / pseudo-inverse step, κ = −½ the half-inverse gradient. In place of the
+number κ every function here also takes a :class:`Damped` filter, ``σ ↦ σ / (σ² + λ)``,
+which gives the Levenberg–Marquardt direction ``Jᵀ (J Jᵀ + λ I)⁻¹ g`` by the same routes.
 
 Two exact routes compute the same vector:
 
@@ -33,9 +35,10 @@ from __future__ import annotations
 
 from typing import Literal
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, Float
+from jaxtyping import Array, ArrayLike, Float
 
 from .precision import float64_scope, to_float64
 
@@ -56,22 +59,45 @@ def choose_route(shape: tuple[int, int]) -> Literal["svd", "gram"]:
     return "gram" if max(m, p) >= 2 * min(m, p) else "svd"
 
 
-def _kept_powers(s: Array, exponent: float, truncation: float) -> Array:
-    """``s**exponent`` where ``s > truncation·max(s)``, else 0 (dropped, not clamped)."""
-    keep = s > truncation * jnp.max(s)
+class Damped(eqx.Module):
+    """The Levenberg–Marquardt filter ``f(σ) = σ / (σ² + λ)`` in place of ``σ^κ``.
+
+    ``V f(Σ) Uᵀ g = Jᵀ (J Jᵀ + λ I)⁻¹ g = (Jᵀ J + λ I)⁻¹ Jᵀ g`` (Levenberg 1944,
+    Marquardt 1963). λ → 0 gives the Gauss–Newton filter σ⁻¹ on the kept singular values,
+    λ → ∞ the scaled gradient ``Jᵀ g / λ``. With ``relative`` (the default) the damping is
+    measured in units of the largest squared singular value, ``λ = damping · σ_max²``, so
+    one value means the same on problems whose physics differ by orders of magnitude in
+    scale. ``damping`` may be a traced scalar (an adaptive rule's state).
+    """
+
+    damping: ArrayLike
+    relative: bool = eqx.field(static=True, default=True)
+
+
+def _kept_powers(s: Array, exponent: float | Damped, truncation: float, divided: bool = False) -> Array:
+    """``f(s)`` (or ``f(s)/s`` with ``divided``) where ``s > truncation·max(s)``, else 0
+    (dropped, not clamped); ``f(s) = s**exponent`` for a number, σ/(σ² + λ) for :class:`Damped`."""
+    s_max = jnp.max(s)
+    keep = s > truncation * s_max
     # Guard the power before the `where`: 0**negative would leak inf/NaN into gradients.
     safe = jnp.where(keep, s, jnp.ones_like(s))
-    return jnp.where(keep, safe**exponent, jnp.zeros_like(s))
+    if isinstance(exponent, Damped):
+        lam = exponent.damping * s_max**2 if exponent.relative else exponent.damping
+        values = (1.0 if divided else safe) / (safe**2 + lam)
+    else:
+        values = safe ** (exponent - 1.0 if divided else exponent)
+    return jnp.where(keep, values, jnp.zeros_like(s)).astype(s.dtype)
 
 
-def gram_power(gram: Array, vector: Array, exponent: float, truncation: float) -> Array:
+def gram_power(gram: Array, vector: Array, exponent: float | Damped, truncation: float) -> Array:
     """``U Σ^{κ−1} Uᵀ v`` for a Gram matrix ``U Σ² Uᵀ`` (``J Jᵀ`` or ``Jᵀ J``), singular
     values ``σ ≤ τ σ_max`` dropped. The one extra Σ⁻¹ turns the Gram eigenvectors into the
     missing SVD factor: ``J^κ g = Jᵀ·gram_power(J Jᵀ, g)`` = ``gram_power(Jᵀ J, Jᵀ g)``.
+    With a :class:`Damped` filter: ``U (Σ² + λ)⁻¹ Uᵀ v``.
 
     Computes in the inputs' dtype; the Gram routes call it on float64 inside their scope."""
     eigenvalues, vectors = jnp.linalg.eigh(gram)
-    powers = _kept_powers(jnp.sqrt(jnp.clip(eigenvalues, 0.0, None)), exponent - 1.0, truncation)
+    powers = _kept_powers(jnp.sqrt(jnp.clip(eigenvalues, 0.0, None)), exponent, truncation, divided=True)
     return vectors @ (powers * (vectors.T @ vector))
 
 
@@ -98,7 +124,7 @@ def half_inverse(
     jacobian: Float[Array, "m p"],
     grad: Float[Array, " m"],
     *,
-    exponent: float = -0.5,
+    exponent: float | Damped = -0.5,
     truncation: float = 1e-6,
     route: Route = "auto",
 ) -> Float[Array, " p"]:
@@ -108,7 +134,8 @@ def half_inverse(
         jacobian: ``J``, shape (m, P); for HIG the per-sample Jacobians of the simulator
             output stacked sample-major (m = batch × output size).
         grad: ``g``, shape (m,); the gradient of the batch-mean loss w.r.t. the outputs.
-        exponent: κ; −0.5 half-inverse (HIG), −1 Gauss–Newton, +1 gives ``Jᵀ g``.
+        exponent: κ; −0.5 half-inverse (HIG), −1 Gauss–Newton, +1 gives ``Jᵀ g``; or a
+            :class:`Damped` filter (Levenberg–Marquardt).
         truncation: τ; singular values ``σ ≤ τ·σ_max`` are dropped.
         route: ``"svd"``, ``"gram"`` (float64 Gram + ``eigh``, scoped; not
             differentiable) or ``"auto"`` (by shape).

@@ -15,6 +15,7 @@ from collections.abc import Callable
 from typing import Any
 
 import optax
+import optax.contrib
 
 from . import routes
 from .inverse import LBFGS, Analytic, GaussNewton, LinearSolve, SaddleFreeNewton
@@ -22,6 +23,8 @@ from .methods import (
     AbstractMethod,
     Gradient,
     JacobianPower,
+    LevenbergMarquardt,
+    LossAwareDP,
     Method,
     Newton,
     RolloutGradient,
@@ -102,6 +105,14 @@ def gn(*, lr: float = 1.0, truncation: float = 1e-6, route: str = "auto", blocks
     _check_route_sizes(blocks, lanczos_steps)
     rule = JacobianPower(-1.0, truncation, make_route(route, blocks=blocks, lanczos_steps=lanczos_steps))
     return Method(rule, optax.sgd(lr))
+
+
+def lm(*, lr: float = 1.0, damping: float = 1e-3, truncation: float = 1e-6, route: str = "auto", blocks: int = 8,
+       lanczos_steps: int = 64, reject: bool = True):  # fmt: skip
+    """Levenberg–Marquardt: −η Jᵀ(J Jᵀ + λI)⁻¹ g, λ = μ σ_max², μ by Nielsen's gain-ratio rule (rejects bad steps)."""
+    _check_route_sizes(blocks, lanczos_steps)
+    rule = JacobianPower(-1.0, truncation, make_route(route, blocks=blocks, lanczos_steps=lanczos_steps))
+    return LevenbergMarquardt(rule, optax.sgd(lr), damping, reject)
 
 
 def _check_route_sizes(blocks, lanczos_steps):
@@ -245,6 +256,80 @@ def wig(*, lr: float = 1e-3, lr_warmup: int = 0, decay: float = 1.0, decay_every
                      stage_lr=stage_lr, checkpoint=checkpoint)  # fmt: skip
 
 
+# --- The optax zoo: any optax optimizer by name, on DP gradients ----------------------------
+# "optax:lion", "optax.contrib:muon": the function's hyperparameters with plain defaults
+# (numbers, flags, strings) become settings; learning_rate is `lr`. Names are looked up on
+# demand, so a new optax release brings its optimizers without a change here.
+OPTAX_MODULES = {"optax": optax, "optax.contrib": optax.contrib}
+# Not optimizers of a parameter vector from its gradient: per-example-gradient privacy
+# (dpsgd), bare scalings, and optax's deprecated aliases.
+_OPTAX_EXCLUDED = ("dpsgd", "scale_by_rprop", "scale_by_madgrad")
+
+
+def optax_names() -> list[str]:
+    """Every ``module:function`` of :data:`OPTAX_MODULES` that builds an optimizer from a
+    ``learning_rate`` (its first parameter)."""
+    names = []
+    for module_name, module in OPTAX_MODULES.items():
+        for name in sorted(getattr(module, "__all__", None) or (n for n in vars(module) if not n.startswith("_"))):
+            fn = vars(module).get(name)  # vars: no deprecation warnings from module __getattr__
+            if name in _OPTAX_EXCLUDED or not inspect.isfunction(fn):
+                continue
+            first = next(iter(inspect.signature(fn).parameters), None)
+            if first == "learning_rate":
+                names.append(f"{module_name}:{name}")
+    return names
+
+
+def is_optax_name(name: str) -> bool:
+    """Whether ``name`` is spelled as an optax zoo entry (``optax:…``, ``optax.contrib:…``)."""
+    return any(name.startswith(f"{module}:") for module in OPTAX_MODULES)
+
+
+def optax_method(name: str) -> Callable[..., AbstractMethod]:
+    """The factory of an optax zoo entry: keyword-only ``lr`` plus the optimizer's own
+    hyperparameters with number, flag or string defaults; a one-line error listing the
+    valid names otherwise."""
+    valid = optax_names()
+    if name not in valid:
+        raise ValueError(f"unknown optax optimizer {name!r}; valid choices: {', '.join(valid)}")
+    module_name, _, function_name = name.partition(":")
+    fn = vars(OPTAX_MODULES[module_name])[function_name]
+    rate, *own = inspect.signature(fn).parameters.values()
+    plain = [p for p in own if type(p.default) in (bool, int, float, str)]
+    # Learning-rate-free and line-search methods (prodigy, dog, momo, lbfgs) default to 1.
+    lr = rate.default if type(rate.default) is float else 1.0 if rate.default is None else 1e-3
+    kw = inspect.Parameter.KEYWORD_ONLY
+    signature = inspect.Signature([inspect.Parameter("lr", kw, default=lr)] +
+                                  [inspect.Parameter(p.name, kw, default=p.default) for p in plain])  # fmt: skip
+
+    def factory(**hyperparameters):
+        values = signature.bind(**hyperparameters)
+        values.apply_defaults()
+        settings = dict(values.arguments)
+        return LossAwareDP(Gradient(), fn(settings.pop("lr"), **settings))
+
+    summary = (fn.__doc__ or "").strip().splitlines()
+    factory.__signature__ = signature
+    factory.lr_required = rate.default is inspect.Parameter.empty
+    factory.__name__ = factory.__qualname__ = name
+    factory.__doc__ = f"{name} on DP gradients: {summary[0].rstrip('.') if summary else function_name}."
+    return factory
+
+
+class _Methods(dict):
+    """The registered methods, plus every optax zoo name looked up on demand (iteration
+    gives the registered ones only)."""
+
+    def __contains__(self, name):
+        return super().__contains__(name) or (isinstance(name, str) and is_optax_name(name) and name in optax_names())
+
+    def __missing__(self, name):
+        if isinstance(name, str) and is_optax_name(name):
+            return optax_method(name)
+        raise KeyError(name)
+
+
 PROBLEMS: dict[str, type[AbstractProblem]] = {
     cls.name: cls for cls in (
         HigToy, Oscillators, QuantumDipole, PoissonHig, LinearOscillators,
@@ -254,10 +339,23 @@ PROBLEMS: dict[str, type[AbstractProblem]] = {
     )  # fmt: skip
 }
 
-METHODS: dict[str, Callable[..., AbstractMethod]] = {
+METHODS: dict[str, Callable[..., AbstractMethod]] = _Methods({
     f.__name__: f
-    for f in (adam, sgd, rmsprop, adagrad, adadelta, gn, hig, sip, newton, bptt, sbptt_m, sbptt_c, no_temporal, one, nog, wig)
-}
+    for f in (adam, sgd, rmsprop, adagrad, adadelta, gn, hig, lm, sip, newton, bptt, sbptt_m, sbptt_c, no_temporal, one,
+              nog, wig)
+})  # fmt: skip
+
+
+def paper_defaults(problem: type[AbstractProblem], method: str) -> dict[str, Any]:
+    """The problem's hyperparameters for ``method`` (batch size included); an optax zoo
+    entry takes Adam's batch size, and Adam's learning rate when optax asks for one."""
+    if not is_optax_name(method):
+        return problem.defaults_for(method)
+    adam = problem.defaults_for("adam")
+    out = {"batch_size": adam["batch_size"]}
+    if METHODS[method].lr_required and "lr" in adam:
+        out["lr"] = adam["lr"]
+    return out
 
 
 def hyperparameters(method: str) -> dict[str, Any]:
@@ -276,5 +374,5 @@ def _choose(kind: str, name: str, choices) -> None:
         raise ValueError(f"unknown {kind} {name!r}; valid choices: {', '.join(choices)}")
 
 
-__all__ = ["INVERSE_SOLVERS", "METHODS", "OPTIMIZERS", "PROBLEMS", "ROUTES", "describe", "hyperparameters",
-           "make_route", "make_solver"]  # fmt: skip
+__all__ = ["INVERSE_SOLVERS", "METHODS", "OPTAX_MODULES", "OPTIMIZERS", "PROBLEMS", "ROUTES", "describe",
+           "hyperparameters", "is_optax_name", "make_route", "make_solver", "optax_method", "optax_names", "paper_defaults"]  # fmt: skip

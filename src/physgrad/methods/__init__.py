@@ -7,6 +7,7 @@ entry point            rule                             direction
 :func:`dp`             :class:`Gradient`                ∇_θ L (DP)
 :func:`gauss_newton`   :class:`JacobianPower` (κ = −1)  J⁺ g
 :func:`hig`            :class:`JacobianPower` (κ = −½)  V Σ^{−½} Uᵀ g
+(method)               :class:`LevenbergMarquardt`      Jᵀ(J Jᵀ + λI)⁻¹ g, λ adapted per step
 :func:`newton`         :class:`Newton`                  (H + λI)⁻¹ ∇L
 :func:`sip`            :class:`ScaleInvariantPhysics`   ∇_θ ½‖x − x̃‖², x̃ from a local inverse
 :func:`bptt`           :class:`RolloutGradient`         rollout gradient under a policy
@@ -18,8 +19,9 @@ The registry of names for the command line is :mod:`physgrad.registry`.
 """
 
 from .base import AbstractMethod, AbstractRule, Estimator, Method, Objective
-from .dp import Gradient, dp
+from .dp import Gradient, LossAwareDP, dp
 from .hig import JacobianPower, gauss_newton, hig
+from .lm import LevenbergMarquardt, adapt_damping, predicted_decrease
 from .newton import Newton, newton
 from .sip import ScaleInvariantPhysics, sip
 from .stable_bptt import RolloutGradient, bptt, stabilised_bptt
@@ -31,6 +33,8 @@ __all__ = [
     "Estimator",
     "Gradient",
     "JacobianPower",
+    "LevenbergMarquardt",
+    "LossAwareDP",
     "Method",
     "Newton",
     "Objective",
@@ -38,11 +42,13 @@ __all__ = [
     "ScaleInvariantPhysics",
     "Unrolled",
     "UnrolledGradient",
+    "adapt_damping",
     "bptt",
     "dp",
     "gauss_newton",
     "hig",
     "newton",
+    "predicted_decrease",
     "schedule",
     "sip",
     "stabilised_bptt",

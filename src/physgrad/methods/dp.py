@@ -12,8 +12,9 @@ physics-based deep learning paper compares against.
 from __future__ import annotations
 
 import jax
+import optax
 
-from .base import AbstractRule, Estimator, Objective
+from .base import AbstractRule, Estimator, Method, Objective, with_extra_args
 
 
 class Gradient(AbstractRule):
@@ -37,3 +38,26 @@ def dp(predict, loss) -> Estimator:
         loss: ``loss(y, sample) -> L_i``, the per-sample loss.
     """
     return Estimator(Gradient(), Objective(predict, loss))
+
+
+class LossAwareDP(Method):
+    """DP gradients applied by an optax optimizer that may also need the loss function.
+
+    Besides ``value=`` (the batch loss) the optimizer's update receives ``grad=`` (the DP
+    gradient), ``value_fn=`` and ``obj_fn=`` (the batch loss as a function of the
+    parameters on this batch): what optax's line-search L-BFGS (``optax.lbfgs``),
+    Polyak-type steps and Sophia's Hessian estimate (``optax.contrib.sophia``) ask for.
+    Optimizers that need none of them ignore them. Build it as
+    ``LossAwareDP(Gradient(), optimizer)``.
+    """
+
+    def step(self, objective, params, state, batch):
+        direction, stats = self.rule(objective, params, batch)
+
+        def batch_loss(p):
+            return objective.batch_loss(p, batch)
+
+        updates, state = with_extra_args(self.optimizer).update(
+            direction, state, params, value=stats["loss"], grad=direction, value_fn=batch_loss, obj_fn=batch_loss
+        )
+        return optax.apply_updates(params, updates), state, stats

@@ -66,7 +66,12 @@ class JacobianPower(AbstractRule):
         return [(setting, dataclasses.replace(self, route=route)) for setting, route in variants if route != self.route]
 
     def __call__(self, objective, params, batch):
-        direction, loss, stats = self.route(objective, params, batch, self.exponent, self.truncation)
+        return self.filtered(objective, params, batch, self.exponent)
+
+    def filtered(self, objective, params, batch, spectrum):
+        """``V f(Σ) Uᵀ g`` by this rule's route and truncation for another spectral filter
+        ``f`` (a number κ or :class:`physgrad.half_inverse.Damped`): ``(direction, stats)``."""
+        direction, loss, stats = self.route(objective, params, batch, spectrum, self.truncation)
         _, unravel = ravel_pytree(params)
         return unravel(direction), {"loss": loss, **stats}
 

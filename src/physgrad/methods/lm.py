@@ -1,0 +1,165 @@
+"""Levenberg–Marquardt: damped Gauss–Newton on the joint Jacobian, damping adapted per step.
+
+Sources: Levenberg, *A method for the solution of certain non-linear problems in least
+squares*, Q. Appl. Math. 2 (1944); Marquardt, SIAM J. Appl. Math. 11 (1963); the damping
+rule of Nielsen, *Damping parameter in Marquardt's method*, IMM-REP-1999-05, as stated in
+Madsen, Nielsen & Tingleff, *Methods for non-linear least squares problems* (2004), §3.2.
+
+With the joint per-sample Jacobian ``J = ∂y/∂θ`` of the simulator output and the output
+gradient ``g = ∂L/∂y`` of the batch-mean loss, as for Gauss–Newton and HIG
+(:mod:`physgrad.methods.hig`),
+
+    d = Jᵀ (J Jᵀ + λ I)⁻¹ g = V Σ (Σ² + λ)⁻¹ Uᵀ g,          θ ← θ − η d,
+
+computed by the same routes (SVD, float64 Gram, structured, block Gram, Lanczos) and the
+same truncation: λ → 0 gives physgrad's Gauss–Newton step, λ → ∞ the scaled gradient
+``−(η/λ) Jᵀ g``. λ is relative (``λ = μ · σ_max²``, :class:`physgrad.half_inverse.Damped`).
+
+After each step the **gain ratio** compares the actual decrease of the batch loss with the
+decrease predicted by the Gauss–Newton model (network and physics linearised, the loss
+kept to second order in the outputs):
+
+    ρ = (L(θ) − L(θ + Δ)) / (−(gᵀ u + ½ uᵀ ∇²_y L u)),   u = J Δ,
+
+and μ follows Nielsen's rule: if ρ > 0 the step is taken and μ ← μ · max(⅓, 1 − (2ρ − 1)³),
+ν ← 2; otherwise the step is rejected (the parameters stay), μ ← μ · ν, ν ← 2ν. A gain
+ratio that is not finite, or a model that predicts no decrease, counts as a rejection.
+On mini-batches the loss of the step is measured on the batch that made it (a second
+forward pass), as in stochastic LM variants; ``reject=False`` keeps every step and only
+adapts μ.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import NamedTuple
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import optax
+from jaxtyping import Array, PyTree
+
+from ..half_inverse import Damped
+from ..jacobian import require_forward_mode
+from .base import AbstractMethod, Objective, with_extra_args
+from .hig import JacobianPower
+
+
+class LMState(NamedTuple):
+    """The optimizer's state, the relative damping μ and Nielsen's growth factor ν."""
+
+    optimizer: PyTree
+    damping: Array
+    growth: Array
+
+
+def adapt_damping(damping: Array, growth: Array, gain_ratio: Array) -> tuple[Array, Array, Array]:
+    """Nielsen's rule: ``(damping, growth, accepted)`` after a step with gain ratio ρ.
+
+    ρ > 0: accepted, μ ← μ · max(⅓, 1 − (2ρ − 1)³), ν ← 2; else (also for a non-finite ρ)
+    rejected, μ ← μ · ν, ν ← 2ν. (Madsen, Nielsen & Tingleff 2004, eq. 2.21 and Alg. 3.16.)
+    """
+    accepted = jnp.isfinite(gain_ratio) & (gain_ratio > 0)
+    rho = jnp.where(accepted, gain_ratio, 0.0)
+    shrink = jnp.maximum(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
+    damping = jnp.where(accepted, damping * shrink, damping * growth)
+    growth = jnp.where(accepted, jnp.asarray(2.0, growth.dtype), 2.0 * growth)
+    return damping, growth, accepted
+
+
+def predicted_decrease(objective: Objective, params: PyTree, batch: PyTree, delta: PyTree) -> Array:
+    """``−(gᵀ u + ½ uᵀ ∇²_y L u)`` with ``u = J Δ``: the decrease of the batch-mean loss
+    that the Gauss–Newton model predicts for the step ``Δ`` (one JVP through network and
+    simulator, then the loss along the line ``y + t u`` to second order in t)."""
+
+    def linearised(sample):
+        return jax.jvp(lambda p: objective.predict(p, sample), (params,), (delta,))
+
+    y, u = jax.vmap(linearised)(batch)
+    real = jnp.real(y).dtype
+
+    def along(t):  # the batch loss on the linearised outputs y + t u
+        return jnp.mean(jax.vmap(objective.loss)(y + t.astype(real) * u, batch))
+
+    def slope(t):
+        return jax.jvp(along, (t,), (jnp.ones_like(t),))[1]
+
+    t0 = jnp.zeros((), real)
+    first, second = jax.jvp(slope, (t0,), (jnp.ones_like(t0),))
+    return -(first + 0.5 * second)
+
+
+class LevenbergMarquardt(AbstractMethod):
+    """Levenberg–Marquardt on the joint Jacobian with Nielsen's damping rule.
+
+    Use it in a training loop of your own like any engine method::
+
+        lm = LevenbergMarquardt(JacobianPower(-1.0))       # route and truncation of GN
+        state = lm.init(params)
+        params, state, stats = jax.jit(lm.step, static_argnums=0)(Objective(predict, loss), params, state, batch)
+
+    ``stats`` holds ``loss`` (before the step), ``damping`` (μ used by the step),
+    ``gain_ratio`` (ρ) and ``accepted`` (1 or 0).
+
+    Fields:
+        rule: the Gauss–Newton rule whose route and truncation compute the damped direction.
+        optimizer: applies the direction (default ``optax.sgd(1)``: θ ← θ − d).
+        damping: the initial μ (relative to σ_max²).
+        reject: skip steps whose gain ratio is not positive (LM's acceptance test).
+        min_damping, max_damping: bounds on μ, so a long run of good or bad steps cannot
+            drive it to 0 or ∞ in floating point.
+    """
+
+    rule: JacobianPower = JacobianPower(-1.0)
+    optimizer: optax.GradientTransformation = eqx.field(static=True, default=optax.sgd(1.0))
+    damping: float = eqx.field(static=True, default=1e-3)
+    reject: bool = eqx.field(static=True, default=True)
+    min_damping: float = eqx.field(static=True, default=1e-12)
+    max_damping: float = eqx.field(static=True, default=1e12)
+
+    def __check_init__(self):
+        if not 0 < self.min_damping <= self.damping <= self.max_damping:
+            raise ValueError(f"damping must be positive and within [{self.min_damping:g}, {self.max_damping:g}], "
+                             f"got {self.damping}")  # fmt: skip
+
+    def init(self, params):
+        dtype = jnp.result_type(*jax.tree.leaves(params)) if jax.tree.leaves(params) else jnp.float32
+        real = jnp.real(jnp.zeros((), dtype)).dtype
+        return LMState(self.optimizer.init(params), jnp.asarray(self.damping, real), jnp.asarray(2.0, real))
+
+    def check(self, objective):
+        self.rule.check(objective)
+
+    def check_batch_size(self, batch_size):
+        self.rule.check_batch_size(batch_size)
+
+    def footprint(self, objective, params, batch, devices=1):
+        return self.rule.footprint(objective, params, batch, devices)
+
+    def footprint_note(self, objective, params, batch):
+        return self.rule.footprint_note(objective, params, batch)
+
+    def lighter(self, batch_size):
+        return [(setting, dataclasses.replace(self, rule=rule)) for setting, rule in self.rule.lighter(batch_size)]
+
+    def step(self, objective, params, state, batch):
+        sample = jax.tree.map(lambda a: a[0], batch)
+        require_forward_mode(objective.predict, params, sample, what="Levenberg–Marquardt's gain ratio (J Δ)",
+                             alternative="use gn or hig")  # fmt: skip
+        direction, stats = self.rule.filtered(objective, params, batch, Damped(state.damping))
+        loss = stats["loss"]
+        updates, opt_state = with_extra_args(self.optimizer).update(direction, state.optimizer, params, value=loss)
+        candidate = optax.apply_updates(params, updates)
+        predicted = predicted_decrease(objective, params, batch, updates)
+        actual = loss - objective.batch_loss(candidate, batch)
+        gain_ratio = jnp.where(predicted > 0, actual / jnp.where(predicted > 0, predicted, 1.0), -jnp.inf)
+        damping, growth, accepted = adapt_damping(state.damping, state.growth, gain_ratio)
+        damping = jnp.clip(damping, self.min_damping, self.max_damping)
+        if self.reject:
+            params = jax.tree.map(lambda new, old: jnp.where(accepted, new, old), candidate, params)
+            opt_state = jax.tree.map(lambda new, old: jnp.where(accepted, new, old), opt_state, state.optimizer)
+        else:
+            params = candidate
+        stats = {**stats, "damping": state.damping, "gain_ratio": gain_ratio, "accepted": accepted.astype(loss.dtype)}
+        return params, LMState(opt_state, damping, growth), stats
