@@ -31,7 +31,7 @@ def params_of(run_dir):
 def test_list(capsys):
     assert main(["list"]) == 0
     out = capsys.readouterr().out
-    for name in ("oscillators", "hig_toy", "adam", "sgd", "rmsprop", "adagrad", "adadelta", "gn", "hig"):
+    for name in ("oscillators", "hig_toy", "adam", "sgd", "rmsprop", "adagrad", "adadelta", "gn", "hig", "lm", "optax:lion", "optax.contrib:muon"):
         assert name in out
 
 

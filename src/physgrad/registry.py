@@ -264,6 +264,9 @@ OPTAX_MODULES = {"optax": optax, "optax.contrib": optax.contrib}
 # Not optimizers of a parameter vector from its gradient: per-example-gradient privacy
 # (dpsgd), bare scalings, and optax's deprecated aliases.
 _OPTAX_EXCLUDED = ("dpsgd", "scale_by_rprop", "scale_by_madgrad")
+# What an optimizer's update needs besides the gradient (physgrad.methods.LossAwareDP);
+# every other optimizer gets the batch loss as value= (used by momo, ignored by most).
+_OPTAX_EXTRAS = {"optax:lbfgs": ("value", "grad", "value_fn"), "optax.contrib:sophia": ("obj_fn",)}
 
 
 def optax_names() -> list[str]:
@@ -307,7 +310,7 @@ def optax_method(name: str) -> Callable[..., AbstractMethod]:
         values = signature.bind(**hyperparameters)
         values.apply_defaults()
         settings = dict(values.arguments)
-        return LossAwareDP(Gradient(), fn(settings.pop("lr"), **settings))
+        return LossAwareDP(Gradient(), fn(settings.pop("lr"), **settings), _OPTAX_EXTRAS.get(name, ("value",)))
 
     summary = (fn.__doc__ or "").strip().splitlines()
     factory.__signature__ = signature

@@ -11,6 +11,7 @@ physics-based deep learning paper compares against.
 
 from __future__ import annotations
 
+import equinox as eqx
 import jax
 import optax
 
@@ -43,13 +44,20 @@ def dp(predict, loss) -> Estimator:
 class LossAwareDP(Method):
     """DP gradients applied by an optax optimizer that may also need the loss function.
 
-    Besides ``value=`` (the batch loss) the optimizer's update receives ``grad=`` (the DP
-    gradient), ``value_fn=`` and ``obj_fn=`` (the batch loss as a function of the
-    parameters on this batch): what optax's line-search L-BFGS (``optax.lbfgs``),
-    Polyak-type steps and Sophia's Hessian estimate (``optax.contrib.sophia``) ask for.
-    Optimizers that need none of them ignore them. Build it as
-    ``LossAwareDP(Gradient(), optimizer)``.
+    The optimizer's update receives the keyword extras named in ``extras``, from:
+    ``value`` (the batch loss), ``grad`` (the DP gradient), ``value_fn`` and ``obj_fn``
+    (the batch loss as a function of the parameters on this batch) — what optax's
+    line-search L-BFGS (``optax.lbfgs``: value, grad, value_fn) and Sophia's Hessian
+    estimate (``optax.contrib.sophia``: obj_fn) ask for. Only the named ones are passed
+    because some optax transformations refuse extras they do not consume.
     """
+
+    extras: tuple[str, ...] = eqx.field(static=True, default=("value",))
+
+    def __check_init__(self):
+        unknown = set(self.extras) - {"value", "grad", "value_fn", "obj_fn"}
+        if unknown:
+            raise ValueError(f"unknown optimizer extras {sorted(unknown)}; valid choices: grad, obj_fn, value, value_fn")
 
     def step(self, objective, params, state, batch):
         direction, stats = self.rule(objective, params, batch)
@@ -57,7 +65,7 @@ class LossAwareDP(Method):
         def batch_loss(p):
             return objective.batch_loss(p, batch)
 
-        updates, state = with_extra_args(self.optimizer).update(
-            direction, state, params, value=stats["loss"], grad=direction, value_fn=batch_loss, obj_fn=batch_loss
-        )
+        available = {"value": stats["loss"], "grad": direction, "value_fn": batch_loss, "obj_fn": batch_loss}
+        extras = {name: available[name] for name in self.extras}
+        updates, state = with_extra_args(self.optimizer).update(direction, state, params, **extras)
         return optax.apply_updates(params, updates), state, stats
