@@ -175,3 +175,13 @@ def test_lm_step_sharded_over_devices_equals_one_device(route):
         )
     for x, y in zip(jax.tree.leaves((want[0], want[1].damping)), jax.tree.leaves((got[0], got[1].damping))):
         np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=1e-9, atol=1e-12)
+
+
+def test_lm_takes_gauss_newtons_paper_settings_on_a_problem():
+    from physgrad import Budget
+    from physgrad.config import make_config
+
+    lm = make_config("poisson_hig", "lm", budget=Budget(steps=1)).phases[0]
+    gn = make_config("poisson_hig", "gn", budget=Budget(steps=1)).phases[0]
+    assert lm.batch_size == gn.batch_size
+    assert {k: lm.hyperparameters[k] for k in ("lr", "truncation")} == {k: gn.hyperparameters[k] for k in ("lr", "truncation")}

@@ -350,8 +350,11 @@ METHODS: dict[str, Callable[..., AbstractMethod]] = _Methods({
 
 
 def paper_defaults(problem: type[AbstractProblem], method: str) -> dict[str, Any]:
-    """The problem's hyperparameters for ``method`` (batch size included); an optax zoo
-    entry takes Adam's batch size, and Adam's learning rate when optax asks for one."""
+    """The problem's hyperparameters for ``method`` (batch size included); ``lm`` takes
+    Gauss–Newton's where the problem has none of its own; an optax zoo entry takes Adam's
+    batch size, and Adam's learning rate when optax asks for one."""
+    if method == "lm" and method not in problem.method_defaults:  # damped GN: GN's η, batch and τ
+        return problem.defaults_for("gn")
     if not is_optax_name(method):
         return problem.defaults_for(method)
     adam = problem.defaults_for("adam")
