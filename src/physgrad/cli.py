@@ -7,6 +7,8 @@
     physgrad compare PROBLEM [--methods a,b,...] [--seeds N] [budget] [--set ...] [--out DIR] [--devices N]
                      (--set name=a,b,c sweeps: every cell of the grid is a study)
     physgrad report DIR
+    physgrad bench [--problems p1,p2|all] [--methods m1,m2|applicable] [--seeds N] [budget] [--out DIR]
+                   [--quick] [--set ...]   (every applicable method on every problem, ranked; physgrad.bench)
     physgrad demo
 
 Bad input (an unknown problem, method or setting) prints one line with the valid choices
@@ -127,6 +129,29 @@ def build_parser() -> Parser:
     p.add_argument("--metric", default="loss", help="sweeps: the metric to draw (default loss; e.g. step_grad_norm2 with --split train)")
     p.add_argument("--split", default="test", help="sweeps: the split of --metric (default test)")
     p.add_argument("--smooth", type=int, default=1, help="sweeps: moving average over this many epochs (the paper: 30)")
+
+    p = sub.add_parser(
+        "bench", help="every applicable method on every chosen problem at equal budgets; tables, leaderboard, heat map",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        description="Run every applicable method on every chosen problem with the same budget per run, rank them per "
+                    "problem and across problems (physgrad.bench). Resumable: the same command again skips finished "
+                    "runs and resumes interrupted ones.",
+        epilog="examples:\n"
+               "  physgrad bench --quick                      a few fast problems, 10 s per run, 2 seeds\n"
+               "  physgrad bench --seconds 600 --seeds 5      every problem, 10 min per run, 5 seeds (long)\n"
+               "  physgrad bench --problems sine,oscillators --methods adam,hig,optax:lion --steps 500\n"
+               "  --set NAME=VALUE applies wherever the setting exists; --set PROBLEM.NAME=VALUE to one problem",
+    )  # fmt: skip
+    p.add_argument("--problems", help="comma-separated problems, or all (default: all shipped problems)")
+    p.add_argument("--methods", help="comma-separated candidate methods, or applicable (default: every registered "
+                                     "method; each problem runs those that apply)")  # fmt: skip
+    p.add_argument("--seeds", type=int, default=None, help="number of seeds 0..N-1 (default 1; --quick: 2)")
+    p.add_argument("--out", help="bench directory (default bench, --quick: bench-quick)")
+    p.add_argument("--quick", action="store_true",
+                   help="the quick profile: a few fast open-loop problems, small datasets, 10 s per run, 2 seeds")
+    p.add_argument("--devices", default="1", metavar="N|all", help="devices to split each batch over (default 1)")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
+    _add_budget(p)
 
     p = sub.add_parser("demo", help="adam vs gn vs hig on the oscillators in about two minutes")
     p.add_argument("--out", default="studies/demo")
@@ -297,6 +322,47 @@ def cmd_report(args, console):
     return 0
 
 
+def cmd_bench(args, console):
+    from . import bench
+    from .config import Budget
+
+    if args.seeds is not None and args.seeds < 1:
+        raise UsageError("--seeds must be at least 1")
+    settings = _run_settings(args)
+    given = any(getattr(args, k) is not None for k in ("steps", "epochs", "seconds"))
+    if args.quick:
+        problems = bench.choose_problems(args.problems) if args.problems else list(bench.QUICK["problems"])
+        settings = {**bench.quick_settings(problems), **settings}
+        budget = _budget(args) if given else Budget(seconds=bench.QUICK["seconds"])
+        seeds = args.seeds or bench.QUICK["seeds"]
+    else:
+        problems = bench.choose_problems(args.problems)
+        budget, seeds = _budget(args), args.seeds or 1
+    methods = bench.choose_methods(args.methods)
+    out = Path(args.out or ("bench-quick" if args.quick else "bench"))
+    console.print(
+        f"bench{' (quick profile)' if args.quick else ''}: {len(problems)} problems x {len(methods)} candidate methods, "
+        f"budget {budget} per run, seeds {list(range(seeds))}, settings {settings or 'paper defaults'} -> {out}"
+    )
+    console.print("deciding which methods apply to which problem (from shapes; no data, no training)")
+    from .progress import RichProgressMeter
+
+    meter = None if args.quiet or not console.is_terminal else RichProgressMeter
+    result = bench.bench(problems, methods, range(seeds), budget, out, settings=settings, progress=meter,
+                         echo=console.print, devices=args.devices, profile="quick" if args.quick else "")  # fmt: skip
+    for problem in problems:
+        table = result.tables[problem]
+        _print_table(console, bench.table_lines(table, inapplicable=False), title=f"{problem}: {budget} per run")
+        for status in ("skipped", "not applicable"):
+            names = [t["method"] for t in table if t["status"] == status]
+            if names:
+                console.print(f"  {status}: {', '.join(names)} (reasons in {out / problem / 'bench_table.md'})")
+    _print_table(console, result.lines, title=f"leaderboard: {budget} per run, {seeds} seed{'s' if seeds != 1 else ''}")
+    console.print(f"wrote {result.files['markdown']}, {result.files['leaderboard']}, {result.files['table']}, "
+                  f"{result.files['heatmap']} and per problem {out}/PROBLEM/bench_table.csv")  # fmt: skip
+    return 0
+
+
 def cmd_demo(args, console):
     from .config import Budget
 
@@ -319,7 +385,8 @@ def cmd_demo(args, console):
     return 0
 
 
-COMMANDS = {"list": cmd_list, "train": cmd_train, "compare": cmd_compare, "report": cmd_report, "demo": cmd_demo}
+COMMANDS = {"list": cmd_list, "train": cmd_train, "compare": cmd_compare, "report": cmd_report, "bench": cmd_bench,
+            "demo": cmd_demo}
 
 
 def main(argv=None) -> int:

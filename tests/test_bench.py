@@ -1,0 +1,178 @@
+"""physgrad bench: applicability, the ranking arithmetic, and the command end to end (tiny budgets)."""
+
+import csv
+import json
+import math
+
+import pytest
+
+from physgrad import bench
+from physgrad.bench import Verdict, applicability, leaderboard, method_rows
+from physgrad.cli import main
+
+
+def rows(path):
+    with open(path) as f:
+        return list(csv.DictReader(f))
+
+
+def verdicts_of(problem, methods):
+    return {v.method: v for v in applicability(problem, methods)}
+
+
+def test_applicability_from_the_methods_checks():
+    open_loop = verdicts_of("hig_toy", ["adam", "hig", "gn", "sip", "newton", "bptt", "sbptt_c", "one", "wig"])
+    assert {m for m, v in open_loop.items() if v.runs} == {"adam", "hig", "gn", "newton"}
+    assert open_loop["bptt"].status == open_loop["one"].status == "not applicable"
+    assert "rollout" in open_loop["bptt"].reason and "time-stepper" in open_loop["wig"].reason
+    assert "target" in open_loop["sip"].reason  # hig_toy defines no y-space target
+    oscillators = verdicts_of("oscillators", ["hig", "sip", "bptt"])
+    assert oscillators["hig"].runs and oscillators["sip"].runs and not oscillators["bptt"].runs
+    closed_loop = verdicts_of("cartpole", ["bptt", "no_temporal", "adam", "one"])
+    assert closed_loop["bptt"].runs and closed_loop["no_temporal"].runs and closed_loop["adam"].runs
+    assert not closed_loop["one"].runs
+    # newton's dense Hessian on a ~9.5k-parameter network: skipped by the bench's policy, with the reason
+    dipole = verdicts_of("quantum_dipole", ["newton"])["newton"]
+    assert dipole.status == "skipped" and "9484" in dipole.reason
+
+
+def test_applicability_sees_the_batch_size_and_scoped_settings():
+    (v,) = applicability("toy2d", ["adam"], {"batch_size": "4"})  # toy2d has one training sample
+    assert v.status == "not applicable" and "exceeds" in v.reason
+    (v,) = applicability("toy2d", ["adam"], {"hig_toy.batch_size": "4"})  # scoped to another problem
+    assert v.runs
+
+
+def test_method_lists_keep_colon_names_apart_from_sequences():
+    assert bench.split_method_list("adam,optax:lion,adam:2000,hig") == ["adam", "optax:lion", "adam:2000,hig"]
+    assert bench.split_method_list(" adam , hig ,") == ["adam", "hig"]
+    assert bench.problem_settings("sine", "adam", {"sine.n_train": "64", "toy2d.start": "1", "lr": "0.1",
+                                                   "sine.hig.lr": "2", "adam.eps": "1e-8"}) == {
+        "n_train": "64", "lr": "0.1", "adam.eps": "1e-8"}  # fmt: skip
+
+
+def fake_study():
+    """Two problems, hand-computed: p1 adam {1, 3} (mean 2, std √2), hig {0.5, 1.5} (mean 1),
+    sgd {0.1 finished, one diverged} (mean 0.1); p2 adam {4}, hig failed (refused), sgd {1}."""
+    p1 = [
+        {"method": "adam", "status": "finished", "final_test_loss": "1.0"},
+        {"method": "adam", "status": "finished", "final_test_loss": "3.0"},
+        {"method": "hig", "status": "finished", "final_test_loss": "0.5"},
+        {"method": "hig", "status": "finished", "final_test_loss": "1.5"},
+        {"method": "sgd", "status": "finished", "final_test_loss": "0.1"},
+        {"method": "sgd", "status": "diverged", "final_test_loss": ""},
+    ]
+    p2 = [
+        {"method": "adam", "status": "finished", "final_test_loss": "4.0"},
+        {"method": "sgd", "status": "finished", "final_test_loss": "1.0"},
+    ]
+    v = lambda *names: [Verdict(n, "applicable") for n in names]  # noqa: E731
+    t1 = method_rows(p1, v("adam", "hig", "sgd") + [Verdict("bptt", "not applicable", "no rollout")])
+    t2 = method_rows(p2, v("adam", "hig", "sgd"), failures={"hig-seed0-x": {"method": "hig", "seed": 0, "error": "refused"}})
+    return {"p1": t1, "p2": t2}
+
+
+def test_ranks_ratios_and_leaderboard_against_hand_computed_numbers():
+    tables = fake_study()
+    t1 = {t["method"]: t for t in tables["p1"]}
+    assert t1["adam"]["mean"] == 2.0 and t1["adam"]["std"] == pytest.approx(math.sqrt(2))
+    assert t1["hig"]["mean"] == 1.0 and t1["hig"]["ratio"] == 0.5
+    # sgd's finished seed is the lowest, but half its runs diverged: it ranks after the reliable methods
+    assert t1["sgd"]["mean"] == 0.1 and t1["sgd"]["diverged"] == 1 and t1["sgd"]["ratio"] == pytest.approx(0.05)
+    assert (t1["hig"]["rank"], t1["adam"]["rank"], t1["sgd"]["rank"]) == (1, 2, 3)
+    assert t1["bptt"]["status"] == "not applicable" and t1["bptt"]["rank"] is None and math.isnan(t1["bptt"]["ratio"])
+    t2 = {t["method"]: t for t in tables["p2"]}
+    assert t2["hig"]["status"] == "failed" and t2["hig"]["failed"] == 1 and t2["hig"]["rank"] is None
+    assert (t2["sgd"]["rank"], t2["adam"]["rank"], t2["sgd"]["ratio"]) == (1, 2, 0.25)
+    board = {b["method"]: b for b in leaderboard(tables)}
+    assert board["sgd"]["geomean_ratio"] == pytest.approx(math.sqrt(0.05 * 0.25))
+    assert board["hig"]["geomean_ratio"] == 0.5 and board["hig"]["ratio_problems"] == 1  # p2 failed: no ratio
+    assert board["adam"]["geomean_ratio"] == 1.0
+    tables["p2"][2]["ratio"] = 0.0  # a loss of exactly 0: clipped in the logarithm, not -inf
+    assert {b["method"]: b for b in leaderboard(tables)}["sgd"]["geomean_ratio"] == pytest.approx(math.sqrt(0.05 * 1e-6))
+    assert (board["hig"]["wins"], board["sgd"]["wins"], board["adam"]["wins"]) == (1, 1, 0)
+    assert (board["sgd"]["divergences"], board["hig"]["failures"], board["hig"]["problems"]) == (1, 1, 2)
+    assert "bptt" not in board  # never applicable: not on the leaderboard
+    assert [b["method"] for b in leaderboard(tables)] == ["sgd", "hig", "adam"]
+
+
+def test_paired_test_rows_are_read_against_the_best():
+    table = fake_study()["p1"]
+    tests = [{"method_a": "hig", "method_b": "adam", "pairs": 8, "seeds": 2, "seeds_a_lower": 2, "p_value": 0.0078}]
+    table = {t["method"]: t for t in bench.add_paired_tests(table, tests)}
+    assert table["adam"]["best"] == "hig" and table["adam"]["p_vs_best"] == 0.0078
+    assert table["adam"]["seeds_best_lower"] == 2 and table["adam"]["seeds_compared"] == 2
+    assert math.isnan(table["hig"]["p_vs_best"]) and table["sgd"]["pairs"] == 0
+
+
+def test_heatmap_marks_failed_and_blank_cells(tmp_path):
+    path = bench.heatmap(fake_study(), tmp_path / "h.png")
+    assert path.exists() and path.stat().st_size > 1000
+
+
+def test_a_failing_run_is_recorded_and_the_problem_goes_on(tmp_path, monkeypatch):
+    import physgrad.train
+
+    real = physgrad.train.train
+
+    def refuse_hig(config, run_dir, **kwargs):
+        if config.method == "hig":
+            raise physgrad.ConfigError("hig step needs ~1 TiB; would fit: batch_size=1")
+        return real(config, run_dir, **kwargs)
+
+    monkeypatch.setattr(physgrad.train, "train", refuse_hig)
+    lines = []
+    verdicts = [Verdict("adam", "applicable"), Verdict("hig", "applicable")]
+    out = tmp_path / "toy2d"
+    summary = bench.run_problem("toy2d", verdicts, [0], physgrad.Budget(steps=2), out, echo=lines.append)
+    assert [r["method"] for r in summary] == ["adam"]
+    failures = json.loads((out / "failures.json").read_text())
+    assert [f["method"] for f in failures.values()] == ["hig"] and "1 TiB" in next(iter(failures.values()))["error"]
+    assert any("failed, recorded" in line for line in lines)
+    table = {t["method"]: t for t in bench.problem_table(out, verdicts)}
+    assert table["hig"]["status"] == "failed" and table["adam"]["rank"] == 1
+
+
+def test_bench_cli_end_to_end_and_resume(tmp_path, capsys):
+    out = tmp_path / "bench"
+    argv = ["bench", "--problems", "hig_toy,toy2d", "--methods", "adam,sgd,bptt", "--steps", "3", "--seeds", "1",
+            "--out", str(out), "--quiet", "--set", "hig_toy.batch_size=64", "--set", "hig_toy.sgd.lr=1e12"]  # fmt: skip
+    assert main(argv) == 0
+    printed = capsys.readouterr().out
+    assert "leaderboard" in printed and "not applicable" in printed
+    for name in ("bench.md", "bench.json", "leaderboard.csv", "leaderboard.md", "heatmap.png", "bench_table.csv",
+                 "hig_toy/bench_table.csv", "hig_toy/bench_table.md", "hig_toy/summary.csv", "hig_toy/study.json",
+                 "toy2d/bench_table.csv", "toy2d/loss_vs_time.png"):  # fmt: skip
+        assert (out / name).exists(), name
+    table = {r["method"]: r for r in rows(out / "hig_toy" / "bench_table.csv")}
+    assert table["sgd"]["status"] == "diverged" and table["sgd"]["diverged"] == "1" and table["sgd"]["rank"] == ""
+    assert table["adam"]["rank"] == "1" and float(table["adam"]["ratio_to_adam"]) == 1.0
+    assert table["bptt"]["status"] == "not applicable"
+    board = {r["method"]: r for r in rows(out / "leaderboard.csv")}
+    assert board["sgd"]["divergences"] == "1" and board["adam"]["problems"] == "2" and "bptt" not in board
+    markdown = (out / "bench.md").read_text()
+    assert "3 training steps per run" in markdown and "CPU cores" in markdown and "JAX" in markdown
+    assert "Wilcoxon" in markdown and "physgrad bench --seconds 600 --seeds 5" in markdown
+    assert "hig_toy.batch_size=64" in markdown
+    # the same command again: every run is skipped, the report is rewritten
+    assert main(argv) == 0
+    assert capsys.readouterr().out.count("done already") == 4  # 2 problems x 2 methods x 1 seed
+
+
+@pytest.mark.parametrize(
+    "argv,message",
+    [
+        (["--problems", "hig_toy,nope"], "unknown problem 'nope'; valid choices: advection_1d, cartpole,"),
+        (["--problems", "hig_toy", "--methods", "adam,nope"], "unknown method 'nope'; valid choices:"),
+        (["--problems", "hig_toy", "--set", "nope=1"], "unknown setting 'nope'; valid choices:"),
+        (["--problems", "hig_toy", "--set", "toy2d.lr=1"], "unknown problem in a scoped setting 'toy2d'"),
+        (["--problems", "hig_toy", "--seeds", "0"], "--seeds must be at least 1"),
+        (["--problems", "hig_toy", "--steps", "1", "--seconds", "1"], "only one of"),
+    ],
+)
+def test_bad_input_is_one_line_exit_2(argv, message, tmp_path, capsys):
+    assert main(["bench", *argv, "--out", str(tmp_path / "b")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert message in err
+    assert len(err.splitlines()) == 1 and "Traceback" not in err
+    assert not (tmp_path / "b").exists()  # nothing ran or was written
