@@ -36,6 +36,7 @@ from .problems import (
     AbstractProblem, Advection1d, CartPole, ExpInverse, Guidance, Heat, HigToy, Kolmogorov, KuramotoSivashinsky,
     LinearOscillators, NavierStokes, Oscillators, Poisson, PoissonHig, QuantumControl, QuantumDipole, Sine, Toy2d,
 )  # fmt: skip
+from .methods.kfac import kfac
 from .rollout import Combined, M, R, S
 
 # --- DP: optax optimizers on the DP gradient --------------------------------------------
@@ -344,17 +345,19 @@ PROBLEMS: dict[str, type[AbstractProblem]] = {
 
 METHODS: dict[str, Callable[..., AbstractMethod]] = _Methods({
     f.__name__: f
-    for f in (adam, sgd, rmsprop, adagrad, adadelta, gn, hig, lm, sip, newton, bptt, sbptt_m, sbptt_c, no_temporal, one,
+    for f in (adam, sgd, rmsprop, adagrad, adadelta, gn, hig, lm, kfac, sip, newton, bptt, sbptt_m, sbptt_c, no_temporal, one,
               nog, wig)
 })  # fmt: skip
 
 
 def paper_defaults(problem: type[AbstractProblem], method: str) -> dict[str, Any]:
     """The problem's hyperparameters for ``method`` (batch size included); ``lm`` takes
-    Gauss–Newton's where the problem has none of its own; an optax zoo entry takes Adam's
-    batch size, and Adam's learning rate when optax asks for one."""
+    Gauss–Newton's where the problem has none of its own, ``kfac`` Adam's batch size; an
+    optax zoo entry takes Adam's batch size, and Adam's learning rate when optax asks for one."""
     if method == "lm" and method not in problem.method_defaults:  # damped GN: GN's η, batch and τ
         return problem.defaults_for("gn")
+    if method == "kfac" and method not in problem.method_defaults:  # its own adaptive step; Adam's batch
+        return {"batch_size": problem.defaults_for("adam")["batch_size"]}
     if not is_optax_name(method):
         return problem.defaults_for(method)
     adam = problem.defaults_for("adam")
