@@ -176,3 +176,14 @@ def test_bad_input_is_one_line_exit_2(argv, message, tmp_path, capsys):
     assert message in err
     assert len(err.splitlines()) == 1 and "Traceback" not in err
     assert not (tmp_path / "b").exists()  # nothing ran or was written
+
+
+def test_report_of_a_bench_interrupted_before_a_problem(tmp_path):
+    info = {"problems": ["toy2d"], "methods": ["adam", "bptt"], "seeds": [0], "budget": {"seconds": 5.0},
+            "settings": {}, "verdicts": {"toy2d": [{"method": "adam", "status": "applicable", "reason": ""},
+                                                   {"method": "bptt", "status": "not applicable", "reason": "no rollout"}]}}  # fmt: skip
+    (tmp_path / "bench.json").write_text(json.dumps(info))
+    result = bench.report(tmp_path)
+    assert [t["status"] for t in result.tables["toy2d"]] == ["pending", "not applicable"]
+    assert (tmp_path / "toy2d" / "bench_table.md").exists() and (tmp_path / "heatmap.png").exists()
+    assert "5 s of training wall-clock per run" in (tmp_path / "bench.md").read_text()

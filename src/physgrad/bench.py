@@ -784,6 +784,7 @@ def report(out: str | Path) -> BenchReport:
         verdicts = [Verdict(**v) for v in info["verdicts"][problem]]
         table = problem_table(out / problem, verdicts)
         tables[problem] = table
+        (out / problem).mkdir(exist_ok=True)  # a bench interrupted before this problem: its table says pending
         _write_rows(out / problem / "bench_table.csv", TABLE_COLUMNS, table_records(problem, table))
         (out / problem / "bench_table.md").write_text(markdown(table_lines(table)) + "\n")
     board = leaderboard(tables)
