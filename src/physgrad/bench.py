@@ -78,24 +78,37 @@ NEWTON_MAX_PARAMS = 5000
 
 # The quick profile (``physgrad bench --quick``): the fastest open-loop problems, measured on
 # 2 CPU cores (setup and compilation of every method in seconds), 10 s of training per run
-# and 2 seeds; the two problems with 65,536 training samples get 4,096 (an epoch, and so a
-# full evaluation, every ~40 steps instead of ~650). Evaluation every 2 training seconds
+# and 2 seeds: 118 runs, 36 minutes on 2 cores shared with other jobs (load ~6), 10 s runs
+# costing ~18 s of wall-clock each. The two problems with 65,536 training samples get
+# 4,096 (an epoch, and so a full evaluation, every ~40 steps instead of ~650); the Jacobian
+# methods on the oscillators take the demo's batch of 32 instead of the paper's 128 (at 128 a
+# step costs ~5 s on 2 cores: two steps in a 10 s run). Evaluation every 2 training seconds
 # gives every curve a few points.
 QUICK: dict[str, Any] = {
     "problems": ("hig_toy", "toy2d", "exp_inverse", "sine", "linear_oscillators", "oscillators"),
-    "settings": {"exp_inverse.n_train": "4096", "sine.n_train": "4096", "eval_seconds": "2"},
+    "settings": {
+        "exp_inverse.n_train": "4096", "sine.n_train": "4096", "eval_seconds": "2",
+        "oscillators.gn.batch_size": "32", "oscillators.hig.batch_size": "32", "oscillators.lm.batch_size": "32",
+    },
     "seconds": 10.0,
     "seeds": 2,
-}
+}  # fmt: skip
 
 
-def quick_settings(problems: Sequence[str]) -> dict[str, Any]:
-    """The quick profile's settings that concern ``problems`` (scoped ones of other problems dropped)."""
+def quick_settings(problems: Sequence[str], methods: Sequence[str]) -> dict[str, Any]:
+    """The quick profile's settings that concern ``problems`` and the candidate ``methods``
+    (those scoped to another problem or to a method not among the candidates dropped)."""
+    stages = {m for spec in methods for m in phase_methods(spec)}
     keep = {}
     for key, value in QUICK["settings"].items():
         head, _, rest = key.partition(".")
-        if not (head in PROBLEMS and rest) or head in problems:
-            keep[key] = value
+        if head in PROBLEMS and rest:
+            if head not in problems:
+                continue
+            key = rest
+        target = key.rpartition(".")[0]
+        if not target or target in stages:
+            keep[f"{head}.{key}" if head in PROBLEMS and rest else key] = value
     return keep
 
 
@@ -487,8 +500,10 @@ def leaderboard(tables: dict[str, Sequence[dict[str, Any]]]) -> list[dict[str, A
     its ratios to the reference (over the problems where the ratio is defined; each ratio
     clipped to :data:`RATIO_CLIP`), the number
     of problems that ratio covers, wins (rank 1, ties included), diverged and failed runs,
-    and the problems it ran on (applicable, not skipped). Sorted by geometric-mean ratio
-    (undefined last), then by wins."""
+    and the problems it ran on (applicable, not skipped). Sorted as the problems rank: by
+    the fraction of its runs that diverged or failed (a method that often diverges is less
+    useful than one that never does, whatever its best seeds reached), then by
+    geometric-mean ratio (undefined last), then by wins."""
     methods = list(dict.fromkeys(t["method"] for table in tables.values() for t in table))
     board = []
     for method in methods:
@@ -505,8 +520,14 @@ def leaderboard(tables: dict[str, Sequence[dict[str, Any]]]) -> list[dict[str, A
             "divergences": sum(t["diverged"] for t in ran),
             "failures": sum(t["failed"] for t in ran),
             "problems": len(ran),
+            "runs": sum(t["runs"] for t in ran),
         })  # fmt: skip
-    board.sort(key=lambda b: (not math.isfinite(b["geomean_ratio"]), b["geomean_ratio"] if math.isfinite(b["geomean_ratio"]) else 0, -b["wins"]))
+
+    def key(b):
+        finite = math.isfinite(b["geomean_ratio"])
+        return ((b["divergences"] + b["failures"]) / max(b["runs"], 1), not finite, b["geomean_ratio"] if finite else 0, -b["wins"])
+
+    board.sort(key=key)
     return board
 
 
@@ -517,7 +538,7 @@ TABLE_COLUMNS = (
     "final_test_loss_std", "rank", "ratio_to_adam", "best", "p_vs_best", "pairs", "seeds_best_lower",
     "seeds_compared", "reason",
 )  # fmt: skip
-BOARD_COLUMNS = ("method", "geomean_ratio_to_adam", "ratio_problems", "wins", "divergences", "failures", "problems")
+BOARD_COLUMNS = ("method", "geomean_ratio_to_adam", "ratio_problems", "wins", "divergences", "failures", "runs", "problems")
 
 
 def _number(x: float, spec: str = ".3e") -> str:
@@ -580,11 +601,13 @@ def board_records(board: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
 
 
 def board_lines(board: Sequence[dict[str, Any]], reference: str = REFERENCE) -> list[list[str]]:
-    header = ["method", f"geo-mean ratio to {reference}", "problems (ratio)", "wins", "diverged runs", "failed runs", "problems run"]
+    header = ["method", f"geo-mean ratio to {reference}", "problems (ratio)", "wins", "diverged runs", "failed runs",
+              "problems run"]  # fmt: skip
     lines = [header]
     for b in board:
+        runs = b.get("runs") or 0
         lines.append([b["method"], _number(b["geomean_ratio"], ".3g") or "-", str(b["ratio_problems"]), str(b["wins"]),
-                      str(b["divergences"]), str(b["failures"]), str(b["problems"])])  # fmt: skip
+                      f"{b['divergences']}/{runs}", f"{b['failures']}/{runs}", str(b["problems"])])  # fmt: skip
     return lines
 
 
@@ -843,7 +866,8 @@ def bench_markdown(info: dict[str, Any], tables: dict[str, Sequence[dict[str, An
         "## Leaderboard",
         "",
         f"Geometric mean of the ratio to {REFERENCE} over the problems where both have a result (below 1: lower "
-        "loss than Adam at the same budget); wins: problems where the method ranks first.",
+        "loss than Adam at the same budget); wins: problems where the method ranks first. Ordered like the "
+        "problems' ranks: by the fraction of its runs that diverged or failed, then by the geometric mean.",
         "",
         markdown(board_lines(board)) if board else "(no runs yet)",
         "",

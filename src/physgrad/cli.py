@@ -332,13 +332,14 @@ def cmd_bench(args, console):
     given = any(getattr(args, k) is not None for k in ("steps", "epochs", "seconds"))
     if args.quick:
         problems = bench.choose_problems(args.problems) if args.problems else list(bench.QUICK["problems"])
-        settings = {**bench.quick_settings(problems), **settings}
+        methods = bench.choose_methods(args.methods)
+        settings = {**bench.quick_settings(problems, methods), **settings}
         budget = _budget(args) if given else Budget(seconds=bench.QUICK["seconds"])
         seeds = args.seeds or bench.QUICK["seeds"]
     else:
         problems = bench.choose_problems(args.problems)
+        methods = bench.choose_methods(args.methods)
         budget, seeds = _budget(args), args.seeds or 1
-    methods = bench.choose_methods(args.methods)
     out = Path(args.out or ("bench-quick" if args.quick else "bench"))
     console.print(
         f"bench{' (quick profile)' if args.quick else ''}: {len(problems)} problems x {len(methods)} candidate methods, "
