@@ -9,6 +9,7 @@ import pytest
 from physgrad import bench
 from physgrad.bench import Verdict, applicability, leaderboard, method_rows
 from physgrad.cli import main
+from physgrad.config import split_methods
 
 
 def rows(path):
@@ -44,8 +45,8 @@ def test_applicability_sees_the_batch_size_and_scoped_settings():
 
 
 def test_method_lists_keep_colon_names_apart_from_sequences():
-    assert bench.split_method_list("adam,optax:lion,adam:2000,hig") == ["adam", "optax:lion", "adam:2000,hig"]
-    assert bench.split_method_list(" adam , hig ,") == ["adam", "hig"]
+    assert split_methods("adam,optax:lion,adam:2000,hig") == ["adam", "optax:lion", "adam:2000,hig"]
+    assert split_methods(" adam , hig ,") == ["adam", "hig"]
     quick = bench.quick_settings(["oscillators", "sine"], ["adam", "hig"])
     assert quick["oscillators.hig.batch_size"] == "32" and "oscillators.gn.batch_size" not in quick
     assert "exp_inverse.n_train" not in quick and quick["sine.n_train"] == "4096" and quick["eval_seconds"] == "2"

@@ -60,7 +60,9 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from .config import Budget, ConfigError, RunConfig, choose, make_config, parse_method, phase_methods, valid_settings
+from .config import (
+    Budget, ConfigError, RunConfig, choose, make_config, parse_method, phase_methods, split_methods, valid_settings,
+)  # fmt: skip
 from .registry import METHODS, PROBLEMS
 
 REFERENCE = "adam"  # the ratio column and the heat map are relative to this method
@@ -84,8 +86,16 @@ NEWTON_MAX_PARAMS = 5000
 # methods on the oscillators take the demo's batch of 32 instead of the paper's 128 (at 128 a
 # step costs ~5 s on 2 cores: two steps in a 10 s run). Evaluation every 2 training seconds
 # gives every curve a few points.
+# The optax optimizers a default bench adds to the registered methods: Adam with decoupled
+# weight decay, and two newer first-order methods (sign momentum; orthogonalised momentum).
+ZOO = ("optax:adamw", "optax:lion", "optax.contrib:muon")
+
 QUICK: dict[str, Any] = {
     "problems": ("hig_toy", "toy2d", "exp_inverse", "sine", "linear_oscillators", "oscillators"),
+    # The candidates of the quick profile: the DP baselines that did best in the HIG paper's
+    # comparison (Adam, RMSprop, SGD; Adagrad and Adadelta trail them) plus every
+    # curvature and inversion method and the zoo (the rollout methods apply to none of them).
+    "methods": ("adam", "sgd", "rmsprop", "gn", "hig", "lm", "kfac", "sip", "newton", *ZOO),
     "settings": {
         "exp_inverse.n_train": "4096", "sine.n_train": "4096", "eval_seconds": "2",
         "oscillators.gn.batch_size": "32", "oscillators.hig.batch_size": "32", "oscillators.lm.batch_size": "32",
@@ -115,25 +125,6 @@ def quick_settings(problems: Sequence[str], methods: Sequence[str]) -> dict[str,
 # --- names and settings ------------------------------------------------------------------
 
 
-def split_method_list(text: str) -> list[str]:
-    """A comma-separated method list where ``name:N,`` (N an integer) binds to the next
-    entry as a sequence, while a colon name such as ``optax:lion`` stands alone:
-    ``"adam,optax:lion,adam:2000,hig"`` → ``["adam", "optax:lion", "adam:2000,hig"]``.
-    (``config.split_methods`` binds every colon, which would glue ``optax:lion`` to the
-    method after it.)"""
-    out, pending = [], []
-    for part in (p.strip() for p in text.split(",")):
-        if not part:
-            continue
-        pending.append(part)
-        if not part.rpartition(":")[2].isdigit():
-            out.append(",".join(pending))
-            pending = []
-    if pending:
-        out.append(",".join(pending))  # parse_method reports the missing final method
-    return out
-
-
 def choose_problems(text: str | None) -> list[str]:
     """``None``/``"all"`` → every shipped problem; else the comma-separated names, checked
     (a one-line :class:`ConfigError` with the valid choices)."""
@@ -148,12 +139,12 @@ def choose_problems(text: str | None) -> list[str]:
 
 
 def choose_methods(text: str | None) -> list[str]:
-    """``None``/``"applicable"`` → every registered method (each problem keeps those that
-    apply); else the listed specs, each checked by ``config.parse_method`` (which owns the
+    """``None``/``"applicable"`` → every registered method and the optax optimizers of
+    :data:`ZOO` (each problem keeps those that apply); else the listed specs, each checked by ``config.parse_method`` (which owns the
     method names, colon names such as ``optax:lion`` included)."""
     if text is None or text.strip() == "applicable":
-        return list(METHODS)
-    specs = split_method_list(text)
+        return [*METHODS, *ZOO]
+    specs = split_methods(text)
     if not specs:
         raise ConfigError(f"--methods is empty; valid choices: applicable, {', '.join(sorted(METHODS))}")
     for spec in specs:

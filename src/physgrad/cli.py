@@ -332,7 +332,7 @@ def cmd_bench(args, console):
     given = any(getattr(args, k) is not None for k in ("steps", "epochs", "seconds"))
     if args.quick:
         problems = bench.choose_problems(args.problems) if args.problems else list(bench.QUICK["problems"])
-        methods = bench.choose_methods(args.methods)
+        methods = bench.choose_methods(args.methods) if args.methods else list(bench.QUICK["methods"])
         settings = {**bench.quick_settings(problems, methods), **settings}
         budget = _budget(args) if given else Budget(seconds=bench.QUICK["seconds"])
         seeds = args.seeds or bench.QUICK["seeds"]
