@@ -97,8 +97,10 @@ def test_ranks_ratios_and_leaderboard_against_hand_computed_numbers():
     assert (board["hig"]["wins"], board["sgd"]["wins"], board["adam"]["wins"]) == (1, 1, 0)
     assert (board["sgd"]["divergences"], board["hig"]["failures"], board["hig"]["problems"]) == (1, 1, 2)
     assert "bptt" not in board  # never applicable: not on the leaderboard
-    # reliability first (adam never diverged; sgd and hig lost 1 of 3 runs each), then the geometric mean
-    assert [b["method"] for b in leaderboard(tables)] == ["adam", "sgd", "hig"]
+    # the score counts hig's failed problem as the worst ratio: √(0.5 · 1e6); sgd kept a finished seed on p1
+    assert board["hig"]["score"] == pytest.approx(math.sqrt(0.5 * 1e6))
+    assert board["sgd"]["score"] == board["sgd"]["geomean_ratio"] and board["adam"]["score"] == 1.0
+    assert [b["method"] for b in leaderboard(tables)] == ["sgd", "adam", "hig"]
 
 
 def test_paired_test_rows_are_read_against_the_best():

@@ -458,8 +458,8 @@ def method_rows(
     base = next((t["mean"] for t in table if t["method"] == reference), math.nan)
     for t in table:
         t.setdefault("rank", None)
-        ok = math.isfinite(t["mean"]) and math.isfinite(base) and base > 0
-        t["ratio"] = t["mean"] / base if ok else math.nan
+        t["problem_has_reference"] = math.isfinite(base) and base > 0
+        t["ratio"] = t["mean"] / base if math.isfinite(t["mean"]) and t["problem_has_reference"] else math.nan
     return table
 
 
@@ -491,10 +491,12 @@ def leaderboard(tables: dict[str, Sequence[dict[str, Any]]]) -> list[dict[str, A
     its ratios to the reference (over the problems where the ratio is defined; each ratio
     clipped to :data:`RATIO_CLIP`), the number
     of problems that ratio covers, wins (rank 1, ties included), diverged and failed runs,
-    and the problems it ran on (applicable, not skipped). Sorted as the problems rank: by
-    the fraction of its runs that diverged or failed (a method that often diverges is less
-    useful than one that never does, whatever its best seeds reached), then by
-    geometric-mean ratio (undefined last), then by wins."""
+    and the problems it ran on (applicable, not skipped).
+
+    Sorted by ``score``: the same geometric mean, but over every problem it ran on where
+    the reference has a result, a problem where every run of the method diverged or failed
+    counting as the worst ratio, ``RATIO_CLIP[1]`` (otherwise a method that diverges on most
+    problems would lead on the one or two where it converged); then by wins."""
     methods = list(dict.fromkeys(t["method"] for table in tables.values() for t in table))
     board = []
     for method in methods:
@@ -503,8 +505,11 @@ def leaderboard(tables: dict[str, Sequence[dict[str, Any]]]) -> list[dict[str, A
         if not ran:
             continue
         ratios = np.clip([t["ratio"] for t in ran if math.isfinite(t["ratio"])], *RATIO_CLIP)
+        lost = sum(t["status"] in ("diverged", "failed") for t in ran if t["problem_has_reference"])
+        scored = np.concatenate([ratios, np.full(lost, RATIO_CLIP[1])])
         board.append({
             "method": method,
+            "score": float(10 ** np.mean(np.log10(scored))) if scored.size else math.nan,
             "geomean_ratio": float(10 ** np.mean(np.log10(ratios))) if ratios.size else math.nan,
             "ratio_problems": int(ratios.size),
             "wins": sum(t["rank"] == 1 for t in ran),
@@ -515,8 +520,8 @@ def leaderboard(tables: dict[str, Sequence[dict[str, Any]]]) -> list[dict[str, A
         })  # fmt: skip
 
     def key(b):
-        finite = math.isfinite(b["geomean_ratio"])
-        return ((b["divergences"] + b["failures"]) / max(b["runs"], 1), not finite, b["geomean_ratio"] if finite else 0, -b["wins"])
+        finite = math.isfinite(b["score"])
+        return (not finite, b["score"] if finite else 0, -b["wins"])
 
     board.sort(key=key)
     return board
@@ -529,7 +534,7 @@ TABLE_COLUMNS = (
     "final_test_loss_std", "rank", "ratio_to_adam", "best", "p_vs_best", "pairs", "seeds_best_lower",
     "seeds_compared", "reason",
 )  # fmt: skip
-BOARD_COLUMNS = ("method", "geomean_ratio_to_adam", "ratio_problems", "wins", "divergences", "failures", "runs", "problems")
+BOARD_COLUMNS = ("method", "score", "geomean_ratio_to_adam", "ratio_problems", "wins", "divergences", "failures", "runs", "problems")
 
 
 def _number(x: float, spec: str = ".3e") -> str:
@@ -587,17 +592,18 @@ def table_lines(table: Sequence[dict[str, Any]], reference: str = REFERENCE, ina
 
 
 def board_records(board: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
-    return [{**{k: b[k] for k in BOARD_COLUMNS if k in b}, "geomean_ratio_to_adam": _number(b["geomean_ratio"], ".6g")}
+    return [{**{k: b[k] for k in BOARD_COLUMNS if k in b}, "score": _number(b["score"], ".6g"),
+             "geomean_ratio_to_adam": _number(b["geomean_ratio"], ".6g")}
             for b in board]  # fmt: skip
 
 
 def board_lines(board: Sequence[dict[str, Any]], reference: str = REFERENCE) -> list[list[str]]:
-    header = ["method", f"geo-mean ratio to {reference}", "problems (ratio)", "wins", "diverged runs", "failed runs",
-              "problems run"]  # fmt: skip
+    header = ["method", f"score (all diverged = {RATIO_CLIP[1]:g})", f"geo-mean ratio to {reference}", "problems (ratio)",
+              "wins", "diverged runs", "failed runs", "problems run"]  # fmt: skip
     lines = [header]
     for b in board:
         runs = b.get("runs") or 0
-        lines.append([b["method"], _number(b["geomean_ratio"], ".3g") or "-", str(b["ratio_problems"]), str(b["wins"]),
+        lines.append([b["method"], _number(b["score"], ".3g") or "-", _number(b["geomean_ratio"], ".3g") or "-", str(b["ratio_problems"]), str(b["wins"]),
                       f"{b['divergences']}/{runs}", f"{b['failures']}/{runs}", str(b["problems"])])  # fmt: skip
     return lines
 
@@ -857,8 +863,9 @@ def bench_markdown(info: dict[str, Any], tables: dict[str, Sequence[dict[str, An
         "## Leaderboard",
         "",
         f"Geometric mean of the ratio to {REFERENCE} over the problems where both have a result (below 1: lower "
-        "loss than Adam at the same budget); wins: problems where the method ranks first. Ordered like the "
-        "problems' ranks: by the fraction of its runs that diverged or failed, then by the geometric mean.",
+        "loss than Adam at the same budget); wins: problems where the method ranks first. Ordered by the score: "
+        f"the same geometric mean, with a problem where every run of the method diverged or failed counting as a "
+        f"ratio of {RATIO_CLIP[1]:g} (so a method cannot lead on the few problems where it converged).",
         "",
         markdown(board_lines(board)) if board else "(no runs yet)",
         "",
