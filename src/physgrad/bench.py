@@ -80,8 +80,9 @@ NEWTON_MAX_PARAMS = 5000
 
 # The quick profile (``physgrad bench --quick``): the fastest open-loop problems, measured on
 # 2 CPU cores (setup and compilation of every method in seconds), 10 s of training per run
-# and 2 seeds: 118 runs, 36 minutes on 2 cores shared with other jobs (load ~6), 10 s runs
-# costing ~18 s of wall-clock each. The two problems with 65,536 training samples get
+# and 2 seeds. Measured on 2 cores shared with other jobs (load ~6): a 10 s run costs ~18 s
+# of wall-clock (setup, compilation, evaluation); the first version's 118 runs took 36
+# minutes, so the curated list below (142 runs) takes about 43. The two problems with 65,536 training samples get
 # 4,096 (an epoch, and so a full evaluation, every ~40 steps instead of ~650); the Jacobian
 # methods on the oscillators take the demo's batch of 32 instead of the paper's 128 (at 128 a
 # step costs ~5 s on 2 cores: two steps in a 10 s run). Evaluation every 2 training seconds
