@@ -1,6 +1,7 @@
 """The navier_stokes problem (SIP paper Fig. 7) on a small grid: data, loss, the authors'
 local inverse, and training with adam and sip from the command line."""
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -135,3 +136,53 @@ def test_phiflow_simulator_trains_the_same_problem(tmp_path, monkeypatch, capsys
     assert jax.config.jax_enable_x64 == x64 or x64 is False  # the CLI's own setting, not PhiFlow's
     rows = (tmp_path / "study" / "summary.csv").read_text().splitlines()[1:]
     assert len(rows) == 2 and all(",finished," in row for row in rows)
+
+
+def test_weight_standardisation_equals_numpy_and_is_scale_invariant():
+    from physgrad.nets import UNet, standardised_weight
+
+    w = np.random.default_rng(0).normal(size=(4, 3, 3, 3)).astype(np.float32)
+    flat = w.reshape(4, -1)
+    expected = (flat - flat.mean(1, keepdims=True)) / (flat.std(1, keepdims=True) + 1e-5) * np.sqrt(2 / 27)
+    np.testing.assert_allclose(np.asarray(standardised_weight(jnp.asarray(w))), expected.reshape(w.shape), atol=1e-6)
+    # as under batch norm, a standardised conv's output does not depend on its kernel's scale
+    net = UNet(2, 2, levels=3, filters=4, key=jax.random.key(0), activation="leaky_relu", weight_standardisation=True)
+    scaled = eqx.tree_at(lambda n: n.down[1].first.weight, net, 7.0 * net.down[1].first.weight)
+    x = jax.random.uniform(jax.random.key(1), (2, 16, 16))
+    np.testing.assert_allclose(np.asarray(scaled(x)), np.asarray(net(x)), rtol=1e-4, atol=1e-5)
+
+
+def test_default_network_keeps_its_channels_alive_under_sip(problem, samples):
+    """The default U-Net (leaky ReLU, weight-standardised convs) keeps every last-layer
+    channel active and its output input-dependent over a few SIP steps at the authors' lr;
+    ``activation=relu, weight_standardisation=false`` is the plain (BN-less PyTorch) U-Net."""
+    import optax
+
+    from physgrad.methods.sip import ScaleInvariantPhysics
+    from physgrad.nets import UNet
+
+    plain = NavierStokes(**SMALL, activation="relu", weight_standardisation=False).make_network(jax.random.key(0))
+    reference = UNet(2, 2, levels=3, filters=4, key=jax.random.key(0))
+    x = jnp.stack([jnp.asarray(samples["m0"][0]), jnp.asarray(samples["mT"][0])])
+    np.testing.assert_array_equal(np.asarray(plain(x)), np.asarray(reference(x)))
+
+    net = problem.make_network(jax.random.key(0))
+    params, static = eqx.partition(net, eqx.is_inexact_array)
+    objective, rule, opt = problem.objective(static), ScaleInvariantPhysics(), optax.adam(5e-3)
+    batch = {k: jnp.asarray(v) for k, v in samples.items()}
+    inputs = jnp.stack([batch["m0"], batch["mT"]], axis=1)
+
+    @jax.jit
+    def step(params, state):
+        d, _ = rule(objective, params, batch)
+        updates, state = opt.update(d, state, params)
+        return optax.apply_updates(params, updates), state
+
+    state = opt.init(params)
+    for _ in range(5):
+        params, state = step(params, state)
+        network = eqx.combine(params, static)
+        features = jax.vmap(network.features)(inputs)
+        assert bool(jnp.all(jnp.any(features > 0, axis=(0, 2, 3)))), "a last-layer channel died"
+        means = jax.vmap(network)(inputs).mean(axis=(2, 3))
+        assert float(jnp.std(means, axis=0).max()) > 1e-3  # not collapsed to a constant output

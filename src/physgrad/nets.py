@@ -7,6 +7,7 @@ The HIG paper's networks are Keras ``Dense`` stacks: glorot-uniform kernels,
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 
 import equinox as eqx
@@ -74,25 +75,59 @@ def parameter_count(module) -> int:
     return sum(leaf.size for leaf in jax.tree.leaves(eqx.filter(module, eqx.is_inexact_array)))
 
 
+UNET_ACTIVATIONS = ("relu", "leaky_relu")
+
+
 def _circular_conv(conv: eqx.nn.Conv2d, x: Float[Array, "c h w"]) -> Float[Array, "c2 h w"]:
     """3×3 convolution with periodic ("circular") padding, as PhiFlow's U-Net pads."""
     pad = conv.kernel_size[0] // 2
     return conv(jnp.pad(x, ((0, 0), (pad, pad), (pad, pad)), mode="wrap"))
 
 
+def standardised_weight(weight: Float[Array, "out in *k"], eps: float = 1e-5) -> Float[Array, "out in *k"]:
+    """Weight standardisation (Qiao et al. 2019) with He's gain: each output channel's
+    kernel minus its mean over (in, *k), divided by its standard deviation, times
+    √(2 / fan_in); so a conv's output scale does not depend on the weights' scale (as
+    under batch norm) and keeps the signal's scale through a ReLU (He et al. 2015)."""
+    axes = tuple(range(1, weight.ndim))
+    fan_in = math.prod(weight.shape[1:])
+    mean = jnp.mean(weight, axis=axes, keepdims=True)
+    std = jnp.std(weight, axis=axes, keepdims=True)
+    return (weight - mean) / (std + eps) * math.sqrt(2.0 / fan_in)
+
+
+def _he_conv(c_in: int, c_out: int, kernel: int, *, key: PRNGKeyArray, dtype) -> eqx.nn.Conv2d:
+    """Conv2d with He-normal kernel N(0, 2 / fan_in) and zero bias."""
+    conv = eqx.nn.Conv2d(c_in, c_out, kernel, key=key, dtype=dtype)
+    weight = jax.random.normal(key, conv.weight.shape, dtype) * math.sqrt(2.0 / math.prod(conv.weight.shape[1:]))
+    return eqx.tree_at(lambda c: (c.weight, c.bias), conv, (weight, jnp.zeros_like(conv.bias)))
+
+
 class _DoubleConv(eqx.Module):
-    """(3×3 circular conv → ReLU) × 2."""
+    """(3×3 circular conv → activation) × 2, the convs optionally weight-standardised."""
 
     first: eqx.nn.Conv2d
     second: eqx.nn.Conv2d
+    activation: str = eqx.field(static=True, default="relu")
+    standardise: bool = eqx.field(static=True, default=False)
 
-    def __init__(self, c_in: int, c_out: int, *, key: PRNGKeyArray, dtype):
+    def __init__(self, c_in: int, c_out: int, *, key: PRNGKeyArray, dtype, activation: str = "relu",
+                 standardise: bool = False):  # fmt: skip
         k1, k2 = jax.random.split(key)
-        self.first = eqx.nn.Conv2d(c_in, c_out, 3, key=k1, dtype=dtype)
-        self.second = eqx.nn.Conv2d(c_out, c_out, 3, key=k2, dtype=dtype)
+        make = _he_conv if standardise else (lambda i, o, k, *, key, dtype: eqx.nn.Conv2d(i, o, k, key=key, dtype=dtype))
+        self.first = make(c_in, c_out, 3, key=k1, dtype=dtype)
+        self.second = make(c_out, c_out, 3, key=k2, dtype=dtype)
+        self.activation = activation
+        self.standardise = standardise
+
+    def _conv(self, conv, x):
+        if self.standardise:
+            conv = eqx.tree_at(lambda c: c.weight, conv, standardised_weight(conv.weight))
+        return _circular_conv(conv, x)
 
     def __call__(self, x):
-        return jax.nn.relu(_circular_conv(self.second, jax.nn.relu(_circular_conv(self.first, x))))
+        act = jax.nn.leaky_relu if self.activation == "leaky_relu" else jax.nn.relu
+        return act(self._conv(self.second, act(self._conv(self.first, x))))
 
 
 def _max_pool_2x2(x: Float[Array, "c h w"]) -> Float[Array, "c h/2 w/2"]:
@@ -119,6 +154,14 @@ class UNet(eqx.Module):
     are per-sample functions (HIG's per-sample Jacobians and SIP's per-sample targets need
     a sample's output to depend on that sample only). H and W must be divisible by
     2^(levels − 1).
+
+    Without batch norm, deep ReLU U-Nets with PyTorch's initialisation can die in training
+    (``navier_stokes``: docs/reproductions/sip.md). Two per-sample options stand in:
+    ``activation="leaky_relu"`` (slope 0.01) and ``weight_standardisation=True``: every
+    3×3 kernel is standardised per output channel at each call
+    (:func:`standardised_weight`, He's gain), all kernels are drawn He-normal and all biases
+    start at 0 (the 1×1 output conv is not standardised). Same parameter count. The
+    defaults are the plain network above.
     """
 
     down: tuple[_DoubleConv, ...]
@@ -126,16 +169,22 @@ class UNet(eqx.Module):
     out: eqx.nn.Conv2d
     levels: int = eqx.field(static=True)
 
-    def __init__(self, c_in: int, c_out: int, *, levels: int = 4, filters: int = 16, key: PRNGKeyArray, dtype=jnp.float32):
+    def __init__(self, c_in: int, c_out: int, *, levels: int = 4, filters: int = 16, key: PRNGKeyArray,
+                 dtype=jnp.float32, activation: str = "relu", weight_standardisation: bool = False):  # fmt: skip
+        if activation not in UNET_ACTIVATIONS:
+            raise ValueError(f"unknown activation {activation!r}; valid choices: {', '.join(UNET_ACTIVATIONS)}")
         keys = jax.random.split(key, 2 * levels)
         self.levels = levels
-        self.down = tuple(
-            _DoubleConv(c_in if i == 0 else filters, filters, key=keys[i], dtype=dtype) for i in range(levels)
-        )
-        self.up = tuple(_DoubleConv(2 * filters, filters, key=keys[levels + i], dtype=dtype) for i in range(levels - 1))
-        self.out = eqx.nn.Conv2d(filters, c_out, 1, key=keys[-1], dtype=dtype)
+        kw = dict(dtype=dtype, activation=activation, standardise=weight_standardisation)
+        self.down = tuple(_DoubleConv(c_in if i == 0 else filters, filters, key=keys[i], **kw) for i in range(levels))
+        self.up = tuple(_DoubleConv(2 * filters, filters, key=keys[levels + i], **kw) for i in range(levels - 1))
+        if weight_standardisation:
+            self.out = _he_conv(filters, c_out, 1, key=keys[-1], dtype=dtype)
+        else:
+            self.out = eqx.nn.Conv2d(filters, c_out, 1, key=keys[-1], dtype=dtype)
 
-    def __call__(self, x: Float[Array, "c h w"]) -> Float[Array, "c2 h w"]:
+    def features(self, x: Float[Array, "c h w"]) -> Float[Array, "filters h w"]:
+        """The last feature map (after the last double conv, before the 1×1 output conv)."""
         factor = 2 ** (self.levels - 1)
         if x.shape[1] % factor or x.shape[2] % factor:
             raise ValueError(f"UNet with {self.levels} levels needs H and W divisible by {factor}, got {x.shape[1:]}")
@@ -146,7 +195,10 @@ class UNet(eqx.Module):
             skips.append(x)
         for block, skip in zip(self.up, reversed(skips[:-1])):
             x = block(jnp.concatenate([_upsample_2x(x), skip], axis=0))
-        return self.out(x)
+        return x
+
+    def __call__(self, x: Float[Array, "c h w"]) -> Float[Array, "c2 h w"]:
+        return self.out(self.features(x))
 
 
 class ConvResNet(eqx.Module):
