@@ -29,7 +29,8 @@ HERE = Path(__file__).resolve().parent
 DATA = HERE.parent / "data"
 FIGURES = HERE.parent / "figures"
 STUDY_PROBLEM = {"oscillators_60min": ("oscillators", 60), "quantum_dipole_90min": ("quantum_dipole", 90),
-                 "poisson_hig_b64": ("poisson_hig", None), "sip_navier_stokes": ("navier_stokes", None)}  # fmt: skip
+                 "poisson_hig_b64": ("poisson_hig", None), "sip_navier_stokes": ("navier_stokes", None),
+                 "sip_navier_stokes_ws": ("navier_stokes", None)}  # fmt: skip
 # the half-inverse route each study's physgrad took (the oscillator and dipole studies ran
 # before the structured route existed)
 STUDY_ROUTE = {"poisson_hig_b64": "structured"}

@@ -42,17 +42,17 @@ use_commit() {
 
 # one method of a study, seeds 0..K-1 grown one seed at a time across the methods, so that
 # an interrupted lane always has the same seeds for every method
-# usage: lane_study STUDY PROBLEM "method@steps@eval_every ..." [--set ...]
+# usage: lane_study STUDY PROBLEM "method@steps@eval_every[@name=value] ..." [--set ...]
 # (a method may be a sequence such as adam:1413,hig; its directory name is the spec's method
-# with ':' and ',' replaced by '-')
+# with ':' and ',' replaced by '-', plus the optional setting, e.g. sip-lr0001 for lr=0.001)
 lane_study() {
   local study=$1 problem=$2 specs=$3; shift 3
   for k in 1 2 3; do
     for spec in $specs; do
-      IFS=@ read -r method steps every <<<"$spec"
-      local dir="${method//[:,]/-}"
+      IFS=@ read -r method steps every extra <<<"$spec"
+      local dir="${method//[:,]/-}${extra:+-${extra//[=.]/}}"
       pg compare "$problem" --methods "$method" --seeds "$k" --steps "$steps" \
-        --set eval_every="$every" "$@" --out "$DATA/$study/$dir" --quiet
+        --set eval_every="$every" ${extra:+--set "$extra"} "$@" --out "$DATA/$study/$dir" --quiet
     done
   done
 }
@@ -75,9 +75,13 @@ lane_poisson() {
 # paper's batch 64, 500 steps per run (physgrad after the problem landed, NS_COMMIT); drawn against
 # the calibrated time axis (calibration.csv: per-step times measured alone). Run it on the other
 # core beside the other lanes: CORE=1 bash studies.sh navier_stokes
+# The first version of this lane (sip_navier_stokes, commit 5bef186) used a U-Net whose ReLUs
+# die within ~25 steps (SIP flat; see sip.md); it stopped there. This one runs the per-sample
+# network that stays alive (leaky ReLU + weight-standardised convolutions, commit d7cb5f6), with
+# SIP at the authors' lr 5e-3 and at 1e-3 (the rate screened to learn steadily at batch 16).
 lane_navier_stokes() {
-  use_commit "$ROOT/../studycode-ns" "${NS_COMMIT:-5bef186}"
-  lane_study sip_navier_stokes navier_stokes "sip@500@25 adam@500@25"
+  use_commit "$ROOT/../studycode-ns2" "${NS_COMMIT:-d7cb5f6}"
+  lane_study sip_navier_stokes_ws navier_stokes "sip@500@25 adam@500@25 sip@500@25@lr=0.001"
 }
 
 LANES=("$@")
