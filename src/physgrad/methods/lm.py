@@ -31,7 +31,6 @@ adapts μ.
 
 from __future__ import annotations
 
-import dataclasses
 from typing import NamedTuple
 
 import equinox as eqx
@@ -42,7 +41,7 @@ from jaxtyping import Array, PyTree
 
 from ..half_inverse import Damped
 from ..jacobian import require_forward_mode
-from .base import AbstractMethod, Objective, with_extra_args
+from .base import Method, Objective, with_extra_args
 from .hig import JacobianPower
 
 
@@ -90,7 +89,7 @@ def predicted_decrease(objective: Objective, params: PyTree, batch: PyTree, delt
     return -(first + 0.5 * second)
 
 
-class LevenbergMarquardt(AbstractMethod):
+class LevenbergMarquardt(Method):
     """Levenberg–Marquardt on the joint Jacobian with Nielsen's damping rule.
 
     Use it in a training loop of your own like any engine method::
@@ -99,6 +98,7 @@ class LevenbergMarquardt(AbstractMethod):
         state = lm.init(params)
         params, state, stats = jax.jit(lm.step, static_argnums=0)(Objective(predict, loss), params, state, batch)
 
+    The checks, memory footprint and lighter variants are :class:`Method`'s (the rule's).
     ``stats`` holds ``loss`` (before the step), ``damping`` (μ used by the step),
     ``gain_ratio`` (ρ) and ``accepted`` (1 or 0).
 
@@ -127,21 +127,6 @@ class LevenbergMarquardt(AbstractMethod):
         dtype = jnp.result_type(*jax.tree.leaves(params)) if jax.tree.leaves(params) else jnp.float32
         real = jnp.real(jnp.zeros((), dtype)).dtype
         return LMState(self.optimizer.init(params), jnp.asarray(self.damping, real), jnp.asarray(2.0, real))
-
-    def check(self, objective):
-        self.rule.check(objective)
-
-    def check_batch_size(self, batch_size):
-        self.rule.check_batch_size(batch_size)
-
-    def footprint(self, objective, params, batch, devices=1):
-        return self.rule.footprint(objective, params, batch, devices)
-
-    def footprint_note(self, objective, params, batch):
-        return self.rule.footprint_note(objective, params, batch)
-
-    def lighter(self, batch_size):
-        return [(setting, dataclasses.replace(self, rule=rule)) for setting, rule in self.rule.lighter(batch_size)]
 
     def step(self, objective, params, state, batch):
         sample = jax.tree.map(lambda a: a[0], batch)
