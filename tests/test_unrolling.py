@@ -128,6 +128,60 @@ def test_modalities_on_ks_equal_hand_written_loops(setup_name, method):
         np.testing.assert_allclose(a, b, rtol=2e-4, atol=1e-7)
 
 
+def numpy_conv_resnet(net, x, lift_activation):
+    """List et al.'s KS ResNet forward in float64 NumPy: circular kernel-3 cross-correlations,
+    LeakyReLU(0.01), residual blocks; the lifting convolution activated only when asked."""
+    def conv(layer, h):
+        w, b = np.asarray(layer.weight, np.float64), np.asarray(layer.bias, np.float64).reshape(-1)
+        shifted = np.stack([np.roll(h, 1 - j, axis=-1) for j in range(w.shape[-1])], axis=-1)  # h[c, i + j - 1]
+        return np.einsum("ocj,cij->oi", w, shifted) + b[:, None]
+
+    def act(h):
+        return np.where(h > 0, h, 0.01 * h)
+
+    h = conv(net.conv_in, x)
+    h = act(h) if lift_activation else h
+    for first, second in net.blocks:
+        h = act(h + conv(second, act(conv(first, h))))
+    return conv(net.conv_out, h)
+
+
+@pytest.mark.parametrize("lift_activation", [False, True])
+def test_conv_resnet_matches_a_numpy_float64_forward(lift_activation):
+    from physgrad.nets import ConvResNet
+
+    net = ConvResNet(1, 2, 1, 5, 2, key=jax.random.key(3), lift_activation=lift_activation)
+    x = np.random.default_rng(0).normal(size=(2, 12))
+    np.testing.assert_allclose(net(jnp.asarray(x, jnp.float32)), numpy_conv_resnet(net, x, lift_activation), rtol=1e-4, atol=1e-5)
+    assert physgrad.parameter_count(ConvResNet(1, 2, 1, 26, 8, key=jax.random.key(0))) == 33_125
+
+
+def numpy_etd1_frame(u, size, dt=0.5, substeps=2):
+    """The authors' ETD1 for u_t = −u_xx − u_xxxx − ½(u²)_x, L = 2π·size, in float64 NumPy."""
+    n = u.shape[-1]
+    k = 1j * np.fft.fftfreq(n, size / n)
+    lin = -(k**2) - k**4
+    e = np.exp(lin * dt)
+    c1 = np.where(lin == 0, dt, (e - 1) / np.where(lin == 0, 1, lin))
+    for _ in range(substeps):
+        u = np.real(np.fft.ifft(e * np.fft.fft(u) - 0.5 * k * np.fft.fft(u**2) * c1))
+    return u
+
+
+def test_ks_correction_is_etd1_plus_the_substep_times_the_network():
+    """u⁺ = ETD1(u) + Δt·f_θ(u, f) with the substep Δt = 0.5 (the authors' ``diff_ks.dt * net``)."""
+    problem = KuramotoSivashinsky(setup="correction")
+    net = problem.make_network(jax.random.key(1))
+    x = np.arange(48) / 48 * 2 * np.pi
+    u = (np.cos(x) + 0.3 * np.sin(3 * x))[None]
+    f, index = 1.1, 3  # the fourth training size
+    out, ok = problem.step(lambda v, c: problem.apply(net, v, c), jnp.asarray(u, jnp.float32),
+                           jnp.asarray(u, jnp.float32), jnp.float32(f), index)  # fmt: skip
+    net_out = np.asarray(problem.apply(net, jnp.asarray(u, jnp.float32), jnp.float32(f)), np.float64)
+    np.testing.assert_allclose(out, numpy_etd1_frame(u, 8 * f) + 0.5 * net_out, rtol=1e-4, atol=2e-5)
+    assert bool(ok)
+
+
 def test_one_nog_wig_differ_and_wig_truncate_m_equals_nog_plus_local():
     """With truncate=1 every state is cut, so WIG's gradient equals NOG's."""
     setup = build(adv_config("wig", m=4, **{"wig.truncate": 1}))

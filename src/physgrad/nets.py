@@ -204,9 +204,11 @@ class UNet(eqx.Module):
 class ConvResNet(eqx.Module):
     """A convolutional ResNet on periodic grids (List et al.'s KS network, §1.4A):
 
-        h = σ(conv_in(x));  h ← σ(h + conv₂(σ(conv₁(h))))  (``blocks`` times);  y = conv_out(h)
+        h = conv_in(x);  h ← σ(h + conv₂(σ(conv₁(h))))  (``blocks`` times);  y = conv_out(h)
 
     kernel 3 with circular padding, LeakyReLU σ (slope 0.01, PyTorch's), ``width`` channels;
+    no activation after the lifting convolution ``conv_in`` (as the authors' KS network;
+    ``lift_activation=True`` applies σ there, the network physgrad's Kolmogorov problem uses);
     PyTorch's default initialisation U(±1/√fan_in) (Equinox's too). In 1D with 2 input
     channels (width, blocks) = (16, 10) has 15,841 parameters, (26, 8) 33,125 and (52, 12)
     196,457: the paper's counts. Input (c_in, *N), output (c_out, *N).
@@ -215,9 +217,10 @@ class ConvResNet(eqx.Module):
     conv_in: eqx.nn.Conv
     blocks: tuple[tuple[eqx.nn.Conv, eqx.nn.Conv], ...]
     conv_out: eqx.nn.Conv
+    lift_activation: bool = eqx.field(static=True)
 
     def __init__(self, num_spatial_dims: int, in_channels: int, out_channels: int, width: int, blocks: int,
-                 *, key: PRNGKeyArray, kernel_size: int = 3):  # fmt: skip
+                 *, key: PRNGKeyArray, kernel_size: int = 3, lift_activation: bool = False):  # fmt: skip
         def conv(c_in, c_out, k):
             return eqx.nn.Conv(num_spatial_dims, c_in, c_out, kernel_size, padding="SAME",
                                padding_mode="CIRCULAR", dtype=jnp.float32, key=k)  # fmt: skip
@@ -226,10 +229,13 @@ class ConvResNet(eqx.Module):
         self.conv_in = conv(in_channels, width, keys[0])
         self.blocks = tuple((conv(width, width, keys[1 + 2 * i]), conv(width, width, keys[2 + 2 * i])) for i in range(blocks))
         self.conv_out = conv(width, out_channels, keys[-1])
+        self.lift_activation = lift_activation
 
     def __call__(self, x: Array) -> Array:
         act = jax.nn.leaky_relu
-        h = act(self.conv_in(x))
+        h = self.conv_in(x)
+        if self.lift_activation:
+            h = act(h)
         for first, second in self.blocks:
             h = act(h + second(act(first(h))))
         return self.conv_out(h)

@@ -109,7 +109,7 @@ class Kolmogorov(TimeStepperProblem):
                 "index": np.asarray(index, np.int32)}  # fmt: skip
 
     def make_network(self, key):
-        return ConvResNet(2, 2, 1, self.width, self.blocks, key=key)
+        return ConvResNet(2, 2, 1, self.width, self.blocks, key=key, lift_activation=True)
 
     def apply(self, network, u, cond):
         return network(self.with_cond_channel(u, cond))
