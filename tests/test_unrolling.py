@@ -546,3 +546,23 @@ def test_too_short_trajectories_are_a_one_line_error(capsys, tmp_path):
                  "--out", str(tmp_path / "x")]) == 2  # fmt: skip
     err = capsys.readouterr().err.strip()
     assert "too short for m = 5" in err and "\n" not in err
+
+
+@pytest.mark.parametrize("make", [lambda z: Kolmogorov(n=16, forcing_mode=4, zero_init=z),
+                                  lambda z: Advection1d(zero_init=z)])
+def test_zero_init_starts_the_corrector_at_the_bare_solver(make):
+    """zero_init zeroes the output layer (weights and bias): the corrected step is the solver's;
+    without it the paper's initialisation changes the step."""
+    shape = (1, 16, 16) if isinstance(make(False), Kolmogorov) else (1, 30)
+    u = jax.random.normal(jax.random.key(1), shape, jnp.float32)
+    cond = jnp.float32(0.3)
+
+    def step(problem, network_fn):
+        return problem.step(network_fn, u, u, cond, 0)[0]
+
+    bare = step(make(False), lambda v, c: jnp.zeros_like(v))
+    for zero in (True, False):
+        problem = make(zero)
+        net = problem.initial_network(jax.random.key(0), {})
+        out = step(problem, lambda v, c: problem.apply(net, v, c))
+        assert np.allclose(out, bare, atol=1e-6) == zero

@@ -17,6 +17,7 @@ import csv
 import json
 import math
 import sys
+from dataclasses import dataclass
 from pathlib import Path
 
 import matplotlib
@@ -28,12 +29,53 @@ import numpy as np  # noqa: E402
 HERE = Path(__file__).resolve().parent
 DATA = HERE.parent / "data"
 FIGURES = HERE.parent / "figures"
-STUDY_PROBLEM = {"oscillators_60min": ("oscillators", 60), "quantum_dipole_90min": ("quantum_dipole", 90),
-                 "poisson_hig_b64": ("poisson_hig", None), "sip_navier_stokes": ("navier_stokes", None),
-                 "sip_navier_stokes_ws": ("navier_stokes", None)}  # fmt: skip
-# the half-inverse route each study's physgrad took (the oscillator and dipole studies ran
-# before the structured route existed)
-STUDY_ROUTE = {"poisson_hig_b64": "structured"}
+
+
+@dataclass(frozen=True)
+class Study:
+    """How one study is read: its problem, the paper's minutes per run (a marker), the test
+    metric, the method the others are divided by, the x-axis of the left panel
+    (``calibrated``: step × seconds per step measured alone; ``steps``: equal-update budgets,
+    the papers' own parity), the half-inverse route, and whether a run's value is its last
+    evaluation (``tail=0``) or its mean over the last ``tail`` fraction of evaluations (the
+    stabilised-BPTT protocol: the last 10 % of epochs)."""
+
+    problem: str
+    minutes: float | None = None
+    metric: str = "loss"
+    baseline: str = "adam"
+    axis: str = "calibrated"
+    route: str = "gram"
+    tail: float = 0.0
+
+
+STUDIES = {
+    "oscillators_60min": Study("oscillators", 60),
+    "quantum_dipole_90min": Study("quantum_dipole", 90),
+    "quantum_dipole_screen": Study("quantum_dipole", axis="steps"),
+    # the structured route (the oscillator and dipole studies ran before it existed)
+    "poisson_hig_b64": Study("poisson_hig", route="structured"),
+    "sip_navier_stokes": Study("navier_stokes", metric="v0_l1"),
+    "sip_navier_stokes_ws": Study("navier_stokes", metric="v0_l1"),
+    "quantum_control_1000ep": Study("quantum_control", baseline="bptt", axis="steps", tail=0.1),
+    "guidance_1000ep": Study("guidance", baseline="bptt-clipnorm", axis="steps", tail=0.1),
+    "ks_correction_20ep": Study("ks", metric="rel_error", baseline="one", axis="steps"),
+    "sip_heat_10k": Study("heat", metric="x_l1_clamped", axis="steps"),
+    "sip_poisson_10k": Study("poisson", metric="x_l1", axis="steps"),
+}
+
+
+def study_of(name: str) -> Study:
+    return STUDIES.get(name, Study(name))
+
+
+def method_of(directory: str) -> tuple[str, int | None, str | None]:
+    """A method directory's (first method, switch step, second method): ``adam-1413-hig`` is
+    Adam for 1,413 steps then HIG; ``hig-higlr01`` (a setting appended) is HIG."""
+    parts = directory.split("-")
+    if len(parts) == 3 and parts[1].isdigit():
+        return parts[0], int(parts[1]), parts[2]
+    return parts[0], None, None
 
 
 def calibration() -> dict[tuple[str, str, str], float]:
@@ -44,29 +86,29 @@ def calibration() -> dict[tuple[str, str, str], float]:
 
 def seconds(cal, study: str, method: str, step):
     """Calibrated time at ``step`` of a method directory: a sequence such as
-    ``adam-1413-hig`` spends its first 1,413 steps at Adam's rate, the rest at HIG's."""
-    problem = STUDY_PROBLEM.get(study, (study, None))[0]
-    route = STUDY_ROUTE.get(study, "gram")
+    ``adam-1413-hig`` spends its first 1,413 steps at Adam's rate, the rest at HIG's; a
+    directory with a changed setting (``hig-higlr01``) has no calibration of its own (NaN)."""
+    spec = study_of(study)
 
     def rate(m):
-        return cal.get((problem, m, route if m in ("gn", "hig") else ""), math.nan)
+        return cal.get((spec.problem, m, spec.route if m in ("gn", "hig") else ""), math.nan)
 
-    parts = method.split("-")
-    if len(parts) == 3:  # first-STEPS-second
-        first, n, second = parts[0], int(parts[1]), parts[2]
-        step = np.asarray(step, float)
+    first, n, second = method_of(method)
+    step = np.asarray(step, float)
+    if n is not None:
         return np.minimum(step, n) * rate(first) + np.maximum(step - n, 0) * rate(second)
-    return np.asarray(step, float) * rate(method)
+    return step * (rate(first) if first == method else math.nan)
 
 
 def runs(study: Path, method: str) -> list[dict]:
-    """Every run of one method: seed, test-loss curve (step, wall), status and budget."""
+    """Every run of one method: seed, test-metric curve (step, wall), status and budget."""
+    metric = study_of(study.name).metric
     out = []
     for run in sorted((study / method / "runs").glob("*-seed*")):
         metrics = run / "metrics.csv"
         if not metrics.exists():
             continue
-        rows = [r for r in csv.DictReader(metrics.open()) if r["split"] == "test" and r["metric"] == "loss"]
+        rows = [r for r in csv.DictReader(metrics.open()) if r["split"] == "test" and r["metric"] == metric]
         summary = json.loads((run / "summary.json").read_text()) if (run / "summary.json").exists() else None
         config = json.loads((run / "config.json").read_text())
         out.append({
@@ -79,18 +121,26 @@ def runs(study: Path, method: str) -> list[dict]:
     return out
 
 
+def final_value(run: dict, tail: float) -> float:
+    """The run's last evaluation, or its mean over the last ``tail`` fraction of evaluations."""
+    if not tail:
+        return run["loss"][-1]
+    return float(np.mean(run["loss"][-max(1, int(round(tail * (len(run["loss"]) - 1)))):]))
+
+
 def table(study: Path, cal) -> tuple[list[str], dict]:
-    problem, minutes = STUDY_PROBLEM.get(study.name, (study.name, None))
+    spec = study_of(study.name)
     methods = sorted(p.name for p in study.iterdir() if (p / "runs").is_dir())
     data = {m: runs(study, m) for m in methods}
     finals = {}
-    lines = [f"| method | s/step alone | budget (steps) | runs | final test loss (mean ± std) | / adam | state |",
+    value = f"final test {spec.metric}" + (f" (mean of the last {spec.tail:.0%} of evaluations)" if spec.tail else "")
+    lines = [f"| method | s/step alone | budget (steps) | runs | {value}: mean ± std | / {spec.baseline} | state |",
              "|---|---|---|---|---|---|---|"]  # fmt: skip
     for m in methods:
         rs = data[m]
         done = [r for r in rs if r["status"] == "finished"]
         div = [r for r in rs if r["status"] == "diverged"]
-        values = np.array([r["loss"][-1] for r in done if len(r["loss"])])
+        values = np.array([final_value(r, spec.tail) for r in done if len(r["loss"])])
         finals[m] = values
         state = ", ".join(f"seed {r['seed']}: {r['status']} at step {r['last_step']}"
                           for r in rs if r["status"] != "finished") or "all finished"  # fmt: skip
@@ -98,7 +148,7 @@ def table(study: Path, cal) -> tuple[list[str], dict]:
         per_step = float(seconds(cal, study.name, m, 1)) if "-" not in m else math.nan
         lines.append(f"| {m} | {per_step:.4f} | {rs[0]['budget'] if rs else '-'} | "
                      f"{len(done)} finished, {len(div)} diverged | {mean} | RATIO_{m} | {state} |")  # fmt: skip
-    base = finals.get("adam")
+    base = finals.get(spec.baseline)
     for i, line in enumerate(lines):
         for m in methods:
             if f"RATIO_{m}" in line:
@@ -108,23 +158,23 @@ def table(study: Path, cal) -> tuple[list[str], dict]:
 
 
 def figure(study: Path, data: dict, cal, out: Path):
-    problem, minutes = STUDY_PROBLEM.get(study.name, (study.name, None))
+    spec = study_of(study.name)
     fig, axes = plt.subplots(1, 2, figsize=(11, 4), sharey=True)
     for m, rs in sorted(data.items()):
         for r in rs:
             if not len(r["loss"]):
                 continue
-            t = seconds(cal, study.name, m, r["step"]) / 60
+            t = seconds(cal, study.name, m, r["step"]) / 60 if spec.axis == "calibrated" else r["step"]
             style = dict(alpha=0.8, lw=1, label=f"{m} seed {r['seed']}" + (" (diverged)" if r["status"] == "diverged" else ""))
             axes[0].semilogy(t, r["loss"], **style)
             axes[1].semilogy(r["wall"] / 60, r["loss"], **style)
-    axes[0].set_xlabel("calibrated time (min): step × s/step measured alone")
+    axes[0].set_xlabel("calibrated time (min): step × s/step measured alone" if spec.axis == "calibrated" else "update")
     axes[1].set_xlabel("raw training wall-clock (min, one core under load)")
-    axes[0].set_ylabel("test loss")
-    if minutes:
-        axes[0].axvline(minutes, color="k", ls=":", lw=1)
+    axes[0].set_ylabel(f"test {spec.metric}")
+    if spec.minutes and spec.axis == "calibrated":
+        axes[0].axvline(spec.minutes, color="k", ls=":", lw=1)
     axes[0].legend(fontsize=7)
-    fig.suptitle(f"{problem}: long study ({study.name})")
+    fig.suptitle(f"{spec.problem}: long study ({study.name})")
     fig.tight_layout()
     fig.savefig(out, dpi=110)
     plt.close(fig)

@@ -14,7 +14,10 @@
 # interrupted one from its checkpoint).
 #
 # Usage (one core, niced; runs lanes in priority order until all are done):
-#   bash docs/reproductions/long/studies.sh [lane ...]      # default: every lane in order
+#   bash docs/reproductions/long/studies.sh [lane ...]      # default: oscillators dipole
+# Lanes: oscillators, dipole, poisson (HIG, core 0); navier_stokes, dipole_screen, quantum_control,
+# guidance, ks,
+# heat, sip_poisson (core 1: CORE=1).
 # Environment: CORE (default 0), STUDY_COMMIT, PY (python of an env with physgrad's deps).
 set -euo pipefail
 ROOT="$(cd "$(dirname "$0")/../../.." && pwd)"
@@ -83,6 +86,44 @@ lane_navier_stokes() {
   use_commit "$ROOT/../studycode-ns2" "${NS_COMMIT:-d7cb5f6}"
   lane_study sip_navier_stokes_ws navier_stokes "sip@500@25 adam@500@25 sip@500@25@lr=0.001"
 }
+
+# The lanes below run physgrad at LATE_COMMIT (the KS correction fixed to the authors' ETD1 + 0.5·f_θ).
+late() { use_commit "$ROOT/../studycode-late" "${LATE_COMMIT:-b17fd8b}"; }
+
+# Claim 3, the dipole stall: HIG at the paper's settings (η 0.5, batch 16, τ 1e-5) levels off near
+# 1e-2 after ~25 s while Adam keeps falling. A screen of 1,500 steps per run (≈ 150 s of HIG on one
+# core, the earlier study's budget): η 0.1, batch 64, τ 1e-3, and Adam beside them.
+lane_dipole_screen() {
+  late
+  lane_study quantum_dipole_screen quantum_dipole \
+    "hig@1500@50 hig@1500@50@hig.lr=0.1 hig@1500@50@hig.batch_size=64 hig@1500@50@hig.truncation=0.001 adam@1500@50"
+}
+# Claim 4a, StableBPTT Fig. 5: quantum control, eigenstate 5, R / M / C at the paper's 1000 epochs
+# (32,000 updates; evaluated every epoch as the authors), norm clipping (the 250-epoch study's mode);
+# about 13 min per run on an idle core (≈ 25 ms per update), 9 runs.
+lane_quantum_control() {
+  late
+  lane_study quantum_control_1000ep quantum_control \
+    "bptt@32000@32 sbptt_m@32000@32 sbptt_c@32000@32" --set eigenstate=5 --set clip=norm
+}
+# Claim 4b, StableBPTT Fig. 3: guidance at the hardest rc = 0.001, R / M / C at 1000 epochs, clipped
+# by norm (R's best mode at 200 epochs) and by value; ≈ 1–2 min per run, 18 runs.
+lane_guidance() {
+  late
+  lane_study guidance_1000ep guidance "bptt@32000@32@clip=norm sbptt_m@32000@32@clip=norm sbptt_c@32000@32@clip=norm \
+    bptt@32000@32@clip=value sbptt_m@32000@32@clip=value sbptt_c@32000@32@clip=value" --set rc=0.001
+}
+# Claim 2, List et al. KS correction: ONE / NOG / WIG, 26×8 ResNet, 20 epochs (2,808 updates per epoch
+# at batch 16, the lr decayed ×0.9 every 2,000 updates as the authors), evaluated every epoch;
+# ≈ 85–100 ms per update on one core, so ≈ 1.5 h per run, 9 runs.
+lane_ks() {
+  late
+  lane_study ks_correction_20ep ks "one@56160@2808 nog@56160@2808 wig@56160@2808" --set setup=correction
+}
+# Claims 5 and 6, SIP Fig. 6: heat and Poisson 64², SIP vs Adam for the paper's 10,000 steps, test
+# x-error on 128 samples every 250 steps; ≈ 1.7–2 s per SIP step on one core: ≈ 5 h per run.
+lane_heat() { late; lane_study sip_heat_10k heat "sip@10000@250 adam@10000@250" --set eval_samples=128; }
+lane_sip_poisson() { late; lane_study sip_poisson_10k poisson "sip@10000@250 adam@10000@250" --set eval_samples=128; }
 
 LANES=("$@")
 [ ${#LANES[@]} -gt 0 ] || LANES=(oscillators dipole)

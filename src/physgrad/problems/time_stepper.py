@@ -94,6 +94,9 @@ class TimeStepperProblem(AbstractProblem):
     data_seed: int = eqx.field(static=True, default=0)
     # false: treat the solver as an external code without derivatives (NonDifferentiable)
     differentiable_solver: bool = eqx.field(static=True, default=True)
+    # true: the network's last layer starts at zero, so a corrector starts as the bare solver
+    # (and a residual predictor as the identity); false: the paper's initialisation
+    zero_init: bool = eqx.field(static=True, default=False)
 
     default_composition: ClassVar[str] = "parallel"  # of the correction setup
 
@@ -142,10 +145,22 @@ class TimeStepperProblem(AbstractProblem):
         """The settings that may change the generated data (the cache key): all but the
         stepper's and the network's (``m`` and ``eval_horizon`` stay: split lengths depend
         on them)."""
-        skip = {"setup", "composition", "differentiable_solver"} | set(self.training_only_settings)
+        skip = {"setup", "composition", "differentiable_solver", "zero_init"} | set(self.training_only_settings)
         return {k: getattr(self, k) for k in self.settings() if k not in skip}
 
     training_only_settings: ClassVar[tuple[str, ...]] = ()
+
+    def initial_network(self, key, data):
+        """The paper's network, or with ``zero_init`` its output layer zeroed (weights and bias)."""
+        net = self.make_network(key)
+        if not self.zero_init:
+            return net
+        # the ResNets' output convolution, or a single-layer network itself
+        def last(n):
+            return n.conv_out if hasattr(n, "conv_out") else n
+
+        zeroed = jax.tree.map(jnp.zeros_like, eqx.filter(last(net), eqx.is_inexact_array))
+        return eqx.tree_at(last, net, eqx.combine(zeroed, last(net)))
 
     # --- data ------------------------------------------------------------------------------
     def trajectories(self, split: str) -> dict[str, np.ndarray]:
