@@ -326,6 +326,9 @@ def test_curriculum_expands_into_stages_with_their_rollout_and_learning_rate(tmp
         build(adv_config("wig", m=4, curriculum="1,8"))
     with pytest.raises(ConfigError, match="stage_lr"):
         adv_config("wig", curriculum="1,2", stage_lr="1e-3")
+    # '/' separates too (compare sweeps on commas)
+    slashed = build(adv_config("wig", steps=40, m=4, curriculum="1/2/4", stage_lr="1e-2/1e-3/1e-4", batch_size=4))
+    assert [(s.method.m, s.method.lr) for s in slashed.stages] == [(1, 1e-2), (2, 1e-3), (4, 1e-4)]
 
 
 # --- problems: solvers and data --------------------------------------------------------------

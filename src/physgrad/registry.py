@@ -218,11 +218,14 @@ def sbptt_c(*, clip: str = "value", clip_threshold: float = 1.0, lr: float = 1e-
 
 # --- ONE / NOG / WIG -----------------------------------------------------------------------
 def parse_list(text: str, kind, name: str) -> tuple:
-    """A comma-separated setting (``"1,2,4"``) as a tuple; a one-line error otherwise."""
+    """A list setting (``"1,2,4"``, or ``"1/2/4"`` inside ``compare``, where a comma sweeps) as
+    a tuple; a one-line error otherwise."""
+    import re
+
     try:
-        return tuple(kind(t) for t in str(text).split(",") if t.strip())
+        return tuple(kind(t) for t in re.split(r"[,/]", str(text)) if t.strip())
     except ValueError:
-        raise ValueError(f"{name} must be a comma-separated list of numbers, got {text!r}") from None
+        raise ValueError(f"{name} must be a list of numbers separated by ',' or '/', got {text!r}") from None
 
 
 def _unrolled(policy, teacher_forcing, *, m, checkpoint=False, curriculum="", stage_lr="", **options):
