@@ -60,6 +60,8 @@ STUDIES = {
     "quantum_control_1000ep": Study("quantum_control", baseline="bptt", axis="steps", tail=0.1),
     "guidance_1000ep": Study("guidance", baseline="bptt-clipnorm", axis="steps", tail=0.1),
     "ks_correction_20ep": Study("ks", metric="rel_error", baseline="one", axis="steps"),
+    "kolmogorov_zero_init": Study("kolmogorov", metric="rel_error", baseline="nog", axis="steps"),
+    "kolmogorov_32": Study("kolmogorov", metric="rel_error", baseline="one", axis="steps"),
     "sip_heat_10k": Study("heat", metric="x_l1_clamped", axis="steps"),
     "sip_poisson_10k": Study("poisson", metric="x_l1", axis="steps"),
 }

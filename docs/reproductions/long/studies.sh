@@ -16,8 +16,7 @@
 # Usage (one core, niced; runs lanes in priority order until all are done):
 #   bash docs/reproductions/long/studies.sh [lane ...]      # default: oscillators dipole
 # Lanes: oscillators, dipole, poisson (HIG, core 0); navier_stokes, dipole_screen, quantum_control,
-# guidance, ks,
-# heat, sip_poisson (core 1: CORE=1).
+# guidance, ks, kolmogorov_zero, kolmogorov, heat, sip_poisson (core 1: CORE=1).
 # Environment: CORE (default 0), STUDY_COMMIT, PY (python of an env with physgrad's deps).
 set -euo pipefail
 ROOT="$(cd "$(dirname "$0")/../../.." && pwd)"
@@ -45,7 +44,7 @@ use_commit() {
 
 # one method of a study, seeds 0..K-1 grown one seed at a time across the methods, so that
 # an interrupted lane always has the same seeds for every method
-# usage: lane_study STUDY PROBLEM "method@steps@eval_every[@name=value] ..." [--set ...]
+# usage: lane_study STUDY PROBLEM "method@steps@eval_every[@name=value...] ..." [--set ...]
 # (a method may be a sequence such as adam:1413,hig; its directory name is the spec's method
 # with ':' and ',' replaced by '-', plus the optional setting, e.g. sip-lr0001 for lr=0.001)
 lane_study() {
@@ -53,9 +52,10 @@ lane_study() {
   for k in 1 2 3; do
     for spec in $specs; do
       IFS=@ read -r method steps every extra <<<"$spec"
-      local dir="${method//[:,]/-}${extra:+-${extra//[=.]/}}"
+      local dir="${method//[:,]/-}${extra:+-${extra//[=.@,]/}}" sets=() e
+      for e in ${extra//@/ }; do sets+=(--set "$e"); done
       pg compare "$problem" --methods "$method" --seeds "$k" --steps "$steps" \
-        --set eval_every="$every" ${extra:+--set "$extra"} "$@" --out "$DATA/$study/$dir" --quiet
+        --set eval_every="$every" "${sets[@]}" "$@" --out "$DATA/$study/$dir" --quiet
     done
   done
 }
@@ -88,7 +88,7 @@ lane_navier_stokes() {
 }
 
 # The lanes below run physgrad at LATE_COMMIT (the KS correction fixed to the authors' ETD1 + 0.5·f_θ).
-late() { use_commit "$ROOT/../studycode-late" "${LATE_COMMIT:-b17fd8b}"; }
+late() { use_commit "$ROOT/../studycode-late" "${LATE_COMMIT:-a0d5057}"; }
 
 # Claim 3, the dipole stall: HIG at the paper's settings (η 0.5, batch 16, τ 1e-5) levels off near
 # 1e-2 after ~25 s while Adam keeps falling. A screen of 1,500 steps per run (≈ 150 s of HIG on one
@@ -124,6 +124,25 @@ lane_ks() {
 # x-error on 128 samples every 250 steps; ≈ 1.7–2 s per SIP step on one core: ≈ 5 h per run.
 lane_heat() { late; lane_study sip_heat_10k heat "sip@10000@250 adam@10000@250" --set eval_samples=128; }
 lane_sip_poisson() { late; lane_study sip_poisson_10k poisson "sip@10000@250 adam@10000@250" --set eval_samples=128; }
+
+# Claim 7, List et al. Kolmogorov: does a corrector whose output layer starts at zero (zero_init:
+# the bare solver at step 0) beat the solver, where the paper's initialisation did not after 2 epochs?
+# The earlier study's size (16², forcing mode 4, 16×3 ResNet, 400 frames), NOG and WIG correction,
+# 2 epochs (594 updates), with and without zero_init; ≈ 5 min per run.
+lane_kolmogorov_zero() {
+  late
+  lane_study kolmogorov_zero_init kolmogorov "nog@594@99 nog@594@99@zero_init=true wig@594@99 wig@594@99@zero_init=true" \
+    --set n=16 --set forcing_mode=4 --set width=16 --set blocks=3 --set frames=400 --set setup=correction --set m=4
+}
+# Claim 7 at the paper's size: 32² (128² reference), forcing mode 6, ONE / NOG / WIG with the paper's
+# unrolling curriculum (1, 2, 4 steps, 5 epochs each: 15 epochs ≈ 6,700 updates at batch 8);
+# ≈ 0.6–1 s per update on one core: ≈ 1.5–2 h per run, 9 runs.
+lane_kolmogorov() {
+  late
+  lane_study kolmogorov_32 kolmogorov \
+    "one@6700@447 nog@6700@447@nog.curriculum=1/2/4@nog.stage_epochs=5 wig@6700@447@wig.curriculum=1/2/4@wig.stage_epochs=5" \
+    --set n=32 --set forcing_mode=6 --set width=16 --set blocks=3 --set setup=correction --set m=4
+}
 
 LANES=("$@")
 [ ${#LANES[@]} -gt 0 ] || LANES=(oscillators dipole)
