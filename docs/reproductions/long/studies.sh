@@ -17,7 +17,8 @@
 #   bash docs/reproductions/long/studies.sh [lane ...]      # default: oscillators dipole
 # Lanes: oscillators, dipole, poisson (HIG, core 0); navier_stokes, dipole_screen, quantum_control,
 # guidance, ks, kolmogorov_zero, kolmogorov, heat, sip_poisson (core 1: CORE=1).
-# Environment: CORE (default 0), STUDY_COMMIT, PY (python of an env with physgrad's deps).
+# Environment: CORE (default 0), SEEDS (default 3: grow every lane to this many seeds), STUDY_COMMIT,
+# LATE_COMMIT, PY (python of an env with physgrad's deps).
 set -euo pipefail
 ROOT="$(cd "$(dirname "$0")/../../.." && pwd)"
 STUDY_COMMIT="${STUDY_COMMIT:-c31cb37}"
@@ -49,7 +50,7 @@ use_commit() {
 # with ':' and ',' replaced by '-', plus the optional setting, e.g. sip-lr0001 for lr=0.001)
 lane_study() {
   local study=$1 problem=$2 specs=$3; shift 3
-  for k in 1 2 3; do
+  for k in $(seq 1 "${SEEDS:-3}"); do
     for spec in $specs; do
       IFS=@ read -r method steps every extra <<<"$spec"
       local dir="${method//[:,]/-}${extra:+-${extra//[=.@,]/}}" sets=() e
