@@ -64,7 +64,10 @@ lane_study() {
 # Claim 1, HIG paper Fig. 2b: 60 min per run (calibrated: adam 5.14 ms, hig 100.3 ms, gn 94.7 ms)
 lane_oscillators() { lane_study oscillators_60min oscillators "gn@38000@380 hig@36000@360 adam@700000@7000"; }
 # Claim 3, HIG paper dipole: 90 min per run (calibrated: adam 145.3 ms, hig 262.6 ms)
-lane_dipole() { lane_study quantum_dipole_90min quantum_dipole "hig@20500@205 adam@37000@370"; }
+# plus HIG with τ = 1e-3 (the dipole screen below: τ = 1e-5, the paper's, stalls near 5e-3; 1e-3 does not)
+lane_dipole() {
+  lane_study quantum_dipole_90min quantum_dipole "hig@20500@205 adam@37000@370 hig@20500@205@hig.truncation=0.001"
+}
 # Issue 16 item 5, HIG paper Poisson 8×8 at the paper's batch 64 with the structured route
 # (physgrad after it landed, POISSON_COMMIT): 100 HIG steps per run (calibrated: hig structured
 # 18.77 s per step, adam 0.60 ms per step at batch 64, one core), Adam for the same calibrated
@@ -93,11 +96,12 @@ late() { use_commit "$ROOT/../studycode-late" "${LATE_COMMIT:-a0d5057}"; }
 
 # Claim 3, the dipole stall: HIG at the paper's settings (η 0.5, batch 16, τ 1e-5) levels off near
 # 1e-2 after ~25 s while Adam keeps falling. A screen of 1,500 steps per run (≈ 150 s of HIG on one
-# core, the earlier study's budget): η 0.1, batch 64, τ 1e-3, and Adam beside them.
+# core, the earlier study's budget): η 0.1, τ 1e-3, Adam beside them, and batch 64 (≈ 4× the cost
+# per update: last).
 lane_dipole_screen() {
   late
   lane_study quantum_dipole_screen quantum_dipole \
-    "hig@1500@50 hig@1500@50@hig.lr=0.1 hig@1500@50@hig.batch_size=64 hig@1500@50@hig.truncation=0.001 adam@1500@50"
+    "hig@1500@50 hig@1500@50@hig.lr=0.1 hig@1500@50@hig.truncation=0.001 adam@1500@50 hig@1500@50@hig.batch_size=64"
 }
 # Claim 4a, StableBPTT Fig. 5: quantum control, eigenstate 5, R / M / C at the paper's 1000 epochs
 # (32,000 updates; evaluated every epoch as the authors), norm clipping (the 250-epoch study's mode);
