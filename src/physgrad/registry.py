@@ -11,6 +11,7 @@ defaults come from the problem).
 from __future__ import annotations
 
 import inspect
+import re
 from collections.abc import Callable
 from typing import Any
 
@@ -220,8 +221,6 @@ def sbptt_c(*, clip: str = "value", clip_threshold: float = 1.0, lr: float = 1e-
 def parse_list(text: str, kind, name: str) -> tuple:
     """A list setting (``"1,2,4"``, or ``"1/2/4"`` inside ``compare``, where a comma sweeps) as
     a tuple; a one-line error otherwise."""
-    import re
-
     try:
         return tuple(kind(t) for t in re.split(r"[,/]", str(text)) if t.strip())
     except ValueError:
