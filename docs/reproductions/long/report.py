@@ -71,6 +71,10 @@ def study_of(name: str) -> Study:
     return STUDIES.get(name, Study(name))
 
 
+# settings (as they appear in a directory name) that leave the work of one update unchanged
+COST_NEUTRAL = ("lr", "learning_rate", "truncation", "eta")
+
+
 def method_of(directory: str) -> tuple[str, int | None, str | None]:
     """A method directory's (first method, switch step, second method): ``adam-1413-hig`` is
     Adam for 1,413 steps then HIG; ``hig-higlr01`` (a setting appended) is HIG."""
@@ -89,7 +93,9 @@ def calibration() -> dict[tuple[str, str, str], float]:
 def seconds(cal, study: str, method: str, step):
     """Calibrated time at ``step`` of a method directory: a sequence such as
     ``adam-1413-hig`` spends its first 1,413 steps at Adam's rate, the rest at HIG's; a
-    directory with a changed setting (``hig-higlr01``) has no calibration of its own (NaN)."""
+    directory with a changed setting keeps its method's calibration when the setting cannot
+    change the work of an update (a learning rate ``hig-higlr01``, a truncation
+    ``hig-higtruncation0001``); any other setting (a batch size) has none of its own (NaN)."""
     spec = study_of(study)
 
     def rate(m):
@@ -99,7 +105,9 @@ def seconds(cal, study: str, method: str, step):
     step = np.asarray(step, float)
     if n is not None:
         return np.minimum(step, n) * rate(first) + np.maximum(step - n, 0) * rate(second)
-    return step * (rate(first) if first == method else math.nan)
+    setting = method[len(first) + 1:].removeprefix(first)
+    same_work = first == method or setting.startswith(COST_NEUTRAL)
+    return step * (rate(first) if same_work else math.nan)
 
 
 def runs(study: Path, method: str) -> list[dict]:
@@ -147,7 +155,7 @@ def table(study: Path, cal) -> tuple[list[str], dict]:
         state = ", ".join(f"seed {r['seed']}: {r['status']} at step {r['last_step']}"
                           for r in rs if r["status"] != "finished") or "all finished"  # fmt: skip
         mean = f"{values.mean():.3e} ± {values.std(ddof=1) if len(values) > 1 else 0:.1e}" if len(values) else "-"
-        per_step = float(seconds(cal, study.name, m, 1)) if "-" not in m else math.nan
+        per_step = float(seconds(cal, study.name, m, 1)) if method_of(m)[1] is None else math.nan
         lines.append(f"| {m} | {per_step:.4f} | {rs[0]['budget'] if rs else '-'} | "
                      f"{len(done)} finished, {len(div)} diverged | {mean} | RATIO_{m} | {state} |")  # fmt: skip
     base = finals.get(spec.baseline)
