@@ -103,13 +103,13 @@ lane_dipole_screen() {
   lane_study quantum_dipole_screen quantum_dipole \
     "hig@1500@50 hig@1500@50@hig.lr=0.1 hig@1500@50@hig.truncation=0.001 adam@1500@50 hig@1500@50@hig.batch_size=64"
 }
-# Claim 4a, StableBPTT Fig. 5: quantum control, eigenstate 5, R / M / C at the paper's 1000 epochs
+# Claim 4a, StableBPTT Fig. 5: quantum control, eigenstate 5, R / M / C / S at the paper's 1000 epochs
 # (32,000 updates; evaluated every epoch as the authors), norm clipping (the 250-epoch study's mode);
-# about 13 min per run on an idle core (≈ 25 ms per update), 9 runs.
+# about 13 min per run on an idle core (≈ 25 ms per update; ≈ 18 min beside another lane), 12 runs.
 lane_quantum_control() {
   late
   lane_study quantum_control_1000ep quantum_control \
-    "bptt@32000@32 sbptt_m@32000@32 sbptt_c@32000@32" --set eigenstate=5 --set clip=norm
+    "bptt@32000@32 sbptt_m@32000@32 sbptt_c@32000@32 no_temporal@32000@32" --set eigenstate=5 --set clip=norm
 }
 # Claim 4b, StableBPTT Fig. 3: guidance at the hardest rc = 0.001, R / M / C at 1000 epochs, clipped
 # by norm (R's best mode at 200 epochs) and by value; ≈ 1–2 min per run, 18 runs.
