@@ -59,6 +59,7 @@ STUDIES = {
     "sip_navier_stokes_ws": Study("navier_stokes", metric="v0_l1"),
     "quantum_control_1000ep": Study("quantum_control", baseline="bptt", axis="steps", tail=0.1),
     "guidance_1000ep": Study("guidance", baseline="bptt-clipnorm", axis="steps", tail=0.1),
+    "ks_correction_2ep": Study("ks", metric="rel_error", baseline="one", axis="steps"),
     "ks_correction_20ep": Study("ks", metric="rel_error", baseline="one", axis="steps"),
     "kolmogorov_zero_init": Study("kolmogorov", metric="rel_error", baseline="nog", axis="steps"),
     "kolmogorov_32": Study("kolmogorov", metric="rel_error", baseline="one", axis="steps"),

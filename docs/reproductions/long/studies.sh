@@ -15,8 +15,8 @@
 #
 # Usage (one core, niced; runs lanes in priority order until all are done):
 #   bash docs/reproductions/long/studies.sh [lane ...]      # default: oscillators dipole
-# Lanes: oscillators, dipole, poisson (HIG, core 0); navier_stokes, dipole_screen, quantum_control,
-# guidance, ks, kolmogorov_zero, kolmogorov, heat, sip_poisson (core 1: CORE=1).
+# Lanes: oscillators, dipole, poisson (HIG, core 0); navier_stokes, dipole_screen, dipole_screen_cheap,
+# quantum_control, guidance, ks_screen, ks, kolmogorov_zero, kolmogorov, heat, sip_poisson (core 1: CORE=1).
 # Environment: CORE (default 0), SEEDS (default 3: grow every lane to this many seeds), STUDY_COMMIT,
 # LATE_COMMIT, PY (python of an env with physgrad's deps).
 set -euo pipefail
@@ -103,6 +103,12 @@ lane_dipole_screen() {
   lane_study quantum_dipole_screen quantum_dipole \
     "hig@1500@50 hig@1500@50@hig.lr=0.1 hig@1500@50@hig.truncation=0.001 adam@1500@50 hig@1500@50@hig.batch_size=64"
 }
+# The same screen's cheap runs only (batch 64 left out), to grow the τ finding to 3 seeds first.
+lane_dipole_screen_cheap() {
+  late
+  lane_study quantum_dipole_screen quantum_dipole \
+    "hig@1500@50 hig@1500@50@hig.lr=0.1 hig@1500@50@hig.truncation=0.001 adam@1500@50"
+}
 # Claim 4a, StableBPTT Fig. 5: quantum control, eigenstate 5, R / M / C / S at the paper's 1000 epochs
 # (32,000 updates; evaluated every epoch as the authors), norm clipping (the 250-epoch study's mode);
 # about 13 min per run on an idle core (≈ 25 ms per update; ≈ 18 min beside another lane), 12 runs.
@@ -124,6 +130,12 @@ lane_guidance() {
 lane_ks() {
   late
   lane_study ks_correction_20ep ks "one@56160@2808 nog@56160@2808 wig@56160@2808" --set setup=correction
+}
+# Claim 2 after the scale fix, a screen before the 20-epoch lane: ONE / NOG / WIG correction at
+# 2 epochs (5,616 updates), evaluated after each epoch; ≈ 8–10 min per run on one core, 9 runs.
+lane_ks_screen() {
+  late
+  lane_study ks_correction_2ep ks "one@5616@2808 nog@5616@2808 wig@5616@2808" --set setup=correction
 }
 # Claims 5 and 6, SIP Fig. 6: heat and Poisson 64², SIP vs Adam for the paper's 10,000 steps, test
 # x-error on 128 samples every 250 steps; ≈ 1.7–2 s per SIP step on one core: ≈ 5 h per run.
