@@ -171,12 +171,17 @@ def table(study: Path, cal) -> tuple[list[str], dict]:
 def figure(study: Path, data: dict, cal, out: Path):
     spec = study_of(study.name)
     fig, axes = plt.subplots(1, 2, figsize=(11, 4), sharey=True)
-    for m, rs in sorted(data.items()):
+    # one colour per method and one line style per seed: a study can hold more runs than a
+    # colour cycle has colours, and two methods must never share one
+    colours = plt.get_cmap("tab10" if len(data) <= 10 else "tab20")
+    dashes = ["-", "--", ":", "-."]
+    for k, (m, rs) in enumerate(sorted(data.items())):
         for r in rs:
             if not len(r["loss"]):
                 continue
             t = seconds(cal, study.name, m, r["step"]) / 60 if spec.axis == "calibrated" else r["step"]
-            style = dict(alpha=0.8, lw=1, label=f"{m} seed {r['seed']}" + (" (diverged)" if r["status"] == "diverged" else ""))
+            label = f"{m} seed {r['seed']}" + (" (diverged)" if r["status"] == "diverged" else "")
+            style = dict(alpha=0.8, lw=1, color=colours(k), ls=dashes[int(r["seed"]) % len(dashes)], label=label)
             axes[0].semilogy(t, r["loss"], **style)
             axes[1].semilogy(r["wall"] / 60, r["loss"], **style)
     axes[0].set_xlabel("calibrated time (min): step × s/step measured alone" if spec.axis == "calibrated" else "update")
