@@ -26,7 +26,7 @@ import jax
 import numpy as np
 
 from physgrad.config import RunConfig
-from physgrad.rollout import M, R, joint_gradients
+from physgrad.rollout import M, R, cosine, joint_gradients, sign_mask
 from physgrad.train import build, load_network
 
 DATA = Path(__file__).resolve().parent.parent / "data"
@@ -41,19 +41,19 @@ def flat(tree) -> np.ndarray:
     return np.concatenate([np.ravel(np.asarray(x, np.float64)) for x in jax.tree.leaves(tree)])
 
 
-def mask_statistics(run: Path, trained: bool, batches: int = 4, batch_size: int = 8) -> np.ndarray:
-    """Mean over ``batches`` training batches of (loss, agree, |g_C|/|g_M|, cos, |g_R|/|g_M|)."""
-    setup = build(RunConfig.from_dict(json.loads((run / "config.json").read_text())))
-    params, static = eqx.partition(load_network(run) if trained else setup.network(), eqx.is_inexact_array)
+def mask_statistics(setup, network, batches: int = 4, batch_size: int = 8) -> np.ndarray:
+    """Mean over ``batches`` training batches of (loss, agree, |g_C|/|g_M|, cos, |g_R|/|g_M|),
+    with g_C from C's own :func:`~physgrad.rollout.sign_mask`."""
+    params, static = eqx.partition(network, eqx.is_inexact_array)
     system = setup.problem.objective(static).rollout
     rows = []
     for i in range(batches):
         batch = jax.tree.map(lambda x: x[i * batch_size : (i + 1) * batch_size], setup.data["train"])
         loss, g_m, g_r = joint_gradients(system, params, system.initial_state(batch), M(), R())
-        a, b = flat(g_m), flat(g_r)
-        agree = np.sign(a) == np.sign(b)
-        na, nb = np.linalg.norm(a), np.linalg.norm(b)
-        rows.append((float(loss), agree.mean(), np.linalg.norm(a * agree) / na, a @ b / (na * nb), nb / na))
+        a, b, c = flat(g_m), flat(g_r), flat(sign_mask(g_m, g_r))
+        na = np.linalg.norm(a)
+        agree = np.mean(np.sign(a) == np.sign(b))
+        rows.append((float(loss), agree, np.linalg.norm(c) / na, float(cosine(g_m, g_r)), np.linalg.norm(b) / na))
     return np.mean(rows, axis=0)
 
 
@@ -65,8 +65,10 @@ def main() -> None:
             found = sorted((DATA / study / method / "runs").glob(f"*-seed{seed}-*"))
             if not found or not (found[0] / "params.eqx").exists():
                 continue  # not finished yet
+            setup = build(RunConfig.from_dict(json.loads((found[0] / "config.json").read_text())))
             for trained in (False, True) if seed == 0 else (True,):
-                loss, agree, kept, cos, ratio = mask_statistics(found[0], trained)
+                network = load_network(found[0], like=setup.network()) if trained else setup.network()
+                loss, agree, kept, cos, ratio = mask_statistics(setup, network)
                 print(f"| {study} | {method} | {seed} | {'trained' if trained else 'initial'} | {loss:.3g} | "
                       f"{agree:.2f} | {kept:.2f} | {cos:.2f} | {ratio:.2g} |", flush=True)  # fmt: skip
 
