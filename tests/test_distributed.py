@@ -50,8 +50,9 @@ def problem_for(method):
     if method == "sip":
         return "poisson", POISSON
     # This tiny ReLU net's J has singular values down to 1e-10 σ_max: with τ = 1e-6 the
-    # σ^κ of the smallest kept ones amplify rounding differences to ~1e-6 of the update.
-    extra = {"truncation": "1e-3"} if method in ("gn", "hig") else {"damping": "10.0"} if method == "newton" else {}
+    # filter of the smallest kept ones (σ^κ; for lm σ/(σ² + λ) on ill-determined singular
+    # vectors) amplifies rounding differences beyond float64's reordered-sum level.
+    extra = {"truncation": "1e-3"} if method in ("gn", "hig", "lm") else {"damping": "10.0"} if method == "newton" else {}
     return "oscillators", {**OSC, **extra}
 
 
