@@ -16,7 +16,7 @@
 # Usage (one core, niced; runs lanes in priority order until all are done):
 #   bash docs/reproductions/long/studies.sh [lane ...]      # default: oscillators dipole
 # Lanes: oscillators, dipole, poisson (HIG, core 0); navier_stokes, dipole_screen, dipole_screen_cheap,
-# quantum_control, guidance, ks_screen, ks, kolmogorov_zero, kolmogorov, heat, sip_poisson (core 1: CORE=1).
+# quantum_control, guidance, ks_screen, ks_screen_shuffled, ks, kolmogorov_zero, kolmogorov, heat, sip_poisson (core 1: CORE=1).
 # Environment: CORE (default 0), SEEDS (default 3: grow every lane to this many seeds), STUDY_COMMIT,
 # LATE_COMMIT, PY (python of an env with physgrad's deps).
 set -euo pipefail
@@ -136,6 +136,13 @@ lane_ks() {
 lane_ks_screen() {
   late
   lane_study ks_correction_2ep ks "one@5616@2808 nog@5616@2808 wig@5616@2808" --set setup=correction
+}
+# Issue 32: the same KS screen with shuffled batches (`shuffle=true`: a fresh permutation of all
+# windows every epoch, so a batch mixes trajectories and domain sizes), at the physgrad that has the
+# setting (SHUFFLE_COMMIT); the fixed-order screen above took 16 consecutive windows of one trajectory.
+lane_ks_screen_shuffled() {
+  use_commit "$ROOT/../studycode-shuffle" "${SHUFFLE_COMMIT:-0324cdf}"
+  lane_study ks_correction_2ep_shuffled ks "one@5616@2808 nog@5616@2808 wig@5616@2808" --set setup=correction --set shuffle=true
 }
 # Claims 5 and 6, SIP Fig. 6: heat and Poisson 64², SIP vs Adam for the paper's 10,000 steps, test
 # x-error on 128 samples every 250 steps; ≈ 1.7–2 s per SIP step on one core: ≈ 5 h per run.
