@@ -10,10 +10,10 @@ import pytest
 
 import physgrad
 from physgrad import Budget
-from physgrad.config import make_config
-from physgrad.train import train
 from physgrad.cli import main
+from physgrad.config import make_config
 from physgrad.progress import NoProgressMeter
+from physgrad.train import train
 
 RUN_FILES = ("config.json", "metrics.csv", "env.json", "summary.json", "params.eqx", "checkpoint/state.eqx")
 

@@ -24,11 +24,11 @@ from jax.sharding import PartitionSpec
 
 from physgrad import Budget, ConfigError
 from physgrad.config import make_config
-from physgrad.registry import METHODS
 from physgrad.distributed import make_mesh, replicate, use_mesh
 from physgrad.half_inverse import half_inverse, sharded_gram_route
 from physgrad.half_inverse_large import blockgram_half_inverse, lanczos_half_inverse
 from physgrad.jacobian import stacked_jacobian
+from physgrad.registry import METHODS
 from physgrad.routes import jacobian_and_gradient
 from physgrad.train import build, load_network, make_step, train
 

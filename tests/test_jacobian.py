@@ -5,10 +5,10 @@ import jax.numpy as jnp
 import numpy as np
 from jax.flatten_util import ravel_pytree
 
-from physgrad.jacobian import stacked_jacobian
-from physgrad.train import build
 from physgrad import Budget
 from physgrad.config import make_config
+from physgrad.jacobian import stacked_jacobian
+from physgrad.train import build
 
 
 def test_rows_are_sample_major_against_finite_differences():

@@ -3,7 +3,6 @@
 import jax
 import jax.numpy as jnp
 import numpy as np
-import pytest
 from scipy.linalg import expm
 
 from physgrad.nets import parameter_count

@@ -10,7 +10,6 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 import pytest
-from test_library import Cubic
 
 import physgrad
 from physgrad import memory, routes
@@ -18,6 +17,7 @@ from physgrad.cli import main
 from physgrad.config import make_config
 from physgrad.engine import Phase, build_setup
 from physgrad.methods import Gradient, JacobianPower, Method
+from test_library import Cubic
 
 F64 = 8
 

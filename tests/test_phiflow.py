@@ -30,9 +30,9 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import subprocess
 import sys
-import re
 import textwrap
 from pathlib import Path
 
@@ -215,7 +215,6 @@ def test_readme_example(fresh):
 # --- the adapter ------------------------------------------------------------------------------
 def test_layout_is_physgrads_lower_faces():
     """PhiFlow's periodic staggered x-values sit at (iΔx, (j+½)Δx), as fluid.py's."""
-    flow = phiflow.import_phiflow()
     domain = phiflow.Domain((4, 4), DX)
     points = phiflow.wrap(lambda v: v.points, domain, ["staggered"], "array")(jnp.zeros((2, 4, 4)))
     # PhiML order: (~vector: the component, x, y, vector: the coordinate)

@@ -7,12 +7,10 @@ import pytest
 
 import physgrad
 from physgrad import Budget
-from physgrad.config import make_config
-from physgrad.registry import METHODS, PROBLEMS
+from physgrad.config import make_config, phase_methods
 from physgrad.problems import HigToy
-from physgrad.config import phase_methods
+from physgrad.registry import METHODS, PROBLEMS
 from physgrad.train import build
-
 
 # The time-stepper problems generate their data; these keep it to seconds (the paper sizes
 # are exercised by the reproduction runs, not by the tests).

@@ -71,7 +71,7 @@ def test_stopped_equals_the_sum_of_one_step_gradients():
     params, s0 = params_and_states()
     _, grads = jax.jit(lambda p: value_and_grad(system, p, s0, S()))(params)
     states, s = [], s0  # the forward trajectory, then one gradient per step
-    for k in range(len(w)):
+    for _ in range(len(w)):
         states.append(s)
         s = jax.vmap(physics)(s, jax.vmap(control, (None, 0))(params, s))
     total = jax.tree.map(jnp.zeros_like, params)

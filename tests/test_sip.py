@@ -3,7 +3,6 @@ failure handling, and direct optimisation (the 2D toy) against hand-written loop
 
 from typing import ClassVar
 
-
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -11,12 +10,9 @@ import pytest
 
 from physgrad import Budget
 from physgrad.config import make_config
-from physgrad.train import train
-from physgrad.registry import METHODS
 from physgrad.problems import ExpInverse
-from physgrad.registry import PROBLEMS
-from physgrad.train import build, make_step
-
+from physgrad.registry import METHODS, PROBLEMS
+from physgrad.train import build, make_step, train
 
 SMALL = {"exp_inverse": {"n_train": 256, "n_test": 16}, "sine": {"n_train": 256, "n_test": 16}}
 

@@ -5,13 +5,12 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from physgrad.inverse import GaussNewton
 from physgrad.nets import UNet, parameter_count
 from physgrad.problems import LinearOscillators, Sine, Toy2d
 from physgrad.problems.heat import box_parameters, damped_deconvolution, diffuse, random_boxes, soft_box
 from physgrad.problems.poisson import solve_poisson
 from physgrad.problems.poisson_hig import laplace_zero_boundary
-from physgrad.inverse import GaussNewton
-
 from test_poisson_hig import dense_laplacian
 
 

@@ -17,7 +17,6 @@ from physgrad.problems import CartPole, Guidance, QuantumControl
 from physgrad.problems.quantum_control import QuantumController
 from physgrad.train import build, make_step
 
-
 # --- cart-pole -------------------------------------------------------------------------
 
 

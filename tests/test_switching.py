@@ -10,11 +10,9 @@ import pytest
 
 import physgrad
 from physgrad import Budget, ConfigError
-from physgrad.config import make_config
-from physgrad.train import train
 from physgrad.cli import main
-from physgrad.config import parse_method, split_methods
-from physgrad.train import build, make_step, read_metrics
+from physgrad.config import make_config, parse_method, split_methods
+from physgrad.train import build, make_step, read_metrics, train
 
 SMALL = {"n_train": "128", "n_test": "64", "adam.batch_size": "32", "hig.batch_size": "16"}
 

@@ -16,11 +16,11 @@ import physgrad  # noqa: F401
 from physgrad import prdp
 from physgrad.cli import main
 from physgrad.config import Budget, ConfigError, make_config
-from physgrad.registry import METHODS
 from physgrad.problems import Advection1d, Kolmogorov, KuramotoSivashinsky
 from physgrad.problems.advection_1d import ImplicitUpwind, fou_distance
 from physgrad.problems.ks import ks_stepper
 from physgrad.problems.time_stepper import windows
+from physgrad.registry import METHODS
 from physgrad.rollout import value_and_grad
 from physgrad.steppers import NonDifferentiable, NotDifferentiableError, Solver, stepper_step
 from physgrad.train import build, make_step, train
