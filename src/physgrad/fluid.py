@@ -65,7 +65,8 @@ def sample_points(n: int, dx: float, offset: tuple[float, float], dtype=jnp.floa
     return jnp.stack(jnp.broadcast_arrays(x, y))
 
 
-def bilinear(values: Float[Array, "n n"], offset, points: Float[Array, "2 *p"], dx: float):
+# The F821 noqa comments below: ruff reads jaxtyping's variadic shape "2 *p" as the expression `2 * p`
+def bilinear(values: Float[Array, "n n"], offset, points: Float[Array, "2 *p"], dx: float):  # noqa: F821
     """(interpolated values ``*p``, the 2 × 2 surrounding values ``(4, *p)``) of a periodic
     field sampled at ``offset`` cells, at physical ``points``."""
     n = values.shape[0]
@@ -82,7 +83,7 @@ def bilinear(values: Float[Array, "n n"], offset, points: Float[Array, "2 *p"], 
     return jnp.sum(weights * corners, axis=0), corners
 
 
-def sample_velocity(velocity: Float[Array, "2 n n"], points, dx: float) -> Float[Array, "2 *p"]:
+def sample_velocity(velocity: Float[Array, "2 n n"], points, dx: float) -> Float[Array, "2 *p"]:  # noqa: F821
     """The staggered velocity, each component interpolated from its own faces, at ``points``."""
     return jnp.stack([bilinear(velocity[a], STAGGERED[a], points, dx)[0] for a in range(2)])
 
@@ -245,7 +246,7 @@ def centre_of_mass(marker: Float[Array, "n n"], dx: float) -> Float[Array, "2"]:
     return jnp.sum(points * marker, axis=(1, 2)) / jnp.sum(marker)
 
 
-def cross(a: Float[Array, "2 *p"], b: Float[Array, "2 *p"]):
+def cross(a: Float[Array, "2 *p"], b: Float[Array, "2 *p"]):  # noqa: F821
     """The 2-D cross product ``a_x b_y − a_y b_x``."""
     return a[0] * b[1] - a[1] * b[0]
 

@@ -21,8 +21,8 @@ between g_M and g_R.
 from __future__ import annotations
 
 import equinox as eqx
-import jax.numpy as jnp
 import jax
+import jax.numpy as jnp
 
 from ..rollout import Combined, GradientFlow, M, R, cosine, joint_gradients, sign_mask, value_and_grad
 from .base import AbstractRule, Estimator, Objective

@@ -21,8 +21,8 @@ from __future__ import annotations
 from typing import ClassVar
 
 import equinox as eqx
-import jax.numpy as jnp
 import jax
+import jax.numpy as jnp
 
 from ..integrators import integrate, rk4_step
 from ..nets import MLP
