@@ -33,6 +33,6 @@ def cached_arrays(stem: str, key: dict, generate: Callable[[], dict]) -> dict[st
     data = {k: np.asarray(v) for k, v in generate().items()}
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.name + f".{os.getpid()}.tmp.npz")
-    np.savez(tmp, **data)
+    np.savez(tmp, **data)  # pyright: ignore[reportArgumentType]  # numpy's stub lets **kwds fill allow_pickle
     os.replace(tmp, path)
     return data

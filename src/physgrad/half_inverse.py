@@ -151,7 +151,8 @@ def half_inverse(
     if route not in ROUTES:
         raise ValueError(f"unknown route {route!r}; valid choices: {', '.join(ROUTES)}")
     if route == "auto":
-        route = choose_route(jacobian.shape)
+        rows, size = jacobian.shape
+        route = choose_route((rows, size))
     solve = _svd_route if route == "svd" else _gram_route
     return solve(jacobian, grad, exponent, truncation).astype(jacobian.dtype)
 

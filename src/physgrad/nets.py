@@ -100,6 +100,7 @@ def _he_conv(c_in: int, c_out: int, kernel: int, *, key: PRNGKeyArray, dtype) ->
     """Conv2d with He-normal kernel N(0, 2 / fan_in) and zero bias."""
     conv = eqx.nn.Conv2d(c_in, c_out, kernel, key=key, dtype=dtype)
     weight = jax.random.normal(key, conv.weight.shape, dtype) * math.sqrt(2.0 / math.prod(conv.weight.shape[1:]))
+    assert conv.bias is not None  # use_bias defaults to True
     return eqx.tree_at(lambda c: (c.weight, c.bias), conv, (weight, jnp.zeros_like(conv.bias)))
 
 

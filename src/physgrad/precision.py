@@ -43,7 +43,7 @@ WIDE = {jnp.dtype(jnp.float16): jnp.float64, jnp.dtype(jnp.bfloat16): jnp.float6
 
 def x64_enabled() -> bool:
     """Whether 64-bit types are enabled here (globally or by an enclosing scope)."""
-    return bool(jax.config.jax_enable_x64)
+    return bool(jax.config.jax_enable_x64)  # pyright: ignore[reportAttributeAccessIssue]  # flags are set at run time
 
 
 def float64_scope(enabled: bool = True) -> contextlib.AbstractContextManager:

@@ -55,6 +55,8 @@ class RichProgressMeter(AbstractProgressMeter):
         self._last = 0.0
 
     def update(self, *, step, train_time, loss):
+        if self._progress is None:  # not started, or closed
+            return
         now = time.perf_counter()
         if now - self._last < self.refresh_seconds:
             return

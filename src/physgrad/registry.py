@@ -33,12 +33,14 @@ from .methods import (
     Unrolled,
     UnrolledGradient,
 )
-from .problems import (
+from .methods.kfac import kfac
+from .rollout import Combined, M, R, S
+
+# `# isort: skip`: isort would split this compact `# fmt: skip` import into one name a line
+from .problems import (  # isort: skip
     AbstractProblem, Advection1d, CartPole, ExpInverse, Guidance, Heat, HigToy, Kolmogorov, KuramotoSivashinsky,
     LinearOscillators, NavierStokes, Oscillators, Poisson, PoissonHig, QuantumControl, QuantumDipole, Sine, Toy2d,
 )  # fmt: skip
-from .methods.kfac import kfac
-from .rollout import Combined, M, R, S
 
 # --- DP: optax optimizers on the DP gradient --------------------------------------------
 # ε = 1e-7 is the Keras default that the HIG and StableBPTT papers' baselines used.
@@ -168,7 +170,7 @@ def sip(
 ):
     """Scale-invariant physics: fit the network to a local inverse x̃ = P⁻¹(y + η(y* − y); x) (Holl et al. 2022)."""
     _choose("optimizer", optimizer, OPTIMIZERS)
-    settings = dict(rcond=rcond, max_loss_change=max_loss_change, max_steps=max_steps, tol=tol, krylov=krylov,
+    settings: dict[str, Any] = dict(rcond=rcond, max_loss_change=max_loss_change, max_steps=max_steps, tol=tol, krylov=krylov,
                     accept_last=accept_last)  # fmt: skip
     inverse = None if solver == "auto" else make_solver(solver, **settings)  # auto: decided by the problem
     if solver == "auto":

@@ -36,6 +36,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 from jax.sharding import PartitionSpec
+from jaxtyping import Array
 
 from . import structured
 from .distributed import AXIS, data_axis_size
@@ -51,7 +52,9 @@ class AbstractRoute(eqx.Module):
     """``route(objective, params, batch, exponent, truncation) -> (direction, loss, stats)``."""
 
     @abc.abstractmethod
-    def __call__(self, objective, params, batch, exponent: float, truncation: float): ...
+    def __call__(
+        self, objective, params, batch, exponent: float, truncation: float
+    ) -> tuple[Array, Array, dict[str, Array]]: ...
 
     def check_batch_size(self, batch_size: int) -> None:
         """Raise ``ValueError`` if the route cannot take batches of this size."""

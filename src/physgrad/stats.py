@@ -154,7 +154,7 @@ def paired_tests(out: str | Path, metric: str | None = None, order: list[str] | 
         if len(x) == 0:
             p = math.nan
         elif np.any(diff != 0):
-            p = float(wilcoxon(x, y).pvalue)
+            p = float(wilcoxon(x, y).pvalue)  # pyright: ignore[reportAttributeAccessIssue]  # scipy's decorator hides the result type
         else:
             p = 1.0  # identical values on every pair: no evidence of a difference
         rows.append({

@@ -29,6 +29,7 @@ the solver's input path.
 from __future__ import annotations
 
 import abc
+from collections.abc import Callable
 from typing import ClassVar
 
 import equinox as eqx
@@ -117,6 +118,8 @@ def stepper_step(setup: str, composition: str, solver: Solver | None, network, u
     if setup == "prediction":
         out = network(u_net, cond)
         return (u_net + out if composition == "residual" else out), jnp.asarray(True)
+    if solver is None:
+        raise ValueError(f"the {setup} setup needs a solver")
     p, ok = solver.step(u_phys, cond)
     if composition == "parallel":
         return p + scale * network(u_net, cond), ok
@@ -158,7 +161,7 @@ class Repeated(Solver):
     """``substeps`` applications of a per-sample stepper (e.g. an exponax ETDRK stepper on
     one state (C, *N)); the conditioning value is not used (select the stepper instead)."""
 
-    stepper: eqx.Module
+    stepper: Callable[[Array], Array]  # an equinox module
     substeps: int = eqx.field(static=True, default=1)
 
     def __call__(self, u, cond):

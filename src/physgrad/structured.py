@@ -43,8 +43,7 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
-from jax.extend.core import Literal
-from jax.flatten_util import ravel_pytree
+from jax.extend.core import ClosedJaxpr, Literal
 from jaxtyping import Array, PyTree
 
 from .jacobian import flat_output
@@ -71,7 +70,7 @@ class DenseUse(NamedTuple):
 class Structure(NamedTuple):
     """What :func:`find_structure` learnt about ``predict`` at these shapes."""
 
-    jaxpr: object  # ClosedJaxpr of (param leaves..., sample leaves...) -> outputs
+    jaxpr: ClosedJaxpr  # of (param leaves..., sample leaves...) -> outputs
     dense: tuple[DenseUse, ...]
     groups: tuple[tuple[int, ...], ...]  # explicit leaf indices, one group per Jacobian pass
     leaf_sizes: tuple[int, ...]
@@ -275,8 +274,11 @@ def cross_gram(structure: Structure, left: Factors, right: Factors) -> Array:
         term = (dd.reshape(b1, -1, b2, dd.shape[1] // b2) * aa[:, None, :, None]).reshape(dd.shape)
         gram = term if gram is None else gram + term
     if left.J is not None:
+        assert right.J is not None  # blocks of one structure: both hold explicit rows or neither
         term = left.J.astype(f64) @ right.J.astype(f64).T
         gram = term if gram is None else gram + term
+    if gram is None:
+        raise ValueError("the network has no parameters: no dense layer and no explicit leaf")
     return gram
 
 
@@ -296,6 +298,7 @@ def transpose_product(structure: Structure, block: Factors, w: Array, explicit: 
         if use.bias is not None:
             out[use.bias] = weighted.sum(axis=0)
     if explicit:
+        assert block.J is not None  # the explicit leaves' rows
         flat = block.J.astype(f64).T @ w
         offset = 0
         for k in explicit:

@@ -19,9 +19,19 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from .config import Budget, ConfigError, RunConfig, choose, make_config, method_slug, parse_method, phase_methods, valid_settings
-from .registry import PROBLEMS
+from .config import (
+    Budget,
+    ConfigError,
+    RunConfig,
+    choose,
+    make_config,
+    method_slug,
+    parse_method,
+    phase_methods,
+    valid_settings,
+)
 from .progress import AbstractProgressMeter
+from .registry import PROBLEMS
 from .train import is_complete, read_metrics, read_summary, train
 
 SUMMARY_COLUMNS = (
@@ -116,7 +126,7 @@ def compare(
         run_dir = out / "runs" / run_name(config)
         prefix = f"[{i}/{len(configs)}] {config.method} seed {config.seed}"
         if is_complete(run_dir):
-            echo(f"{prefix}: done already ({read_summary(run_dir)['status']}), skipped")
+            echo(f"{prefix}: done already ({(read_summary(run_dir) or {}).get('status')}), skipped")
             continue
         summary = train(config, run_dir, resume=True, progress=progress() if progress else None, devices=devices)
         echo(f"{prefix}: {describe_run(summary)}")
@@ -165,7 +175,7 @@ def _write_csv(path: Path, columns: Sequence[str], rows: list[dict[str, Any]]):
         writer.writerows(rows)
 
 
-def read_csv(path: str | Path) -> list[dict[str, str]]:
+def read_csv(path: str | Path) -> list[dict[str, Any]]:  # str values; callers add numbers
     with Path(path).open() as f:
         return list(csv.DictReader(f))
 

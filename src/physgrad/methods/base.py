@@ -36,7 +36,7 @@ from __future__ import annotations
 import abc
 import dataclasses
 from collections.abc import Callable
-from typing import Any, NamedTuple
+from typing import Any, NamedTuple, TypeVar
 
 import equinox as eqx
 import jax
@@ -45,6 +45,15 @@ import optax
 from jaxtyping import Array, PyTree
 
 Stats = dict[str, Array]
+_T = TypeVar("_T")
+
+
+def required(piece: _T | None, name: str) -> _T:
+    """An :class:`Objective`'s ``piece``, or a one-line ``ValueError`` naming it if the
+    problem does not provide it (rules check what they need in ``check``)."""
+    if piece is None:
+        raise ValueError(f"this method needs the problem's {name}, which it does not provide")
+    return piece
 
 
 class Objective(NamedTuple):
@@ -84,7 +93,8 @@ class Objective(NamedTuple):
             raise ValueError("this method differentiates through the solver, which is not differentiable; use nog or one")
 
     def sample_losses(self, params: PyTree, batch: PyTree) -> Array:
-        return jax.vmap(lambda s: self.loss(self.predict(params, s), s))(batch)
+        predict, loss = required(self.predict, "predict"), required(self.loss, "loss")
+        return jax.vmap(lambda s: loss(predict(params, s), s))(batch)
 
     def batch_loss(self, params: PyTree, batch: PyTree) -> Array:
         return jnp.mean(self.sample_losses(params, batch))

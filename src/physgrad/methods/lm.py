@@ -41,7 +41,7 @@ from jaxtyping import Array, PyTree
 
 from ..half_inverse import Damped
 from ..jacobian import require_forward_mode
-from .base import Method, Objective, with_extra_args
+from .base import Method, Objective, required, with_extra_args
 from .hig import JacobianPower
 
 
@@ -71,15 +71,16 @@ def predicted_decrease(objective: Objective, params: PyTree, batch: PyTree, delt
     """``−(gᵀ u + ½ uᵀ ∇²_y L u)`` with ``u = J Δ``: the decrease of the batch-mean loss
     that the Gauss–Newton model predicts for the step ``Δ`` (one JVP through network and
     simulator, then the loss along the line ``y + t u`` to second order in t)."""
+    predict, loss = required(objective.predict, "predict"), required(objective.loss, "loss")
 
     def linearised(sample):
-        return jax.jvp(lambda p: objective.predict(p, sample), (params,), (delta,))
+        return jax.jvp(lambda p: predict(p, sample), (params,), (delta,))
 
     y, u = jax.vmap(linearised)(batch)
     real = jnp.real(y).dtype
 
     def along(t):  # the batch loss on the linearised outputs y + t u
-        return jnp.mean(jax.vmap(objective.loss)(y + t.astype(real) * u, batch))
+        return jnp.mean(jax.vmap(loss)(y + t.astype(real) * u, batch))
 
     def slope(t):
         return jax.jvp(along, (t,), (jnp.ones_like(t),))[1]

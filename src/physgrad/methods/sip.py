@@ -27,9 +27,9 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from ..precision import float64_scope, to_float64
 from ..inverse import AbstractInverseSolver, Analytic, GaussNewton
-from .base import AbstractRule, Estimator, Objective
+from ..precision import float64_scope, to_float64
+from .base import AbstractRule, Estimator, Objective, required
 
 PROXIES = ("l2", "l1")
 PRECISIONS = ("float32", "float64")
@@ -79,9 +79,10 @@ class ScaleInvariantPhysics(AbstractRule):
         self.resolve_solver(objective)
 
     def __call__(self, objective, params, batch):
-        x, pullback = jax.vjp(lambda p: jax.vmap(objective.network_output, (None, 0))(p, batch), params)
+        network_output = required(objective.network_output, "network_output")
+        x, pullback = jax.vjp(lambda p: jax.vmap(network_output, (None, 0))(p, batch), params)
         x0 = jax.lax.stop_gradient(x)
-        y = jax.vmap(objective.simulate)(x0, batch)
+        y = jax.vmap(required(objective.simulate, "simulate"))(x0, batch)
         stats = {}
         if objective.loss is not None:
             stats["loss"] = jnp.mean(jax.vmap(objective.loss)(y, batch))

@@ -39,7 +39,7 @@ import optax
 
 from ..rollout import GradientFlow, R, S, value_and_grad
 from ..transforms import norm_guard
-from .base import AbstractMethod, AbstractRule, Estimator, Objective, with_extra_args
+from .base import AbstractMethod, AbstractRule, Estimator, Objective, required, with_extra_args
 
 
 class UnrolledGradient(AbstractRule):
@@ -169,7 +169,7 @@ class Unrolled(AbstractMethod):
     def check(self, objective):
         self.rule.check(objective)
         for m in self.curriculum:
-            objective.unrolled(m, self.rule.teacher_forcing)  # raises if m exceeds the windows
+            required(objective.unrolled, "unrolled")(m, self.rule.teacher_forcing)  # raises if m exceeds the windows
 
     def step(self, objective, params, state, batch):
         grads, stats = self.rule(objective, params, batch)

@@ -28,6 +28,7 @@ from typing import ClassVar
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+from jaxtyping import PyTree
 
 from ..rollout import System, closed_loop
 from .base import AbstractProblem, Sample
@@ -47,14 +48,15 @@ class ClosedLoopProblem(AbstractProblem):
     # --- what a subclass defines (and a setting ``n_steps``, the rollout length) ---------
     @property
     def num_steps(self) -> int:
-        return self.n_steps
+        # not eqx.AbstractVar: that would move n_steps first among the subclasses' fields
+        return self.n_steps  # pyright: ignore[reportAttributeAccessIssue]  # a subclass's field
 
     @abc.abstractmethod
     def initial_states(self, key, n: int) -> Sample:
         """``n`` initial states stacked on a leading axis."""
 
     @abc.abstractmethod
-    def control(self, network: eqx.Module, s: Sample) -> jax.Array:
+    def control(self, network: PyTree, s: Sample) -> jax.Array:
         """c = N(s) for one state."""
 
     @abc.abstractmethod

@@ -67,12 +67,14 @@ class DirectOptimisation(AbstractProblem):
 
     @property
     def target(self):
-        if self.problem.target is None:
+        target = self.problem.target
+        if target is None:
             return None
-        return lambda sample: self.problem.target(sample["sample"])
+        return lambda sample: target(sample["sample"])
 
     @property
     def inverse(self):
-        if self.problem.inverse is None:
+        inverse = self.problem.inverse
+        if inverse is None:
             return None
-        return lambda x, y, y_target, sample: self.problem.inverse(x, y, y_target, sample["sample"])
+        return lambda x, y, y_target, sample: inverse(x, y, y_target, sample["sample"])

@@ -42,7 +42,7 @@ def laplace_zero_boundary(x: jax.Array) -> jax.Array:
     return padded[:-2, 1:-1] + padded[2:, 1:-1] + padded[1:-1, :-2] + padded[1:-1, 2:] - 4.0 * x
 
 
-def phiflow_noise(key, shape: tuple[int, int], *, scale: float = 10.0, smoothness: float = 1.0, dtype=jnp.float32):
+def phiflow_noise(key, shape: tuple[int, int, int], *, scale: float = 10.0, smoothness: float = 1.0, dtype=jnp.float32):
     """Smooth random fields as PhiFlow's ``Noise`` on a grid with cell size 1, shape (b, nx, ny).
 
     Fourier coefficients ``(a + i b) · |k|^(−2·smoothness)`` with ``a, b ~ N(0, 1)`` and

@@ -35,7 +35,7 @@ m steps. Metrics on trajectories at least ``eval_horizon`` long (§1.5):
 from __future__ import annotations
 
 import abc
-from typing import ClassVar
+from typing import Any, ClassVar
 
 import equinox as eqx
 import jax
@@ -44,7 +44,7 @@ import numpy as np
 
 from ..cache import cached_arrays
 from ..rollout import System
-from ..steppers import NonDifferentiable, check_composition, select, stepper_step
+from ..steppers import NonDifferentiable, Solver, check_composition, select, stepper_step
 from .base import AbstractProblem
 
 DATA_VERSION = 1  # bump when a generator changes, so cached data are regenerated
@@ -120,7 +120,7 @@ class TimeStepperProblem(AbstractProblem):
         "index": (S,)}`` (float32, float32, int32), ``index`` selecting the solver."""
 
     @abc.abstractmethod
-    def solvers(self):
+    def solvers(self) -> Solver | tuple[Any, Any]:
         """The coarse solver, stacked over conditions (:func:`physgrad.steppers.stack_solvers`),
         or a single :class:`~physgrad.steppers.Solver` used for every sample."""
 

@@ -120,7 +120,7 @@ def rollout(
     checkpoint: bool = False,
     keep_states: bool = False,
     keep_final: bool = False,
-) -> tuple[Array, Any]:
+) -> tuple[Any, ...]:
     """The rollout loss L (and, with ``keep_states``, the states s_1..s_m stacked on a
     leading time axis; with ``keep_final`` also the final state as a third value) from a
     batch of initial states ``s0``, under ``policy`` (default R)."""

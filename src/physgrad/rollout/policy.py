@@ -29,6 +29,8 @@ steps 0..W−1 are masked.
 
 from __future__ import annotations
 
+from typing import Literal
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -51,7 +53,7 @@ class GradientFlow(eqx.Module):
         if self.truncate < 0 or self.warmup < 0:
             raise ValueError(f"truncate and warmup must be >= 0, got {self.truncate} and {self.warmup}")
 
-    def cut(self, k) -> jax.Array | bool:
+    def cut(self, k) -> jax.Array | Literal[False]:
         """Whether both paths are stopped at step ``k`` (a traced bool, or False)."""
         cut = False
         if self.truncate:
