@@ -48,12 +48,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import distributed, memory
+from . import distributed, memory, programs
 from . import prdp as prdp_control
 from .errors import ConfigError
 from .methods import AbstractMethod, Objective
 from .nets import parameter_count
-from .precision import float64_scope
+from .precision import float64_scope, x64_enabled
 from .problems import AbstractProblem
 from .progress import AbstractProgressMeter, NoProgressMeter
 
@@ -197,9 +197,28 @@ def build_setup(problem: AbstractProblem, phases: Sequence[Phase], seed: int) ->
         data = problem.make_data(jax.random.fold_in(key, 0))
     except ValueError as e:
         raise ConfigError(f"{problem.name}: {e}") from None
-    params, static = eqx.partition(problem.initial_network(jax.random.fold_in(key, 1), data), eqx.is_inexact_array)
+    params, static = eqx.partition(initial_network(problem, jax.random.fold_in(key, 1), data), eqx.is_inexact_array)
     objective = problem.objective(static)
     return Setup(problem, data, params, static, objective, _stages(problem, phases, objective, data))
+
+
+@eqx.filter_jit
+def _initial_network_jit(problem: AbstractProblem, key, data):
+    return problem.initial_network(key, data)
+
+
+_NOT_TRACEABLE = (jax.errors.ConcretizationTypeError, jax.errors.TracerArrayConversionError,
+                  jax.errors.TracerBoolConversionError, jax.errors.TracerIntegerConversionError)  # fmt: skip
+
+
+def initial_network(problem: AbstractProblem, key, data) -> eqx.Module:
+    """``problem.initial_network(key, data)`` as one compiled program (shared by every seed
+    of the problem) instead of hundreds of eagerly dispatched operations; a network built
+    by host code that cannot be traced is built eagerly, as written."""
+    try:
+        return _initial_network_jit(problem, key, data)
+    except _NOT_TRACEABLE:
+        return problem.initial_network(key, data)
 
 
 def _stages(problem: AbstractProblem, phases: Sequence[Phase], objective: Objective, data, check: bool = True) -> list[Stage]:
@@ -271,7 +290,7 @@ def _deferred_objective(make: Callable[[], Objective]) -> Objective:
     objective may construct solvers (seconds), which only methods that estimate memory need."""
     real = functools.cache(make)
     deferred = lambda name: lambda *args: getattr(real(), name)(*args)  # noqa: E731
-    return Objective(**{name: deferred(name) for name in ("predict", "loss", "network_output", "simulate", "target",
+    return Objective(**{name: deferred(name) for name in ("predict", "loss", "network_output", "simulate", "target",  # pyright: ignore[reportArgumentType]  # function fields only
                                                           "inverse", "unrolled")})  # fmt: skip
 
 
@@ -301,7 +320,18 @@ def make_step(setup: Setup, batch_size: int, method: AbstractMethod | None = Non
 def make_evaluate(setup: Setup, chunk: int = 1024, per_sample: bool = False):
     """Mean per-sample loss and the problem's extra metrics over a data split (jitted, in
     chunks of ``chunk``): ``{"loss": ..., **problem.metrics}``; with ``per_sample`` every
-    sample's values (for paired tests). Under a mesh the samples are split over its devices."""
+    sample's values (for paired tests). Under a mesh the samples are split over its devices.
+
+    Runs of the same problem and network structure share one jitted function (and so its
+    compilations, :mod:`physgrad.programs`): the seeds differ in arguments only."""
+    try:
+        key = programs.make_key("evaluate", setup.problem, programs.static_key(setup.static), chunk, per_sample)
+    except TypeError:
+        key = None
+    return programs.EVALUATIONS.get(key, lambda: _make_evaluate(setup, chunk, per_sample))[0]
+
+
+def _make_evaluate(setup: Setup, chunk: int, per_sample: bool):
     problem = setup.problem
 
     def one(params, sample):
@@ -451,17 +481,34 @@ class Steps:
         return self.placement.put(jax.random.permutation(key, self.n_train).astype(jnp.int32))
 
     def compile(self, state: TrainState, setup: Setup) -> tuple[Any, TrainState]:
-        """The current stage's step, compiled (and checked by the memory guard)."""
+        """The current stage's step, compiled (and checked by the memory guard), or the
+        same program compiled earlier in this process by a run that differs only in its
+        seed (:mod:`physgrad.programs`)."""
         stage = setup.stages[state.stage]
         t0 = time.perf_counter()
         lower = lambda size: self._lower(state, setup, stage, size)  # noqa: E731
         guard = self.settings.memory_guard
-        if guard:  # the footprint alone, before spending time on compilation
-            self._check(setup, stage)
-        compiled = lower(stage.batch_size).compile()
-        if guard:
-            self._check(setup, stage, compiled, lambda size: memory.compiled_bytes(lower(size).compile(), arguments=False))
+
+        def build():
+            if guard:  # the footprint alone, before spending time on compilation
+                self._check(setup, stage)
+            compiled = lower(stage.batch_size).compile()
+            if guard:
+                self._check(setup, stage, compiled, lambda size: memory.compiled_bytes(lower(size).compile(), arguments=False))
+            return compiled
+
+        compiled, _ = programs.STEPS.get(self._key(state, setup, stage), build)
         return compiled, state._replace(compile_seconds=state.compile_seconds + time.perf_counter() - t0)
+
+    def _key(self, state: TrainState, setup: Setup, stage: Stage):
+        """What the compiled step depends on (None: something unhashable, compile afresh)."""
+        try:
+            arguments = programs.abstract_key((state.params, state.opt_state, self.data, self.order(state.stage, 0)))
+            return programs.make_key("step", setup.problem, programs.static_key(setup.static), stage.method,
+                                     stage.batch_size, self.placement.mesh, arguments, self.settings.memory_guard,
+                                     x64_enabled())  # fmt: skip
+        except TypeError:
+            return None
 
     def _lower(self, state, setup, stage, batch_size):
         with self.placement.scope():
@@ -499,21 +546,36 @@ class Fidelity:
             raise ConfigError("prdp_tau_step and prdp_tau_stop must be in (0, 1]")
         return cls(settings, name, getattr(problem, name) if name else None)
 
-    def initial(self) -> dict | None:
-        return prdp_control.initial_state(min(self.settings.prdp_start, self.full)) if self.settings.prdp else None
+    def _setting(self) -> tuple[str, int]:
+        """The refinable setting and its cap; only for a problem that declares one (with prdp
+        on, ``of`` checked that it does)."""
+        assert self.name is not None and self.full is not None
+        return self.name, self.full
 
-    def iterations(self, state: TrainState) -> int | None:
-        return state.prdp["K"] if self.settings.prdp else self.full
+    @staticmethod
+    def _controller(state: TrainState) -> dict:
+        assert state.prdp is not None  # with prdp on, initial() made it
+        return state.prdp
+
+    def initial(self) -> dict | None:
+        return prdp_control.initial_state(min(self.settings.prdp_start, self._setting()[1])) if self.settings.prdp else None
+
+    def iterations(self, state: TrainState) -> int:
+        """The solver's iteration count at ``state``; only for a problem with a refinable setting."""
+        return self._controller(state)["K"] if self.settings.prdp else self._setting()[1]
 
     def problem_at(self, setup: Setup, state: TrainState) -> Setup:
-        if not self.settings.prdp or getattr(setup.problem, self.name) == state.prdp["K"]:
+        if not self.settings.prdp:
             return setup
-        return setup.with_problem(dataclasses.replace(setup.problem, **{self.name: state.prdp["K"]}))
+        name, k = self._setting()[0], self._controller(state)["K"]
+        if getattr(setup.problem, name) == k:
+            return setup
+        return setup.with_problem(dataclasses.replace(setup.problem, **{name: k}))
 
     def observe(self, state: TrainState, error: float) -> TrainState:
         s = self.settings
-        new = prdp_control.update(state.prdp, error, state.step, increment=s.prdp_increment, maximum=self.full,
-                                  tau_step=s.prdp_tau_step, tau_stop=s.prdp_tau_stop)  # fmt: skip
+        new = prdp_control.update(self._controller(state), error, state.step, increment=s.prdp_increment,
+                                  maximum=self._setting()[1], tau_step=s.prdp_tau_step, tau_stop=s.prdp_tau_stop)  # fmt: skip
         return state._replace(prdp=new)
 
 
@@ -874,12 +936,18 @@ def _finish(state, setup, status, diverged_step, last_finite, recorder, checkpoi
 
 
 # --- run directories -------------------------------------------------------------------------
+# Every package whose version can change a run's numbers (None in env.json: not installed).
+# exponax's steppers make the time-stepper data; optimistix and lineax solve SIP's inverses.
+ENV_PACKAGES = ("physgrad", "jax", "jaxlib", "equinox", "optax", "numpy", "scipy", "jaxtyping", "lineax", "optimistix",
+                "exponax", "kfac-jax", "phiflow", "phiml")  # fmt: skip
+
+
 def environment() -> dict[str, Any]:
     """Versions and devices, written as ``env.json``."""
     from importlib.metadata import PackageNotFoundError, version
 
     versions = {}
-    for name in ("physgrad", "jax", "jaxlib", "equinox", "optax", "numpy"):
+    for name in ENV_PACKAGES:
         try:
             versions[name] = version(name)
         except PackageNotFoundError:
@@ -890,7 +958,7 @@ def environment() -> dict[str, Any]:
         "cpu_count": os.cpu_count(),
         "devices": [str(d) for d in jax.devices()],
         "backend": jax.default_backend(),
-        "x64": bool(jax.config.jax_enable_x64),
+        "x64": x64_enabled(),
         "versions": versions,
         "time": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
     }

@@ -43,15 +43,26 @@ def problem_of(config: RunConfig, overrides: dict[str, Any] | None = None):
 
 
 def phases_of(config: RunConfig) -> list[Phase]:
-    """The configured methods as engine phases (name, steps, batch size)."""
+    """The configured methods as engine phases (name, steps, batch size).
+
+    A method configured alike is built once per process and shared: a method object holds
+    optax closures, so only the same object lets a study's seeds share one compiled step
+    (:mod:`physgrad.programs`). Methods are immutable, so sharing them is safe."""
     out = []
     for phase in config.phases:
-        try:
-            method = METHODS[phase.method](**phase.hyperparameters)
-        except (ValueError, TypeError) as e:
-            raise ConfigError(f"{phase.method}: {e}") from None
-        out.append(Phase(method, phase.steps, phase.batch_size, phase.method))
+        key = (phase.method, repr(sorted(phase.hyperparameters.items())))
+        if key not in _METHODS_BUILT:
+            try:
+                _METHODS_BUILT[key] = METHODS[phase.method](**phase.hyperparameters)
+            except (ValueError, TypeError) as e:
+                raise ConfigError(f"{phase.method}: {e}") from None
+            while len(_METHODS_BUILT) > 64:
+                _METHODS_BUILT.pop(next(iter(_METHODS_BUILT)))
+        out.append(Phase(_METHODS_BUILT[key], phase.steps, phase.batch_size, phase.method))
     return out
+
+
+_METHODS_BUILT: dict[tuple[str, str], Any] = {}  # the methods phases_of built, by name and settings
 
 
 def settings_of(config: RunConfig) -> TrainSettings:

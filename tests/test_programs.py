@@ -1,0 +1,97 @@
+"""Compile once: a study's seeds share one compiled step and evaluation (physgrad.programs)."""
+
+import jax
+import numpy as np
+import pytest
+
+from physgrad import Budget, study
+from physgrad.engine import initial_network
+from physgrad.problems import HigToy
+from physgrad.programs import ProgramCache, abstract_key, make_key, static_key
+
+
+class CompileCounter:
+    """Counts XLA backend compilations (JAX's public monitoring events) while active."""
+
+    def __init__(self):
+        self.count = 0
+        self.active = False
+        jax.monitoring.register_event_duration_secs_listener(self._event)
+
+    def _event(self, event, duration, **kwargs):
+        if self.active and event == "/jax/core/compile/backend_compile_duration":
+            self.count += 1
+
+    def __enter__(self):
+        self.count, self.active = 0, True
+        return self
+
+    def __exit__(self, *exc):
+        self.active = False
+
+
+@pytest.fixture(scope="module")
+def compiles():
+    return CompileCounter()
+
+
+def test_a_second_seed_of_a_study_compiles_nothing(tmp_path, compiles):
+    # lam = 0.37 appears in no other test: the first seed must compile its programs
+    settings = {"lam": 0.37, "eval_every": 2}
+    with compiles:
+        first = study.compare("hig_toy", ["adam", "hig"], [0], Budget(steps=4), tmp_path / "a", settings=settings,
+                              echo=lambda s: None)  # fmt: skip
+    assert compiles.count > 0 and all(r["status"] == "finished" for r in first)
+    with compiles:
+        second = study.compare("hig_toy", ["adam", "hig"], [1, 2], Budget(steps=4), tmp_path / "b", settings=settings,
+                               echo=lambda s: None)  # fmt: skip
+    assert compiles.count == 0
+    assert all(r["status"] == "finished" for r in second)
+    # the seeds differ in data and network, so their results do too
+    losses = {r["seed"]: r["final_test_loss"] for r in first + second if r["method"] == "adam"}
+    assert len(set(losses.values())) == 3
+    # another setting is another program
+    with compiles:
+        study.compare("hig_toy", ["adam"], [0], Budget(steps=4), tmp_path / "c", settings={**settings, "lr": 0.002},
+                      echo=lambda s: None)  # fmt: skip
+    assert compiles.count > 0
+
+
+def test_cached_step_gives_the_result_of_a_fresh_compile(tmp_path):
+    from physgrad import programs
+
+    settings = {"lam": 0.41, "eval_every": 3}
+    study.compare("hig_toy", ["hig"], [0], Budget(steps=3), tmp_path / "warm", settings=settings, echo=lambda s: None)
+    cached = study.compare("hig_toy", ["hig"], [1], Budget(steps=3), tmp_path / "a", settings=settings, echo=lambda s: None)
+    programs.STEPS.clear()
+    programs.EVALUATIONS.clear()
+    fresh = study.compare("hig_toy", ["hig"], [1], Budget(steps=3), tmp_path / "b", settings=settings, echo=lambda s: None)
+    assert cached[0]["final_test_loss"] == fresh[0]["final_test_loss"]
+
+
+def test_jitted_network_initialisation_equals_the_eager_one():
+    problem = HigToy()
+    key = jax.random.key(3)
+    data = problem.make_data(jax.random.key(0))
+    jitted, eager = initial_network(problem, key, data), problem.initial_network(key, data)
+    for a, b in zip(jax.tree.leaves(jitted), jax.tree.leaves(eager)):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-6, atol=1e-7)
+
+
+def test_program_cache_keys_and_eviction():
+    cache = ProgramCache(size=2)
+    built = []
+    build = lambda name: lambda: built.append(name) or name  # noqa: E731
+    assert cache.get("a", build("a")) == ("a", False)
+    assert cache.get("a", build("a2")) == ("a", True)
+    cache.get("b", build("b"))
+    cache.get("c", build("c"))  # evicts "a", the least recently used
+    assert cache.get("a", build("a3")) == ("a3", False)
+    assert cache.get(None, build("n")) == ("n", False) and cache.get(None, build("n2")) == ("n2", False)
+    assert built == ["a", "b", "c", "a3", "n", "n2"] and (cache.hits, cache.misses) == (1, 6)
+    # unhashable parts give no key; arrays are keyed by shape, dtype and sharding
+    assert make_key("x", [1, 2]) is None
+    x = jax.numpy.zeros((2, 3))
+    assert abstract_key({"a": x}) == abstract_key({"a": x + 1}) != abstract_key({"a": x[:1]})
+    with pytest.raises(TypeError):
+        static_key({"w": x})
