@@ -123,10 +123,21 @@ def _uses_primitive(jaxpr, name: str) -> bool:
     for eqn in jaxpr.eqns:
         if eqn.primitive.name == name:
             return True
-        for sub in jax_core.jaxprs_in_params(eqn.params):
+        for sub in _jaxprs_in_params(eqn.params):
             if _uses_primitive(sub, name):
                 return True
     return False
+
+
+def _jaxprs_in_params(params):
+    """The jaxprs among an equation's parameters (``jax.extend.core.jaxprs_in_params`` of
+    JAX >= 0.10, written out: the same walk works on every supported JAX)."""
+    for value in params.values():
+        for v in value if isinstance(value, tuple) else (value,):
+            if isinstance(v, jax_core.Jaxpr):
+                yield v
+            elif isinstance(v, jax_core.ClosedJaxpr):
+                yield v.jaxpr
 
 
 def forward_mode_error(what: str, alternative: str) -> ValueError:
