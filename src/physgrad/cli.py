@@ -96,6 +96,9 @@ def _add_budget(p):
 
 def build_parser() -> Parser:
     parser = Parser(prog="physgrad", description="Train networks through physics simulators with improved update rules.")
+    from . import __version__
+
+    parser.add_argument("--version", action="version", version=f"physgrad {__version__}")
     sub = parser.add_subparsers(dest="command", parser_class=Parser)
     sub.add_parser("list", help="problems and methods")
 
@@ -169,16 +172,19 @@ def _print_table(console: Console, lines: list[list[str]], title: str = ""):
 
 
 def cmd_list(args, console):
+    from .extras import method_extra, missing_note
     from .registry import METHODS, describe
     from .registry import PROBLEMS
 
     console.print("[bold]problems[/bold]")
     for name, cls in PROBLEMS.items():
-        console.print(f"  {name:<19} {cls.description}", markup=False)
+        note = missing_note(cls.extra)  # a problem whose optional extra is not installed
+        console.print(f"  {name:<19} {cls.description}" + (f" {note}" if note else ""), markup=False)
         console.print(f"  {'':<19} paper comparison: {', '.join(cls.default_methods)}", markup=False)
     console.print("[bold]methods[/bold]")
     for name in METHODS:
-        console.print(f"  {name:<19} {describe(name)}", markup=False)
+        note = missing_note(method_extra(name))
+        console.print(f"  {name:<19} {describe(name)}" + (f" {note}" if note else ""), markup=False)
     from .registry import optax_names
 
     console.print("[bold]optax optimizers on DP gradients[/bold] (hyperparameters by --set, learning_rate as lr)")

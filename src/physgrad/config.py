@@ -10,6 +10,7 @@ from typing import Any
 
 from .engine import UNGUARDED_SETTINGS, Budget
 from .errors import ConfigError
+from .extras import MissingExtra, require
 from .registry import METHODS, PROBLEMS, hyperparameters, is_optax_name, optax_method, paper_defaults
 
 # Training-engine settings, settable with --set like problem and method settings.
@@ -231,6 +232,7 @@ def make_config(
     be strings (from the command line) and are converted to the right type.
     """
     choose("problem", problem, PROBLEMS)
+    require(PROBLEMS[problem].extra, f"the {problem} problem")  # one line naming the missing extra
     stages = parse_method(method)
     names = [name for name, _ in stages]
     valid = valid_settings(problem, method)
@@ -265,6 +267,8 @@ def make_config(
         hyper = {k: stage_value(name, k, d, paper) for k, d in hyperparameters(name).items()}
         try:  # the method checks its own hyperparameters (e.g. route choices) on construction
             METHODS[name](**hyper)
+        except MissingExtra:
+            raise
         except (ValueError, TypeError) as e:
             raise ConfigError(str(e)) from None
         batch_size = stage_value(name, "batch_size", 0, paper)

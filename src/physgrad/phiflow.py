@@ -122,7 +122,9 @@ def import_phiflow():
                 flow = importlib.import_module("phi.jax.flow")
         except ImportError as error:
             _restore_jax_config(config)
-            raise ImportError(f"{INSTALL_HINT} ({error})") from error
+            from .extras import MissingExtra  # an ImportError and a ConfigError: one line from the CLI
+
+            raise MissingExtra(f"{INSTALL_HINT} ({error})") from error
         except BaseException:
             _restore_jax_config(config)
             raise

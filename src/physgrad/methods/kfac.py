@@ -102,9 +102,11 @@ EXACT_HESSIAN_MAX = 256  # dim y up to which ``auto`` forms the loss Hessian
 @functools.cache
 def _kfac_jax():
     """kfac-jax, imported on first use: importing it pulls in distrax/TFP, which add
-    warning filters (importing physgrad must not change global state)."""
-    import kfac_jax
+    warning filters (importing physgrad must not change global state). Without it: one line
+    naming the extra (:class:`physgrad.extras.MissingExtra`)."""
+    from ..extras import import_extra
 
+    kfac_jax = import_extra("kfac_jax", "kfac", "kfac")
     _patch_eval_jaxpr_eqn(kfac_jax.tag_graph_matcher)
     return kfac_jax
 
@@ -419,5 +421,8 @@ def kfac(
         l2_reg: weight decay coefficient known to the curvature (not added to the loss).
         seed: the PRNG seed of kfac-jax's curvature sampling.
     """
+    from ..extras import require
+
+    require("kfac", "kfac")  # kfac-jax is the optional extra physgrad[kfac]
     return KFAC(adaptive, lr, momentum, damping, adaptive_damping, min_damping, damping_interval, damping_decay,
                 curvature_ema, inverse_every, blocks, estimation, loss_hessian, exact_inverses, l2_reg, seed)  # fmt: skip

@@ -27,6 +27,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..extras import import_extra
 from ..precision import float64_scope
 from ..steppers import Repeated, Solver
 from .time_stepper import TimeStepperProblem, solver_rollout
@@ -57,6 +58,7 @@ class Advection1d(TimeStepperProblem):
     name: ClassVar[str] = "advection_1d"
     description: ClassVar[str] = "1D advection at CFL -0.75: a 2-tap linear stencil (trainax quick-start), PRDP smoke test"
     source: ClassVar[str] = "trainax README; List et al. 2025; Bhatia et al. ICLR 2025"
+    extra: ClassVar[str | None] = "pde"  # exponax (the reference)
     method_defaults: ClassVar[dict] = {name: {"lr": 1e-2, "batch_size": 32} for name in ("one", "nog", "wig", "adam")}
     default_eval_samples: ClassVar[int] = 0
 
@@ -73,7 +75,7 @@ class Advection1d(TimeStepperProblem):
     refinable_setting: ClassVar[str] = "iterations"  # what PRDP refines
 
     def reference(self):
-        import exponax as ex
+        ex = import_extra("exponax", "pde", "the advection_1d problem")
 
         return Repeated(ex.stepper.Advection(1, 1.0, self.n, 1.0, velocity=self.cfl / self.n))
 

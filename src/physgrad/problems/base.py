@@ -49,6 +49,7 @@ class AbstractProblem(eqx.Module):
     method_defaults: ClassVar[dict[str, dict[str, Any]]] = {}
     default_batch_size: ClassVar[int] = 128
     default_methods: ClassVar[tuple[str, ...]] = ("adam", "gn", "hig")
+    extra: ClassVar[str | None] = None  # the optional extra it needs (physgrad.extras), e.g. "pde"
 
     @abc.abstractmethod
     def make_data(self, key: PRNGKeyArray) -> dict[str, Sample]: ...

@@ -29,6 +29,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..extras import import_extra
 from ..nets import ConvResNet
 from ..precision import float64_scope
 from ..steppers import Repeated, single_precision, stack_solvers
@@ -42,6 +43,7 @@ class Kolmogorov(TimeStepperProblem):
     name: ClassVar[str] = "kolmogorov"
     description: ClassVar[str] = "2D Kolmogorov flow (vorticity): coarse ETDRK2 + conv ResNet vs a 4x finer reference, Re as input"
     source: ClassVar[str] = "List et al., CMAME 2025"
+    extra: ClassVar[str | None] = "pde"  # exponax
     method_defaults: ClassVar[dict] = {name: {"lr": 1e-4, "batch_size": 8} for name in ("one", "nog", "wig", "adam")}
     default_composition: ClassVar[str] = "bypass"
     default_eval_samples: ClassVar[int] = 64
@@ -66,7 +68,7 @@ class Kolmogorov(TimeStepperProblem):
         return TRAIN_RE + TEST_RE
 
     def _stepper(self, re: float, n: int, dt: float):
-        import exponax as ex
+        ex = import_extra("exponax", "pde", "the kolmogorov problem")
 
         return ex.stepper.KolmogorovFlowVorticity(
             2, 2 * math.pi, n, dt, diffusivity=1.0 / re, injection_mode=self.forcing_mode, drag=self.drag
@@ -84,7 +86,7 @@ class Kolmogorov(TimeStepperProblem):
             return self._generate(split)
 
     def _generate(self, split):
-        import exponax as ex
+        ex = import_extra("exponax", "pde", "the kolmogorov problem")
 
         fine, sub = self.n * self.refinement, self.refinement**2
         if split == "train":

@@ -31,6 +31,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..extras import import_extra
 from ..nets import ConvResNet
 from ..precision import float64_scope
 from ..steppers import Repeated, single_precision, stack_solvers
@@ -42,7 +43,7 @@ TEST_FACTORS = (0.85, 0.93, 1.15, 1.40)
 
 def ks_stepper(factor: float, n: int, dt: float, order: int):
     """exponax's conservative KS stepper on L = 2π·8·factor, undealiased (as the authors)."""
-    import exponax as ex
+    ex = import_extra("exponax", "pde", "the ks problem")
 
     return ex.stepper.KuramotoSivashinskyConservative(
         1, 2 * math.pi * 8 * factor, n, dt, order=order, dealiasing_fraction=1.0
@@ -53,6 +54,7 @@ class KuramotoSivashinsky(TimeStepperProblem):
     name: ClassVar[str] = "ks"
     description: ClassVar[str] = "Kuramoto-Sivashinsky N=48: ETD1 + conv ResNet vs ETRK2 reference, domain size as input"
     source: ClassVar[str] = "List et al., CMAME 2025"
+    extra: ClassVar[str | None] = "pde"  # exponax
     # Adam 1e-4 with ExponentialLR γ = 0.9 every 2000 iterations, batch 16 (the KS code)
     method_defaults: ClassVar[dict] = {
         name: {"lr": 1e-4, "decay": 0.9, "decay_every": 2000} for name in ("one", "nog", "wig")
