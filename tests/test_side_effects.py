@@ -304,3 +304,44 @@ def test_precision_helpers():
             back = cast_like(wide, x)
         assert not jax.config.jax_enable_x64
     assert jax.tree.map(lambda a: a.dtype, back) == jax.tree.map(lambda a: a.dtype, x)
+
+
+# --- lazy imports and figures ----------------------------------------------------------------
+def test_importing_physgrad_leaves_the_heavy_optional_packages_unimported(tmp_path):
+    """optimistix (the L-BFGS inverse), kfac-jax, exponax and pyplot are imported where they
+    are used, not by ``import physgrad`` or its command line."""
+    info = run_fresh(
+        """
+        import json, sys
+        import physgrad, physgrad.cli, physgrad.registry, physgrad.study, physgrad.bench
+        heavy = ("optimistix", "kfac_jax", "exponax", "matplotlib.pyplot", "phi", "phiml")
+        print(json.dumps({"imported": [m for m in heavy if m in sys.modules]}))
+        """,
+        tmp_path,
+    )
+    assert info["imported"] == []
+
+
+def test_figures_leave_the_matplotlib_backend_alone(tmp_path):
+    """The figures draw on their own Figure canvas: a notebook's backend (here: svg) stays,
+    and pyplot is never imported."""
+    info = run_fresh(
+        f"""
+        import json, sys
+        import matplotlib
+        matplotlib.use("svg")
+        from physgrad import bench, plots
+        rows = [{{"method": m, "seed": s, "split": "test", "metric": "loss", "wall_time": t, "value": v}}
+                for m in ("adam", "hig") for s in (0, 1) for t, v in ((0.0, 1.0), (1.0, 0.5 + s / 10))]
+        plots.loss_vs_time(rows, {str(tmp_path / "loss.png")!r}, order=["adam", "hig"])
+        cells = [({{"clip": c}}, [dict(r, epoch=int(r["wall_time"])) for r in rows]) for c in ("value", "norm")]
+        plots.grid_panels(cells, {str(tmp_path / "grid.png")!r}, panel="clip", methods=["adam", "hig"])
+        table = [{{"method": m, "status": "ok", "ratio": r, "diverged": 0, "failed": 0}} for m, r in (("adam", 1.0), ("hig", 0.1))]
+        bench.heatmap({{"p": table}}, {str(tmp_path / "heat.png")!r})
+        print(json.dumps({{"backend": matplotlib.get_backend(), "pyplot": "matplotlib.pyplot" in sys.modules}}))
+        """,
+        tmp_path,
+    )
+    assert info == {"backend": "svg", "pyplot": False}
+    for name in ("loss.png", "grid.png", "heat.png"):
+        assert (tmp_path / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"

@@ -63,6 +63,7 @@ import numpy as np
 from .config import (
     Budget, ConfigError, RunConfig, choose, make_config, parse_method, phase_methods, split_methods, valid_settings,
 )  # fmt: skip
+from .extras import MissingExtra
 from .registry import METHODS, PROBLEMS
 
 REFERENCE = "adam"  # the ratio column and the heat map are relative to this method
@@ -271,7 +272,11 @@ def applicability(problem: str, methods: Sequence[str], settings: dict[str, Any]
     objectives: dict[str, tuple] = {}  # the objective depends on the problem's settings only
     verdicts = []
     for method in methods:
-        config = make_config(problem, method, budget=Budget(steps=1), settings=problem_settings(problem, method, settings))
+        try:
+            config = make_config(problem, method, budget=Budget(steps=1), settings=problem_settings(problem, method, settings))
+        except MissingExtra as e:  # an optional extra is not installed: listed with the pip line
+            verdicts.append(Verdict(method, "skipped", _one_line(e)))
+            continue
         phases = phases_of(config)
         problem_obj = problem_of(config)
         cache_key = json.dumps([config.problem_settings, config.no_network], sort_keys=True, default=str)
@@ -624,10 +629,7 @@ def heatmap(tables: dict[str, Sequence[dict[str, Any]]], path: str | Path, *, ti
     diverged or failed). Cells whose runs all diverged or failed are grey, hatched and
     crossed; methods that do not apply (or were skipped, or have not run) are blank; ``n/a``:
     ran, but the reference has no result to compare with."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from matplotlib.figure import Figure  # its own canvas: no pyplot, no backend switch
     from matplotlib.patches import Rectangle
 
     problems = list(tables)
@@ -642,7 +644,8 @@ def heatmap(tables: dict[str, Sequence[dict[str, Any]]], path: str | Path, *, ti
                 values[i, j] = math.log10(min(max(t["ratio"], RATIO_CLIP[0]), RATIO_CLIP[1]))
     finite = values[np.isfinite(values)]
     limit = min(max(1.0, float(np.abs(finite).max()) if finite.size else 1.0), 4.0)  # beyond ±4: saturated
-    fig, ax = plt.subplots(figsize=(1.5 + 0.9 * max(len(problems), 1), 1.2 + 0.4 * max(len(methods), 1)), dpi=120)
+    fig = Figure(figsize=(1.5 + 0.9 * max(len(problems), 1), 1.2 + 0.4 * max(len(methods), 1)), dpi=120)
+    ax = fig.subplots()
     image = ax.imshow(np.ma.masked_invalid(values), cmap="RdBu_r", vmin=-limit, vmax=limit, aspect="auto")
     for i, m in enumerate(methods):
         for j, p in enumerate(problems):
@@ -669,7 +672,6 @@ def heatmap(tables: dict[str, Sequence[dict[str, Any]]], path: str | Path, *, ti
     fig.tight_layout()
     path = Path(path)
     fig.savefig(path)
-    plt.close(fig)
     return path
 
 

@@ -41,13 +41,12 @@ def loss_vs_time(
     and maximum; a single seed is drawn as its own curve. ``notes`` adds text to a method's
     legend entry (e.g. how many of its runs diverged; their curves end where they diverged).
     """
-    import matplotlib
+    from matplotlib import rcParams
+    from matplotlib.figure import Figure  # its own canvas: no pyplot, no backend switch
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(7, 4.5), dpi=120)
-    colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    fig = Figure(figsize=(7, 4.5), dpi=120)
+    ax = fig.subplots()
+    colours = rcParams["axes.prop_cycle"].by_key()["color"]
     for i, method in enumerate(order):
         curves = _curves(results, method, split, metric)
         if not curves:
@@ -72,7 +71,6 @@ def loss_vs_time(
     fig.tight_layout()
     path = Path(path)
     fig.savefig(path)
-    plt.close(fig)
     return path
 
 
@@ -102,17 +100,14 @@ def grid_panels(
     settings. Each line is the geometric mean over seeds (on the epochs all seeds reached),
     after a ``smooth``-point moving average left-padded with the first value (as the
     authors' plots). ``curves`` holds (cell, metric rows with an ``epoch`` field) per cell."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from matplotlib import rcParams
+    from matplotlib.figure import Figure  # its own canvas: no pyplot, no backend switch
 
     values = list(dict.fromkeys(cell[panel] for cell, _ in curves))
     others = list(dict.fromkeys(tuple((k, v) for k, v in cell.items() if k != panel) for cell, _ in curves))
-    colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
-    fig, axes = plt.subplots(
-        1, max(len(values), 1), figsize=(4.2 * max(len(values), 1), 3.8), dpi=120, squeeze=False, sharey=True
-    )
+    colours = rcParams["axes.prop_cycle"].by_key()["color"]
+    fig = Figure(figsize=(4.2 * max(len(values), 1), 3.8), dpi=120)
+    axes = fig.subplots(1, max(len(values), 1), squeeze=False, sharey=True)
     for ax, value in zip(axes[0], values):
         for cell, rows in curves:
             if cell[panel] != value:
@@ -148,5 +143,4 @@ def grid_panels(
     fig.tight_layout(rect=(0, 0.04 + 0.035 * math.ceil(len(labels) / 4), 1, 0.95))
     path = Path(path)
     fig.savefig(path)
-    plt.close(fig)
     return path

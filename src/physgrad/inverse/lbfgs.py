@@ -22,7 +22,6 @@ from __future__ import annotations
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import optimistix as optx
 
 from ..precision import float64_scope
 from .base import AbstractInverseSolver, InverseResult, all_finite, as_flat_real, flat_physics, half_squared_misfit
@@ -36,6 +35,8 @@ class LBFGS(AbstractInverseSolver):
     accept_last: bool = eqx.field(static=True, default=False)
 
     def __call__(self, simulate, x, y, y_target, sample):
+        import optimistix as optx  # here, not at module level: ~0.5 s that `import physgrad` need not pay
+
         x_in, y_target, sample = jax.lax.stop_gradient((x, y_target, sample))
         with float64_scope():
             forward, x_flat = flat_physics(simulate, x_in, sample)
