@@ -11,7 +11,7 @@ $(BIN)/python:
 	$(BIN)/python -m pip install --quiet --upgrade pip
 
 $(STAMP): $(BIN)/python pyproject.toml
-	$(BIN)/python -m pip install --quiet -e ".[test,dev,phiflow]"
+	$(BIN)/python -m pip install --quiet -e ".[all,test,dev]"
 	touch $(STAMP)
 
 install: $(STAMP)
@@ -38,5 +38,21 @@ typecheck: $(STAMP)
 bench: $(STAMP)
 	$(BIN)/python benchmarks/hig_step.py
 
+# The lowest versions pyproject.toml allows, pinned exactly (core and every extra): the suite
+# runs against them in a venv of its own, so the declared floors stay tested. A floor changes
+# here and in pyproject.toml together (tests/test_packaging.py checks that they agree).
+FLOORS := jax==0.8.2 jaxlib==0.8.2 equinox==0.13.2 jaxtyping==0.2.34 optax==0.2.5 optimistix==0.0.11 \
+          lineax==0.1.0 numpy==2.0.0 matplotlib==3.8.4 rich==13.0.0 scipy==1.13.0 \
+          kfac-jax==0.0.8 exponax==0.2.0 phiflow==3.4.0 phiml==1.16.0
+FLOORS_VENV ?= .venv-floors
+
+.PHONY: test-floors
+test-floors:
+	rm -rf $(FLOORS_VENV)
+	$(PYTHON) -m venv $(FLOORS_VENV)
+	$(FLOORS_VENV)/bin/python -m pip install --quiet --upgrade pip
+	$(FLOORS_VENV)/bin/python -m pip install --quiet -e ".[all,test]" $(FLOORS)
+	$(FLOORS_VENV)/bin/python -m pytest -n auto -m "not slow"
+
 clean:
-	rm -rf $(VENV) runs studies
+	rm -rf $(VENV) $(FLOORS_VENV) runs studies
