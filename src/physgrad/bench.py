@@ -60,7 +60,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from .config import (
+from .config import (  # isort: skip
     Budget, ConfigError, RunConfig, choose, make_config, parse_method, phase_methods, split_methods, valid_settings,
 )  # fmt: skip
 from .extras import MissingExtra
@@ -287,14 +287,15 @@ def applicability(problem: str, methods: Sequence[str], settings: dict[str, Any]
                     objectives[cache_key] = (n_train, size, problem_obj.objective(static))
                 n_train, size, objective = objectives[cache_key]
                 for phase in phases:
+                    batch_size = phase.batch_size
+                    assert batch_size is not None  # the config's, resolved
                     phase.method.check(objective)
-                    phase.method.check_batch_size(phase.batch_size)
-                    if n_train is not None and phase.batch_size > n_train:
-                        raise ValueError(f"batch_size {phase.batch_size} exceeds the {n_train} training samples")
-        except ValueError as e:  # the contract of check(): one line saying what to use instead
-            verdicts.append(Verdict(method, "not applicable", _one_line(e)))
-            continue
-        except ConfigError as e:  # e.g. SIP's solver resolution on a problem without an inverse
+                    phase.method.check_batch_size(batch_size)
+                    if n_train is not None and batch_size > n_train:
+                        raise ValueError(f"batch_size {batch_size} exceeds the {n_train} training samples")
+        # the contract of check(): one line saying what to use instead; ConfigError (a ValueError)
+        # e.g. for SIP's solver resolution on a problem without an inverse
+        except ValueError as e:
             verdicts.append(Verdict(method, "not applicable", _one_line(e)))
             continue
         except Exception as e:  # noqa: BLE001 — a check that crashed: a failure to report, not a crash
@@ -385,7 +386,7 @@ def run_problem(
         run_dir = out / "runs" / name
         prefix = f"{problem} [{i}/{len(configs)}] {config.method} seed {config.seed}"
         if is_complete(run_dir):
-            echo(f"{prefix}: done already ({read_summary(run_dir)['status']}), skipped")
+            echo(f"{prefix}: done already ({(read_summary(run_dir) or {}).get('status')}), skipped")
             continue
         try:
             summary = train(config, run_dir, resume=True, progress=progress() if progress else None, devices=devices)
@@ -584,7 +585,7 @@ def table_lines(table: Sequence[dict[str, Any]], reference: str = REFERENCE, ina
         if t["status"] == "ok":
             loss = f"{t['mean']:.3e} ± {t['std']:.1e}"
         else:
-            loss = {"diverged": "all diverged", "failed": "failed", "pending": "not run yet"}.get(t["status"], t["status"])
+            loss = {"diverged": "all diverged", "failed": "failed", "pending": "not run yet"}.get(t["status"], str(t["status"]))
         if t["method"] == best:
             test = "best"
         elif t.get("pairs"):
@@ -849,7 +850,7 @@ def bench_markdown(info: dict[str, Any], tables: dict[str, Sequence[dict[str, An
         f"- **Budget**: {budget_line}; seeds {', '.join(map(str, info['seeds']))}.",
         f"- **Problems**: {', '.join(info['problems'])}.",
         f"- **Candidate methods**: {', '.join(info['methods'])} (each problem runs those that apply).",
-        f"- **Settings** (`--set`; `problem.name` applies to that problem only): "
+        "- **Settings** (`--set`; `problem.name` applies to that problem only): "
         + (", ".join(f"`{k}={v}`" for k, v in settings.items()) if settings else "none (every problem and method at its paper defaults)"),
         f"- **Machine**: {m.get('cpu_count')} CPU cores ({m.get('usable_cpus')} usable by the process), "
         f"backend {m.get('backend')} ({m.get('device_kind')}; {len(m.get('devices', []))} device(s)), "
@@ -872,7 +873,7 @@ def bench_markdown(info: dict[str, Any], tables: dict[str, Sequence[dict[str, An
         "",
         markdown(board_lines(board)) if board else "(no runs yet)",
         "",
-        f"![method x problem heat map](heatmap.png)",
+        "![method x problem heat map](heatmap.png)",
         "",
         "Heat map: log10 of the ratio to Adam (blue: lower loss); † some seeds diverged or failed; hatched: every "
         "run diverged or failed; blank: not applicable, skipped or not run; n/a: Adam has no result. Ratios enter "

@@ -91,7 +91,7 @@ import jax
 import jax.numpy as jnp
 
 from ..nets import Dense
-from .base import AbstractMethod
+from .base import AbstractMethod, required
 
 BLOCKS = ("kfac", "full")
 ESTIMATIONS = ("ggn_curvature_prop", "ggn_exact")
@@ -124,9 +124,11 @@ def _patch_eval_jaxpr_eqn(tgm) -> None:
     if not isinstance(probe.primitive.get_bind_params(probe.params), dict):
         return  # the old convention: kfac-jax's own interpreter works
 
+    from jax.extend import source_info_util
+
     def eval_jaxpr_eqn(eqn, in_values):
         params = eqn.primitive.get_bind_params(eqn.params)
-        with jax.extend.source_info_util.user_context(eqn.source_info.traceback):
+        with source_info_util.user_context(eqn.source_info.traceback):
             output = eqn.primitive.bind(*in_values, **params)
         return output if isinstance(output, list) else [output]
 
@@ -191,7 +193,7 @@ def _graph_patterns():
     ours = tuple(
         tgm.GraphPattern(
             name=name, tag_primitive=kfac_jax.layers_and_loss_tags.layer_tag, compute_func=func,
-            parameters_extractor_func=_dense_parameters, example_args=[np.zeros((2, 3)), [np.zeros(s) for s in shapes]],
+            parameters_extractor_func=_dense_parameters, example_args=[np.zeros((2, 3)), [np.zeros(s) for s in shapes]],  # pyright: ignore[reportArgumentType]  # kfac-jax types them as JAX arrays; NumPy ones trace the same
         )  # fmt: skip
         for name, func, shapes in (
             ("equinox_dense_with_bias", _dense_with_bias, ((3, 4), (4,))),
@@ -307,7 +309,6 @@ class KFAC(AbstractMethod):
 
     # --- state ------------------------------------------------------------------------------
     def init(self, params):
-        kfac_jax = _kfac_jax()
         kparams = _default_float(_transpose_kernels(params))
         optimizer = self._optimizer(_stand_in)
         state = optimizer.init(kparams, jax.random.key(self.seed), jnp.zeros((2,)))
@@ -319,19 +320,20 @@ class KFAC(AbstractMethod):
             raise ValueError("kfac: the network has complex parameters, which kfac-jax does not support; use gn, hig or adam")
         # Checked on one sample before kfac-jax traces anything (a plain call: no JAX
         # boundary adds to the message when the step is called outside a jit).
-        y = objective.predict(params, jax.tree.map(lambda a: a[0], batch))
+        predict, loss = required(objective.predict, "predict"), required(objective.loss, "loss")
+        y = predict(params, jax.tree.map(lambda a: a[0], batch))
         if jnp.iscomplexobj(y):
             raise ValueError(f"kfac: the simulator output is complex ({y.dtype}) and kfac-jax's losses are real; "
                              "use gn, hig or adam")  # fmt: skip
 
         def func(kparams, batch):
-            y = jax.vmap(objective.predict, (None, 0))(_transpose_kernels(kparams), batch)
+            y = jax.vmap(predict, (None, 0))(_transpose_kernels(kparams), batch)
             z = _curvature_output(objective, y, batch, self.loss_hessian)
             # kfac-jax draws its curvature-sampling vectors in JAX's default float (float64
             # under x64): the registered output has that dtype, cast back along the graph.
             # kfac-jax's squared error is weight·‖z − z*‖² (Hessian 2·weight·I): weight ½.
             _kfac_jax().register_squared_error_loss(z.astype(jax.dtypes.canonicalize_dtype(jnp.float64)), weight=0.5)
-            return jnp.mean(jax.vmap(objective.loss)(y, batch))
+            return jnp.mean(jax.vmap(loss)(y, batch))
 
         kparams = _default_float(_transpose_kernels(params))
         optimizer = self._optimizer(func)
@@ -349,7 +351,7 @@ class KFAC(AbstractMethod):
             # any number with the right residue gives the same computation.
             n = self.damping_interval
             step_number = 2 * n - 1 if adapt_damping else 2 * n
-            new, new_state, stats = optimizer.step(kparams, kstate, rng, batch=batch, global_step_int=step_number,
+            new, new_state, stats = optimizer.step(kparams, kstate, rng, batch=batch, global_step_int=step_number,  # pyright: ignore[reportAssignmentType]  # 3 values: func has no state
                                                    **self._fixed())  # fmt: skip
             new_leaves = tuple(a.astype(b.dtype) for a, b in zip(jax.tree.leaves(new_state), state.kfac))
             picked = {k: jnp.asarray(stats[k], real) for k in ("loss", "learning_rate", "momentum", "damping", "rho")}

@@ -4,12 +4,15 @@ from __future__ import annotations
 
 import abc
 import dataclasses
-from typing import Any, ClassVar
+from typing import TYPE_CHECKING, Any, ClassVar
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 from jaxtyping import PRNGKeyArray, PyTree
+
+if TYPE_CHECKING:
+    from ..methods import Objective  # for the annotation; objective() imports it when called
 
 Sample = PyTree  # one data sample (unbatched); a batch is the same pytree with a leading axis
 
@@ -58,7 +61,7 @@ class AbstractProblem(eqx.Module):
     def make_network(self, key: PRNGKeyArray) -> eqx.Module: ...
 
     @abc.abstractmethod
-    def network_output(self, network: eqx.Module, sample: Sample) -> PyTree: ...
+    def network_output(self, network: PyTree, sample: Sample) -> PyTree: ...
 
     @abc.abstractmethod
     def simulate(self, x: PyTree, sample: Sample) -> jax.Array: ...
@@ -99,7 +102,7 @@ class AbstractProblem(eqx.Module):
         optimisation starts from the data's initial guesses)."""
         return self.make_network(key)
 
-    def objective(self, static: PyTree) -> "Objective":
+    def objective(self, static: PyTree) -> Objective:
         """The pieces the update rules use, as functions of the trainable parameters
         (the network's inexact arrays; ``static`` is the rest, ``eqx.partition``)."""
         from ..methods import Objective
