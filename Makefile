@@ -4,7 +4,7 @@ VENV   ?= .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: demo test lint format typecheck install bench clean
+.PHONY: demo test test-slow test-all lint format typecheck install bench clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -19,8 +19,19 @@ install: $(STAMP)
 demo: $(STAMP)
 	$(BIN)/physgrad demo
 
+# `make test`: every test but the slow tier, on every core (pytest-xdist), in under 10 minutes
+# on 2 cores; `make test-slow`: the end-to-end command-line studies and paper-size builds;
+# `make test-all`: both. CI (.ci/run) runs make test, then make test-slow.
+PYTEST := $(BIN)/python -m pytest -n auto --durations=20
+
 test: $(STAMP)
-	$(BIN)/python -m pytest
+	$(PYTEST) -m "not slow"
+
+test-slow: $(STAMP)
+	$(PYTEST) -m slow
+
+test-all: $(STAMP)
+	$(PYTEST)
 
 lint: $(STAMP)
 	$(BIN)/ruff check src tests

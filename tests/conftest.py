@@ -2,7 +2,19 @@ import os
 
 # Four CPU devices for the data-parallel tests (test_distributed.py); set before JAX
 # starts. Every other test runs on device 0 alone, as before.
-os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=4").strip()
+#
+# One thread per test process: `make test` runs one pytest-xdist worker per core, and a
+# worker whose XLA and OpenBLAS thread pools each want every core oversubscribes the
+# machine (the float64 eigh of the Jacobian methods collapses by 10-50x when the pools
+# contend). Set before NumPy, SciPy and JAX load their thread pools; a value the caller
+# sets wins.
+for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
+_flags = os.environ.get("XLA_FLAGS", "")
+_flags += " --xla_force_host_platform_device_count=4"
+if "multi_thread_eigen" not in _flags:
+    _flags += " --xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1"
+os.environ["XLA_FLAGS"] = _flags.strip()
 
 import jax  # noqa: E402
 

@@ -12,39 +12,68 @@ from physgrad.problems import HigToy
 from physgrad.registry import METHODS, PROBLEMS
 from physgrad.train import build
 
-# The time-stepper problems generate their data; these keep it to seconds (the paper sizes
-# are exercised by the reproduction runs, not by the tests).
+# The contract is a property of the code, not of the size: each problem is built at the
+# smallest size that exercises every piece (data, network, loss, target), in seconds. The
+# paper sizes are built by the slow tier (test_registered_problem_contract_at_paper_size)
+# and exercised by the reproduction runs.
 SMALL_DATA = {
     "ks": {"frames": "40", "warmup_frames": "20", "n_ics": "1", "n_test": "1", "long_horizon": "12",
-           "dataset_fraction": "1.0"},
+           "dataset_fraction": "1.0", "width": "8", "blocks": "2"},
     "kolmogorov": {"n": "16", "refinement": "2", "forcing_mode": "4", "frames": "10", "warmup_frames": "10",
-                   "n_test": "1", "long_horizon": "12"},
+                   "n_test": "1", "long_horizon": "12", "width": "8", "blocks": "2"},
     "advection_1d": {"n_train": "4", "n_test": "2", "horizon": "16"},
+    "heat": {"resolution": "16", "levels": "2", "filters": "4", "n_train": "8", "n_test": "8"},
+    "poisson": {"resolution": "16", "levels": "2", "filters": "4", "n_train": "8", "n_test": "8"},
+    "navier_stokes": {"resolution": "16", "size": "32.0", "box": "14.0", "swirl_sigma": "5.0", "falloff": "20.0",
+                      "levels": "3", "filters": "4", "n_train": "8", "n_test": "4"},
+    "quantum_dipole": {"n_train": "8", "n_test": "8", "n_steps": "48"},
+    "poisson_hig": {"n_train": "32", "n_test": "32"},
+    "quantum_control": {"n_train": "8", "n_test": "8", "n_steps": "16"},
+    "cartpole": {"n_train": "8", "n_test": "8", "n_steps": "20"},
+    "guidance": {"n_train": "8", "n_test": "8", "n_steps": "12"},
 }  # fmt: skip
+# What the slow tier builds at the paper's size (the rest are small at the paper's size too).
+PAPER_SIZE = ["heat", "kolmogorov", "ks", "navier_stokes", "poisson"]
+
+
+def check_contract(name, settings):
+    cls = PROBLEMS[name]
+    assert cls.name == name and cls.description and cls.source and cls.__doc__
+    for method in cls.default_methods:
+        assert set(phase_methods(method)) <= set(METHODS)
+    b = str(min(8, cls.default_batch_size))  # toy2d optimises one x
+    setup = build(make_config(name, "hig", budget=Budget(steps=1), settings={**settings, "batch_size": b}))
+    batch = jax.tree.map(lambda a: a[: int(b)], setup.data["train"])
+    losses = jax.jit(setup.objective.sample_losses)(setup.params, batch)
+    assert losses.shape == (int(b),) and bool(jnp.all(jnp.isfinite(losses)))
+    sample = jax.tree.map(lambda a: a[0], batch)
+    if setup.objective.target is not None:  # SIP's y-space target has the simulator's shape
+        y = jax.jit(setup.objective.predict)(setup.params, sample)
+        assert setup.objective.target(sample).shape == y.shape
+        assert float(setup.objective.loss(setup.objective.target(sample), sample)) == 0.0
+    # the same seed gives the same data and network
+    again = build(make_config(name, "hig", budget=Budget(steps=1), settings={**settings, "batch_size": b}))
+    for a, b in zip(jax.tree.leaves((setup.data, setup.params)), jax.tree.leaves((again.data, again.params))):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
 
 
 @pytest.mark.parametrize("name", sorted(PROBLEMS))
 def test_registered_problem_contract(name, tmp_path, monkeypatch):
     monkeypatch.setenv("PHYSGRAD_CACHE", str(tmp_path))
     cls = PROBLEMS[name]
-    assert cls.name == name and cls.description and cls.source and cls.__doc__
-    for method in cls.default_methods:
-        assert set(phase_methods(method)) <= set(METHODS)
     small = SMALL_DATA.get(name) or {k: "32" for k in ("n_train", "n_test") if k in cls.settings()}
-    b = str(min(8, cls.default_batch_size))  # toy2d optimises one x
-    setup = build(make_config(name, "hig", budget=Budget(steps=1), settings={**small, "batch_size": b}))
-    batch = jax.tree.map(lambda a: a[: int(b)], setup.data["train"])
-    losses = setup.objective.sample_losses(setup.params, batch)
-    assert losses.shape == (int(b),) and bool(jnp.all(jnp.isfinite(losses)))
-    sample = jax.tree.map(lambda a: a[0], batch)
-    if setup.objective.target is not None:  # SIP's y-space target has the simulator's shape
-        y = setup.objective.predict(setup.params, sample)
-        assert setup.objective.target(sample).shape == y.shape
-        assert float(setup.objective.loss(setup.objective.target(sample), sample)) == 0.0
-    # the same seed gives the same data and network
-    again = build(make_config(name, "hig", budget=Budget(steps=1), settings={**small, "batch_size": b}))
-    for a, b in zip(jax.tree.leaves((setup.data, setup.params)), jax.tree.leaves((again.data, again.params))):
-        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    check_contract(name, small)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", PAPER_SIZE)
+def test_registered_problem_contract_at_paper_size(name, tmp_path, monkeypatch):
+    """The paper's grid and network; only the data set's length kept short."""
+    monkeypatch.setenv("PHYSGRAD_CACHE", str(tmp_path))
+    lengths = {"ks": ["frames", "warmup_frames", "n_ics", "n_test", "long_horizon", "dataset_fraction"],
+               "kolmogorov": ["frames", "warmup_frames", "n_test", "long_horizon"]}  # fmt: skip
+    keep = lengths.get(name, ["n_train", "n_test"])
+    check_contract(name, {k: v for k, v in SMALL_DATA[name].items() if k in keep})
 
 
 @pytest.mark.parametrize("lam", [1.0, 0.01])

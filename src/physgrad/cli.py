@@ -20,8 +20,10 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import sys
 from pathlib import Path
+from typing import Any
 
 from rich.console import Console
 from rich.table import Table
@@ -57,7 +59,7 @@ class Parser(argparse.ArgumentParser):
 def _budget(args):
     from .config import Budget
 
-    given = {k: getattr(args, k) for k in ("steps", "epochs", "seconds") if getattr(args, k) is not None}
+    given: dict[str, Any] = {k: getattr(args, k) for k in ("steps", "epochs", "seconds") if getattr(args, k) is not None}
     if not given:
         given = {"seconds": DEFAULT_SECONDS}
     if len(given) > 1:
@@ -92,6 +94,13 @@ def _add_budget(p):
                    help="direct optimisation: optimise x itself for each test sample (no network)")
     p.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
                    help="a problem setting, method hyperparameter or training setting; repeatable")  # fmt: skip
+    _add_compilation_cache(p)
+
+
+def _add_compilation_cache(p):
+    p.add_argument("--compilation-cache", metavar="DIR", default=None,
+                   help="keep compiled steps in JAX's persistent cache in DIR, so that a repeated study or a "
+                        "resumed run does not compile them again (default: $PHYSGRAD_COMPILATION_CACHE, else off)")  # fmt: skip
 
 
 def build_parser() -> Parser:
@@ -159,6 +168,7 @@ def build_parser() -> Parser:
     p = sub.add_parser("demo", help="adam vs gn vs hig on the oscillators in about two minutes")
     p.add_argument("--out", default="studies/demo")
     p.add_argument("--seconds", type=float, default=DEMO["seconds"], help="training seconds per method")
+    _add_compilation_cache(p)
     return parser
 
 
@@ -173,8 +183,7 @@ def _print_table(console: Console, lines: list[list[str]], title: str = ""):
 
 def cmd_list(args, console):
     from .extras import method_extra, missing_note
-    from .registry import METHODS, describe
-    from .registry import PROBLEMS
+    from .registry import METHODS, PROBLEMS, describe
 
     console.print("[bold]problems[/bold]")
     for name, cls in PROBLEMS.items():
@@ -415,6 +424,11 @@ def main(argv=None) -> int:
         if args.command is None:
             build_parser().print_help()
             return 2
+        cache = getattr(args, "compilation_cache", None) or os.environ.get("PHYSGRAD_COMPILATION_CACHE")
+        if cache and args.command != "list":
+            from .programs import use_compilation_cache
+
+            use_compilation_cache(cache)
         return COMMANDS[args.command](args, console)
     except (UsageError, ConfigError) as e:
         err.print(f"physgrad: error: {e}", markup=False, highlight=False, soft_wrap=True)
