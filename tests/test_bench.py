@@ -72,7 +72,9 @@ def fake_study():
     ]
     v = lambda *names: [Verdict(n, "applicable") for n in names]  # noqa: E731
     t1 = method_rows(p1, v("adam", "hig", "sgd") + [Verdict("bptt", "not applicable", "no rollout")])
-    t2 = method_rows(p2, v("adam", "hig", "sgd"), failures={"hig-seed0-x": {"method": "hig", "seed": 0, "error": "refused"}})
+    t2 = method_rows(
+        p2, v("adam", "hig", "sgd"), failures={"hig-seed0-x": {"method": "hig", "seed": 0, "error": "refused"}}
+    )
     return {"p1": t1, "p2": t2}
 
 
@@ -93,7 +95,9 @@ def test_ranks_ratios_and_leaderboard_against_hand_computed_numbers():
     assert board["hig"]["geomean_ratio"] == 0.5 and board["hig"]["ratio_problems"] == 1  # p2 failed: no ratio
     assert board["adam"]["geomean_ratio"] == 1.0
     tables["p2"][2]["ratio"] = 0.0  # a loss of exactly 0: clipped in the logarithm, not -inf
-    assert {b["method"]: b for b in leaderboard(tables)}["sgd"]["geomean_ratio"] == pytest.approx(math.sqrt(0.05 * 1e-6))
+    assert {b["method"]: b for b in leaderboard(tables)}["sgd"]["geomean_ratio"] == pytest.approx(
+        math.sqrt(0.05 * 1e-6)
+    )
     assert (board["hig"]["wins"], board["sgd"]["wins"], board["adam"]["wins"]) == (1, 1, 0)
     assert (board["sgd"]["divergences"], board["hig"]["failures"], board["hig"]["problems"]) == (1, 1, 2)
     assert "bptt" not in board  # never applicable: not on the leaderboard
@@ -156,7 +160,12 @@ def test_bench_cli_end_to_end_and_resume(tmp_path, capsys):
     assert table["adam"]["rank"] == "1" and float(table["adam"]["ratio_to_adam"]) == 1.0
     assert table["bptt"]["status"] == "not applicable"
     board = {r["method"]: r for r in rows(out / "leaderboard.csv")}
-    assert board["sgd"]["divergences"] == "1" and board["sgd"]["runs"] == "2" and board["adam"]["problems"] == "2" and "bptt" not in board
+    assert (
+        board["sgd"]["divergences"] == "1"
+        and board["sgd"]["runs"] == "2"
+        and board["adam"]["problems"] == "2"
+        and "bptt" not in board
+    )
     markdown = (out / "bench.md").read_text()
     assert "3 training steps per run" in markdown and "CPU cores" in markdown and "JAX" in markdown
     assert "Wilcoxon" in markdown and "physgrad bench --seconds 600 --seeds 5" in markdown

@@ -31,13 +31,28 @@ def params_of(run_dir):
 def test_list(capsys):
     assert main(["list"]) == 0
     out = capsys.readouterr().out
-    for name in ("oscillators", "hig_toy", "adam", "sgd", "rmsprop", "adagrad", "adadelta", "gn", "hig", "lm", "optax:lion", "optax.contrib:muon"):
+    for name in (
+        "oscillators",
+        "hig_toy",
+        "adam",
+        "sgd",
+        "rmsprop",
+        "adagrad",
+        "adadelta",
+        "gn",
+        "hig",
+        "lm",
+        "optax:lion",
+        "optax.contrib:muon",
+    ):
         assert name in out
 
 
 def test_train_writes_every_documented_file(tmp_path, capsys):
     out = tmp_path / "run"
-    assert main(["train", "hig_toy", "--method", "hig", "--steps", "6", "--set", "eval_every=2", "--out", str(out)]) == 0
+    assert (
+        main(["train", "hig_toy", "--method", "hig", "--steps", "6", "--set", "eval_every=2", "--out", str(out)]) == 0
+    )
     for name in RUN_FILES:
         assert (out / name).exists(), name
     metrics = rows(out / "metrics.csv")
@@ -47,9 +62,18 @@ def test_train_writes_every_documented_file(tmp_path, capsys):
     assert {r["split"] for r in metrics} == {"train", "test"}
     summary = json.loads((out / "summary.json").read_text())
     assert summary["status"] == "finished" and summary["steps"] == 6
-    assert summary["final_test_loss"] == pytest.approx(float([r for r in metrics if r["step"] == "6" and r["split"] == "test" and r["metric"] == "loss"][0]["value"]))
+    assert summary["final_test_loss"] == pytest.approx(
+        float([r for r in metrics if r["step"] == "6" and r["split"] == "test" and r["metric"] == "loss"][0]["value"])
+    )
     config = json.loads((out / "config.json").read_text())
-    assert config["phases"] == [{"method": "hig", "hyperparameters": {"lr": 1.0, "truncation": 1e-6, "route": "auto", "blocks": 8, "lanczos_steps": 64}, "batch_size": 256, "steps": None}]
+    assert config["phases"] == [
+        {
+            "method": "hig",
+            "hyperparameters": {"lr": 1.0, "truncation": 1e-6, "route": "auto", "blocks": 8, "lanczos_steps": 64},
+            "batch_size": 256,
+            "steps": None,
+        }
+    ]
     assert config["budget"] == {"steps": 6}
     assert json.loads((out / "env.json").read_text())["versions"]["jax"]
     # an existing run directory is not overwritten silently
@@ -77,7 +101,9 @@ def test_resume_after_interrupt_matches_uninterrupted_run(tmp_path):
     np.testing.assert_array_equal(params_of(tmp_path / "cut"), params_of(tmp_path / "whole"))
     assert resumed["final_test_loss"] == whole["final_test_loss"]
     # metrics: no duplicated rows across the interruption
-    steps = [int(r["step"]) for r in rows(tmp_path / "cut" / "metrics.csv") if r["split"] == "test" and r["metric"] == "loss"]
+    steps = [
+        int(r["step"]) for r in rows(tmp_path / "cut" / "metrics.csv") if r["split"] == "test" and r["metric"] == "loss"
+    ]
     assert steps == [0, 4, 8, 12]
 
 
@@ -127,18 +153,45 @@ def test_diverged_run_is_recorded_and_the_study_goes_on(tmp_path, capsys):
 @pytest.mark.parametrize(
     "argv,message",
     [
-        (["train", "nope", "--method", "adam"], "unknown problem 'nope'; valid choices: advection_1d, cartpole, exp_inverse, guidance, heat, hig_toy, kolmogorov, ks, linear_oscillators, navier_stokes, oscillators, poisson, poisson_hig, quantum_control, quantum_dipole, sine, toy2d"),
-        (["train", "sine", "--method", "sip", "--set", "solver=magic", "--steps", "1"], "unknown inverse solver 'magic'; valid choices: auto, analytic"),
-        (["train", "sine", "--method", "sip", "--set", "solver=analytic", "--steps", "1"], "sip on sine: this problem has no analytic inverse; valid choices: gauss_newton"),
-        (["train", "quantum_dipole", "--method", "sip", "--steps", "1"], "sip on quantum_dipole: sip needs a problem with a y-space target"),
-        (["train", "sine", "--method", "sip", "--set", "proxy=l3", "--steps", "1"], "unknown proxy 'l3'; valid choices: l2, l1"),
+        (
+            ["train", "nope", "--method", "adam"],
+            "unknown problem 'nope'; valid choices: advection_1d, cartpole, exp_inverse, guidance, heat, hig_toy, kolmogorov, ks, linear_oscillators, navier_stokes, oscillators, poisson, poisson_hig, quantum_control, quantum_dipole, sine, toy2d",
+        ),
+        (
+            ["train", "sine", "--method", "sip", "--set", "solver=magic", "--steps", "1"],
+            "unknown inverse solver 'magic'; valid choices: auto, analytic",
+        ),
+        (
+            ["train", "sine", "--method", "sip", "--set", "solver=analytic", "--steps", "1"],
+            "sip on sine: this problem has no analytic inverse; valid choices: gauss_newton",
+        ),
+        (
+            ["train", "quantum_dipole", "--method", "sip", "--steps", "1"],
+            "sip on quantum_dipole: sip needs a problem with a y-space target",
+        ),
+        (
+            ["train", "sine", "--method", "sip", "--set", "proxy=l3", "--steps", "1"],
+            "unknown proxy 'l3'; valid choices: l2, l1",
+        ),
         (["train", "hig_toy", "--method", "nope"], "unknown method 'nope'; valid choices:"),
-        (["train", "hig_toy", "--method", "adam", "--set", "nope=1"], "unknown setting 'nope' for hig_toy/adam; valid choices:"),
+        (
+            ["train", "hig_toy", "--method", "adam", "--set", "nope=1"],
+            "unknown setting 'nope' for hig_toy/adam; valid choices:",
+        ),
         (["train", "hig_toy", "--method", "adam", "--set", "lr=fast"], "setting 'lr' expects a number, got 'fast'"),
-        (["train", "hig_toy", "--method", "hig", "--set", "route=qr", "--steps", "1"], "unknown route 'qr'; valid choices"),
-        (["train", "hig_toy", "--method", "adam", "--set", "batch_size=1e3"], "setting 'batch_size' expects an integer"),
+        (
+            ["train", "hig_toy", "--method", "hig", "--set", "route=qr", "--steps", "1"],
+            "unknown route 'qr'; valid choices",
+        ),
+        (
+            ["train", "hig_toy", "--method", "adam", "--set", "batch_size=1e3"],
+            "setting 'batch_size' expects an integer",
+        ),
         (["train", "hig_toy", "--method", "adam", "--set", "shuffle=maybe"], "setting 'shuffle' expects true or false"),
-        (["train", "hig_toy", "--method", "adam", "--set", "batch_size=4096", "--steps", "1"], "batch_size 4096 exceeds the 1024 training samples"),
+        (
+            ["train", "hig_toy", "--method", "adam", "--set", "batch_size=4096", "--steps", "1"],
+            "batch_size 4096 exceeds the 1024 training samples",
+        ),
         (["compare", "nope"], "unknown problem 'nope'"),
         (["compare", "hig_toy", "--methods", "adam,nope"], "unknown method 'nope'"),
         (["compare", "hig_toy", "--set", "nope=1"], "unknown setting 'nope' for hig_toy; valid choices:"),
@@ -158,7 +211,9 @@ def test_bad_input_is_one_line_exit_2(argv, message, capsys, tmp_path):
 def test_console_script_and_module_entry_points():
     listed = subprocess.run([sys.executable, "-m", "physgrad", "list"], capture_output=True, text=True)
     assert listed.returncode == 0 and "oscillators" in listed.stdout
-    bad = subprocess.run([sys.executable, "-m", "physgrad", "train", "nope", "--method", "hig"], capture_output=True, text=True)
+    bad = subprocess.run(
+        [sys.executable, "-m", "physgrad", "train", "nope", "--method", "hig"], capture_output=True, text=True
+    )
     assert bad.returncode == 2 and bad.stderr.strip().count("\n") == 0 and "valid choices" in bad.stderr
 
 

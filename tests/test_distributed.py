@@ -52,7 +52,9 @@ def problem_for(method):
     # This tiny ReLU net's J has singular values down to 1e-10 σ_max: with τ = 1e-6 the
     # filter of the smallest kept ones (σ^κ; for lm σ/(σ² + λ) on ill-determined singular
     # vectors) amplifies rounding differences beyond float64's reordered-sum level.
-    extra = {"truncation": "1e-3"} if method in ("gn", "hig", "lm") else {"damping": "10.0"} if method == "newton" else {}
+    extra = (
+        {"truncation": "1e-3"} if method in ("gn", "hig", "lm") else {"damping": "10.0"} if method == "newton" else {}
+    )
     return "oscillators", {**OSC, **extra}
 
 
@@ -138,12 +140,16 @@ def test_sharded_gram_route_equals_numpy_svd(shape, exponent):
     spec = PartitionSpec("data")
     route = functools.partial(sharded_gram_route, axis="data", devices=DEVICES, exponent=exponent, truncation=1e-5)
     with use_mesh(mesh):
-        got = jax.jit(jax.shard_map(route, in_specs=(spec, spec), out_specs=PartitionSpec()))(jnp.asarray(jac), jnp.asarray(g))
+        got = jax.jit(jax.shard_map(route, in_specs=(spec, spec), out_specs=PartitionSpec()))(
+            jnp.asarray(jac), jnp.asarray(g)
+        )
     np.testing.assert_allclose(np.asarray(got), want, rtol=1e-7, atol=1e-9 * np.abs(want).max())
 
 
 def hig_pieces(batch_size=32):
-    setup = build(make_config("oscillators", "hig", budget=Budget(steps=1), settings={**OSC, "batch_size": str(batch_size)}))
+    setup = build(
+        make_config("oscillators", "hig", budget=Budget(steps=1), settings={**OSC, "batch_size": str(batch_size)})
+    )
     batch = jax.tree.map(lambda a: a[:batch_size], setup.data["train"])
     jac, g, _ = jacobian_and_gradient(setup.objective, setup.params, batch, 1)
     return setup, batch, np.asarray(jac), np.asarray(g)
@@ -156,9 +162,7 @@ def test_blockgram_route_equals_the_gram_route_without_forming_j():
     want = np.asarray(half_inverse(jnp.asarray(jac), jnp.asarray(g), route="gram", truncation=1e-3))
     for blocks in (1, 4, 32):
         route = functools.partial(blockgram_half_inverse, setup.objective.predict, blocks=blocks, truncation=1e-3)
-        got = jax.jit(route)(
-            setup.params, batch, jnp.asarray(g)
-        )
+        got = jax.jit(route)(setup.params, batch, jnp.asarray(g))
         np.testing.assert_allclose(np.asarray(got), want, rtol=1e-8, atol=1e-10 * np.abs(want).max())
     with pytest.raises(ValueError, match="must divide"):
         blockgram_half_inverse(setup.objective.predict, setup.params, batch, jnp.asarray(g), blocks=5)
@@ -206,7 +210,9 @@ def test_lanczos_and_blockgram_inside_the_hig_method_match_the_gram_route():
     steps = {}
     for route in ("gram", "blockgram", "lanczos"):
         method = METHODS["hig"](route=route, blocks=2, lanczos_steps=m, truncation=1e-3)
-        params, _, stats = jax.jit(method.step, static_argnums=0)(setup.objective, setup.params, method.init(setup.params), batch)
+        params, _, stats = jax.jit(method.step, static_argnums=0)(
+            setup.objective, setup.params, method.init(setup.params), batch
+        )
         steps[route] = (ravel_pytree(params)[0], stats)
     ref = np.asarray(steps["gram"][0])
     np.testing.assert_allclose(np.asarray(steps["blockgram"][0]), ref, rtol=1e-9)
@@ -249,13 +255,29 @@ def test_two_process_loopback_run_matches_a_single_process_run(tmp_path):
             *[f"--set={k}={v}" for k, v in OSC.items()], "--set=eval_every=4", "--set=truncation=1e-3"]  # fmt: skip
     env = {**os.environ, "XLA_FLAGS": "--xla_force_host_platform_device_count=1", "JAX_PLATFORMS": "cpu"}
     run = [sys.executable, "-m", "physgrad", "train", *args]
-    single = subprocess.run([*run, "--out", str(tmp_path / "single")], env=env, capture_output=True, text=True, timeout=300)
+    single = subprocess.run(
+        [*run, "--out", str(tmp_path / "single")], env=env, capture_output=True, text=True, timeout=300
+    )
     assert single.returncode == 0, single.stderr
     port = free_port()
     procs = [
-        subprocess.Popen([*run, "--out", str(tmp_path / "pair"), "--coordinator", f"127.0.0.1:{port}",
-                          "--num-processes", "2", "--process-id", str(i)],
-                         env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)  # fmt: skip
+        subprocess.Popen(
+            [
+                *run,
+                "--out",
+                str(tmp_path / "pair"),
+                "--coordinator",
+                f"127.0.0.1:{port}",
+                "--num-processes",
+                "2",
+                "--process-id",
+                str(i),
+            ],
+            env=env,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )  # fmt: skip
         for i in range(2)
     ]
     outs = [p.communicate(timeout=300) for p in procs]
@@ -269,7 +291,9 @@ def test_two_process_loopback_run_matches_a_single_process_run(tmp_path):
     cases_a, cases_b = (json.loads((tmp_path / d / "test_cases.json").read_text()) for d in ("single", "pair"))
     assert len(cases_b["loss"]) == len(cases_a["loss"]) == int(OSC["n_test"])  # every case, not one process's share
     np.testing.assert_allclose(cases_b["loss"], cases_a["loss"], rtol=1e-9)
-    theta_a, theta_b = (ravel_pytree(eqx.filter(load_network(tmp_path / d), eqx.is_inexact_array))[0] for d in ("single", "pair"))
+    theta_a, theta_b = (
+        ravel_pytree(eqx.filter(load_network(tmp_path / d), eqx.is_inexact_array))[0] for d in ("single", "pair")
+    )
     np.testing.assert_allclose(np.asarray(theta_b), np.asarray(theta_a), rtol=1e-6, atol=1e-9)
 
 
@@ -280,11 +304,13 @@ def test_cli_device_errors_are_one_line_with_exit_2(capsys, tmp_path):
     assert main([*base, "--devices", "many"]) == 2
     assert main([*base, "--coordinator", "127.0.0.1:1"]) == 2
     assert main([*base, "--devices", "99"]) == 2
-    assert main([*base, "--set", "batch_size=6", "--set", "n_train=64", "--devices", str(min(jax.device_count(), 4))]) == (
-        2 if jax.device_count() >= 4 else 0
-    )
+    assert main(
+        [*base, "--set", "batch_size=6", "--set", "n_train=64", "--devices", str(min(jax.device_count(), 4))]
+    ) == (2 if jax.device_count() >= 4 else 0)
     err = capsys.readouterr().err.strip().splitlines()
-    assert all(line.startswith("physgrad: error: ") for line in err) and len(err) == (4 if jax.device_count() >= 4 else 3)
+    assert all(line.startswith("physgrad: error: ") for line in err) and len(err) == (
+        4 if jax.device_count() >= 4 else 3
+    )
     assert "needs all of --coordinator, --num-processes and --process-id" in err[1]
 
 

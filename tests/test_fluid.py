@@ -88,10 +88,14 @@ def test_uniform_field_and_integer_shift_are_exact():
     np.testing.assert_array_equal(np.asarray(shifted), np.asarray(jnp.roll(m, (1, -2), (0, 1))))
     # a uniform field stays uniform under any velocity
     swirling = fluid.project(random_velocity(jax.random.key(5), n, 6.0), dx)[0]
-    uniform = jax.jit(fluid.mac_cormack, static_argnums=(1, 3, 4))(jnp.full((n, n), 0.7), fluid.CENTRED, swirling, dt, dx)
+    uniform = jax.jit(fluid.mac_cormack, static_argnums=(1, 3, 4))(
+        jnp.full((n, n), 0.7), fluid.CENTRED, swirling, dt, dx
+    )
     np.testing.assert_allclose(np.asarray(uniform), 0.7, rtol=1e-6)
     # a uniform velocity advects itself unchanged, and one full step keeps it
-    assert np.array_equal(np.asarray(jax.jit(fluid.advect_velocity, static_argnums=(1, 2))(velocity, dt, dx)), np.asarray(velocity))
+    assert np.array_equal(
+        np.asarray(jax.jit(fluid.advect_velocity, static_argnums=(1, 2))(velocity, dt, dx)), np.asarray(velocity)
+    )
     marker, v_new, _ = jax.jit(fluid.step, static_argnums=(3, 4))(m, velocity, jnp.zeros((n, n)), dt, dx)
     np.testing.assert_allclose(np.asarray(v_new), np.asarray(velocity), rtol=1e-6)
     np.testing.assert_array_equal(np.asarray(marker), np.asarray(shifted))
@@ -134,7 +138,9 @@ def test_step_keeps_energy_and_incompressibility():
     assert np.all(np.isfinite(np.asarray(zero))) and float(jnp.abs(zero).max()) == 0.0
 
 
-@pytest.mark.parametrize("solver,steps", [(fluid.FFTProjection(), 3), (fluid.CGProjection(atol=1e-10), 1)], ids=["fft", "cg"])
+@pytest.mark.parametrize(
+    "solver,steps", [(fluid.FFTProjection(), 3), (fluid.CGProjection(atol=1e-10), 1)], ids=["fft", "cg"]
+)
 def test_rollout_derivatives_match_finite_differences(solver, steps):
     """Forward (jvp) and reverse (grad) mode of a short rollout against central differences."""
     n, dx, dt = 12, 2.0, 0.25

@@ -81,7 +81,9 @@ def test_saddle_free_newton_equals_the_numpy_formula_with_finite_difference_deri
     hess = fd_jacobian(lambda x: fd_jacobian(lambda z: np.array([loss(z)]), x, 1e-5)[0], X, 1e-4)
     hess = 0.5 * (hess + hess.T)
     result = SaddleFreeNewton(max_loss_change)(simulate, jnp.asarray(X), jnp.asarray(Y), jnp.asarray(Y_TARGET), SAMPLE)
-    np.testing.assert_allclose(np.asarray(result.x) - X, sfn_reference(grad, hess, max_loss_change), rtol=1e-4, atol=1e-7)
+    np.testing.assert_allclose(
+        np.asarray(result.x) - X, sfn_reference(grad, hess, max_loss_change), rtol=1e-4, atol=1e-7
+    )
 
 
 def test_saddle_free_newton_is_newton_on_a_convex_quadratic():
@@ -89,7 +91,9 @@ def test_saddle_free_newton_is_newton_on_a_convex_quadratic():
 
     G = RNG.normal(size=(4, 4))
     H, g = G @ G.T + np.eye(4), RNG.normal(size=4)
-    np.testing.assert_allclose(saddle_free_newton_step(jnp.asarray(g), jnp.asarray(H)), -np.linalg.solve(H, g), rtol=1e-10)
+    np.testing.assert_allclose(
+        saddle_free_newton_step(jnp.asarray(g), jnp.asarray(H)), -np.linalg.solve(H, g), rtol=1e-10
+    )
 
 
 def test_saddle_free_newton_caps_zero_curvature_steps():
@@ -141,7 +145,9 @@ def test_linear_solve_equals_numpy_solve_for_a_general_matrix(krylov):
     M = RNG.normal(size=(6, 6)) + 6 * np.eye(6)
     sim = lambda x, s: jnp.asarray(M) @ x + 1.0  # noqa: E731  affine
     x, yt = RNG.normal(size=6), RNG.normal(size=6)
-    result = LinearSolve(krylov, rtol=1e-12, atol=1e-14)(sim, jnp.asarray(x), jnp.asarray(M @ x + 1.0), jnp.asarray(yt), {})
+    result = LinearSolve(krylov, rtol=1e-12, atol=1e-14)(
+        sim, jnp.asarray(x), jnp.asarray(M @ x + 1.0), jnp.asarray(yt), {}
+    )
     assert bool(result.converged)
     np.testing.assert_allclose(result.x, np.linalg.solve(M, yt - 1.0), rtol=1e-8, atol=1e-10)
 

@@ -21,7 +21,10 @@ def linear_case(batch_size):
     a = rng.standard_normal((M, N_OUT))
     layer = Dense(N_IN, N_OUT, key=jax.random.key(0), dtype=jnp.float64)
     layer = eqx.tree_at(lambda l: l.bias, layer, jnp.asarray(rng.standard_normal(N_OUT)))
-    batch = {"x": jnp.asarray(rng.standard_normal((batch_size, N_IN))), "t": jnp.asarray(rng.standard_normal((batch_size, M)))}
+    batch = {
+        "x": jnp.asarray(rng.standard_normal((batch_size, N_IN))),
+        "t": jnp.asarray(rng.standard_normal((batch_size, M))),
+    }
     objective = Objective(
         predict=lambda p, s: jnp.asarray(a) @ p(s["x"]),
         loss=lambda y, s: 0.5 * jnp.sum((y - s["t"]) ** 2),
@@ -96,7 +99,10 @@ def test_complex_simulator_output_is_refused_in_one_line():
     # under the engine's jit the same line comes first (JAX appends its traceback note)
     with pytest.raises(ValueError) as info:
         make_step(setup, 4)(setup.params, setup.method.init(setup.params), setup.data["train"], jnp.arange(8), 0)
-    assert str(info.value).splitlines()[0] == "kfac: the simulator output is complex (complex64) and kfac-jax's losses are real; use gn, hig or adam"
+    assert (
+        str(info.value).splitlines()[0]
+        == "kfac: the simulator output is complex (complex64) and kfac-jax's losses are real; use gn, hig or adam"
+    )
 
 
 def test_settings_are_checked_and_the_factory_is_command_line_ready():

@@ -111,7 +111,12 @@ def test_routes_are_interchangeable_objects():
     params, predict, loss, batches = pieces()
     directions = [
         ravel_pytree(physgrad.hig(predict, loss, route=route)(params, batches[0])[0])[0]
-        for route in (physgrad.routes.SVD(), physgrad.routes.Gram(), physgrad.routes.BlockGram(2), physgrad.routes.Auto())
+        for route in (
+            physgrad.routes.SVD(),
+            physgrad.routes.Gram(),
+            physgrad.routes.BlockGram(2),
+            physgrad.routes.Auto(),
+        )
     ]
     for d in directions[1:]:
         np.testing.assert_allclose(np.asarray(d), np.asarray(directions[0]), rtol=2e-3, atol=1e-5)
@@ -263,7 +268,9 @@ def test_a_user_problem_trains_through_fit_without_a_registry(tmp_path):
                         settings=physgrad.TrainSettings(eval_every=20), resume=True)  # fmt: skip
     assert more["steps"] == 80
     with pytest.raises(physgrad.ConfigError, match="different configuration"):
-        physgrad.fit(Cubic(n=128), methods["adam"], budget=physgrad.Budget(steps=90), out=tmp_path / "adam", resume=True)
+        physgrad.fit(
+            Cubic(n=128), methods["adam"], budget=physgrad.Budget(steps=90), out=tmp_path / "adam", resume=True
+        )
     network = physgrad.load_network(tmp_path / "adam", like=Cubic().make_network(jax.random.key(0)))
     assert isinstance(network, physgrad.MLP)
 

@@ -32,7 +32,6 @@ def exact(x0, controls, dt):
     return z[:4]
 
 
-
 def test_solver_converges_to_the_matrix_exponential_at_fourth_order():
     rng = np.random.default_rng(0)
     x0, controls = rng.uniform(size=4), rng.normal(size=24)

@@ -26,7 +26,9 @@ def numpy_lm(j, g, lam):
 def test_damped_filter_matches_the_numpy_formula(shape, route, lam):
     rng = np.random.default_rng(0)
     j, g = rng.standard_normal(shape), rng.standard_normal(shape[0])
-    got = half_inverse(jnp.asarray(j), jnp.asarray(g), exponent=Damped(lam, relative=False), truncation=0.0, route=route)
+    got = half_inverse(
+        jnp.asarray(j), jnp.asarray(g), exponent=Damped(lam, relative=False), truncation=0.0, route=route
+    )
     # For a tall J, J Jᵀ is singular: the formula still holds with λ > 0.
     np.testing.assert_allclose(np.asarray(got), numpy_lm(j, g, lam), rtol=1e-8, atol=1e-10)
 
@@ -78,7 +80,9 @@ def _dense_jacobian_and_gradient(objective, params, batch):
     return j, g
 
 
-@pytest.mark.parametrize("route", [routes.Gram(), routes.SVD(), routes.Structured(), routes.BlockGram(3), routes.Lanczos(12)])
+@pytest.mark.parametrize(
+    "route", [routes.Gram(), routes.SVD(), routes.Structured(), routes.BlockGram(3), routes.Lanczos(12)]
+)
 def test_every_route_gives_the_damped_direction(route):
     objective, params, batch = _problem()
     j, g = _dense_jacobian_and_gradient(objective, params, batch)
@@ -149,7 +153,9 @@ def test_lm_trains_an_open_loop_problem_from_the_command_line(tmp_path, capsys):
     out = tmp_path / "study"
     settings = ["--set", "n_steps=8", "--set", "hidden=6", "--set", "n_train=64", "--set", "n_test=32",
                 "--set", "batch_size=16"]  # fmt: skip
-    code = main(["compare", "oscillators", "--methods", "gn,lm", "--steps", "60", "--out", str(out), "--quiet", *settings])
+    code = main(
+        ["compare", "oscillators", "--methods", "gn,lm", "--steps", "60", "--out", str(out), "--quiet", *settings]
+    )
     assert code == 0
     import csv
 
@@ -184,4 +190,6 @@ def test_lm_takes_gauss_newtons_paper_settings_on_a_problem():
     lm = make_config("poisson_hig", "lm", budget=Budget(steps=1)).phases[0]
     gn = make_config("poisson_hig", "gn", budget=Budget(steps=1)).phases[0]
     assert lm.batch_size == gn.batch_size
-    assert {k: lm.hyperparameters[k] for k in ("lr", "truncation")} == {k: gn.hyperparameters[k] for k in ("lr", "truncation")}
+    assert {k: lm.hyperparameters[k] for k in ("lr", "truncation")} == {
+        k: gn.hyperparameters[k] for k in ("lr", "truncation")
+    }

@@ -103,7 +103,9 @@ def test_a_footprint_refusal_names_the_largest_batch_that_fits_and_it_passes(tmp
     limit = int(gram_bytes(2 * 96, size, 4) / memory.SAFETY) + 1  # fits at 96 samples, not at 97
     available(limit)
     with pytest.raises(physgrad.ConfigError) as refused:
-        physgrad.fit(Cubic(), method, budget=physgrad.Budget(steps=2), out=tmp_path / "refused", batch_size=256, name="hig")
+        physgrad.fit(
+            Cubic(), method, budget=physgrad.Budget(steps=2), out=tmp_path / "refused", batch_size=256, name="hig"
+        )
     message = str(refused.value)
     assert "\n" not in message and "route gram: 512 ×" in message and "memory_guard=false" in message
     assert suggested_batch(message) == 96
@@ -183,7 +185,18 @@ def test_cli_memory_guard_setting(tmp_path, capsys, available):
     assert main(["train", "hig_toy", "--method", "hig", "--steps", "1", "--out", str(tmp_path / "a")]) == 2
     err = capsys.readouterr().err.strip()
     assert err.startswith("physgrad: error: hig step needs") and "\n" not in err
-    args = ["train", "hig_toy", "--method", "hig", "--steps", "1", "--set", "memory_guard=false", "--out", str(tmp_path / "b")]
+    args = [
+        "train",
+        "hig_toy",
+        "--method",
+        "hig",
+        "--steps",
+        "1",
+        "--set",
+        "memory_guard=false",
+        "--out",
+        str(tmp_path / "b"),
+    ]
     assert main(args) == 0
 
 

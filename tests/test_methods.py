@@ -52,7 +52,9 @@ def test_jacobian_power_step_against_numpy(method, exponent, route):
     outputs = jax.jit(lambda th: jax.vmap(lambda s: setup.objective.predict(unravel(th), s))(batch).ravel())
     predict = lambda th: np.asarray(outputs(th))  # noqa: E731
     eps = 1e-6
-    jac = np.stack([(predict(flat.at[j].add(eps)) - predict(flat.at[j].add(-eps))) / (2 * eps) for j in range(flat.size)], 1)
+    jac = np.stack(
+        [(predict(flat.at[j].add(eps)) - predict(flat.at[j].add(-eps))) / (2 * eps) for j in range(flat.size)], 1
+    )
     g = 2 * (predict(flat) - np.asarray(batch["x0"]).ravel()) / 16
     u, s, vt = np.linalg.svd(jac, full_matrices=False)
     keep = s > 1e-3 * s.max()
@@ -77,9 +79,15 @@ def test_every_method_lowers_the_loss_in_float32_without_recompiling(method):
         settings["damping"] = "10.0"
     problem = "oscillators"
     if method in ROLLOUT_METHODS:  # these need a closed loop
-        problem, settings = "cartpole", {"n_train": "64", "n_test": "16", "batch_size": "16", "dt": "0.1", "n_steps": "10"}
+        problem, settings = (
+            "cartpole",
+            {"n_train": "64", "n_test": "16", "batch_size": "16", "dt": "0.1", "n_steps": "10"},
+        )
     if method in STEPPER_METHODS:  # these need a time-stepper: 4 trajectories x 16 windows
-        problem, settings = "advection_1d", {"n_train": "4", "n_test": "2", "horizon": "20", "batch_size": "16", "iterations": "4"}
+        problem, settings = (
+            "advection_1d",
+            {"n_train": "4", "n_test": "2", "horizon": "20", "batch_size": "16", "iterations": "4"},
+        )
     config = make_config(problem, method, budget=Budget(steps=1), settings=settings)
     setup = build(config)
     step = make_step(setup, config.phases[0].batch_size)

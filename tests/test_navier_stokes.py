@@ -13,7 +13,9 @@ from physgrad.problems import NavierStokes
 from physgrad.problems.navier_stokes import frequency_loss, threshold_top
 
 # a quarter of the paper's grid: lengths and the loss's falloff (in cycles per cell) scaled by 1/4
-SMALL = dict(resolution=16, size=32.0, box=14.0, swirl_sigma=5.0, falloff=20.0, levels=3, filters=4, n_train=8, n_test=4)
+SMALL = dict(
+    resolution=16, size=32.0, box=14.0, swirl_sigma=5.0, falloff=20.0, levels=3, filters=4, n_train=8, n_test=4
+)
 
 
 @pytest.fixture(scope="module")

@@ -77,7 +77,9 @@ def loss(velocity, marker, target):  # one sample: velocity (2, n, n) staggered,
 
 def readme_example() -> str:
     readme = Path(__file__).parents[1] / "README.md"
-    found = re.search(r"## PhiFlow simulators.*?```python\n(.*?)```", readme.read_text(), re.S) if readme.exists() else None
+    found = (
+        re.search(r"## PhiFlow simulators.*?```python\n(.*?)```", readme.read_text(), re.S) if readme.exists() else None
+    )
     return found.group(1) if found else README_EXAMPLE
 
 
@@ -161,6 +163,7 @@ def references(fresh):
     def all_rollouts(marker, velocity, target):
         out = {}
         for name, rollout in jax_rollouts(steps, dt, dx).items():
+
             def loss(v):
                 states = rollout(marker, v)
                 return jnp.sum((states[0] - target) ** 2), states
@@ -244,7 +247,9 @@ def test_wrapped_functions_are_reverse_only_and_gauss_newton_sees_it():
 @pytest.mark.filterwarnings("ignore:Rank deficiency")  # PhiFlow's own, on every periodic projection
 def test_a_default_solve_is_refused_in_one_line():
     flow = phiflow.import_phiflow()
-    project = phiflow.wrap(lambda v: flow.fluid.make_incompressible(v)[0], phiflow.Domain((4, 4), DX), ["staggered"], "staggered")
+    project = phiflow.wrap(
+        lambda v: flow.fluid.make_incompressible(v)[0], phiflow.Domain((4, 4), DX), ["staggered"], "staggered"
+    )
     with pytest.raises(ValueError, match=r"^a PhiFlow solve ran with method 'scipy-direct'.*Solve\('CG'") as info:
         jax.eval_shape(project, jnp.zeros((2, 4, 4)))
     assert "\n" not in str(info.value)

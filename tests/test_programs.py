@@ -62,10 +62,14 @@ def test_cached_step_gives_the_result_of_a_fresh_compile(tmp_path):
 
     settings = {"lam": 0.41, "eval_every": 3}
     study.compare("hig_toy", ["hig"], [0], Budget(steps=3), tmp_path / "warm", settings=settings, echo=lambda s: None)
-    cached = study.compare("hig_toy", ["hig"], [1], Budget(steps=3), tmp_path / "a", settings=settings, echo=lambda s: None)
+    cached = study.compare(
+        "hig_toy", ["hig"], [1], Budget(steps=3), tmp_path / "a", settings=settings, echo=lambda s: None
+    )
     programs.STEPS.clear()
     programs.EVALUATIONS.clear()
-    fresh = study.compare("hig_toy", ["hig"], [1], Budget(steps=3), tmp_path / "b", settings=settings, echo=lambda s: None)
+    fresh = study.compare(
+        "hig_toy", ["hig"], [1], Budget(steps=3), tmp_path / "b", settings=settings, echo=lambda s: None
+    )
     assert cached[0]["final_test_loss"] == fresh[0]["final_test_loss"]
 
 

@@ -129,14 +129,18 @@ def test_gauss_newton_on_a_reverse_only_simulator_equals_numpy_pinv(mode):
 def test_gauss_newton_under_sip_style_jit_and_vmap_picks_reverse_mode():
     solver = GaussNewton(1e-10)
     xs = jnp.stack([jnp.asarray(X), jnp.asarray(X) + 0.1])
-    run = jax.jit(jax.vmap(lambda x: solver(simulate(reverse_only), x, reverse_only(x), jnp.asarray(Y_TARGET), SAMPLE).x))
+    run = jax.jit(
+        jax.vmap(lambda x: solver(simulate(reverse_only), x, reverse_only(x), jnp.asarray(Y_TARGET), SAMPLE).x)
+    )
     for x, got in zip(np.asarray(xs), np.asarray(run(xs))):
         want = x + np.linalg.pinv(np_jacobian(x), rcond=1e-10) @ (Y_TARGET - np_plain(x))
         np.testing.assert_allclose(got, want, rtol=1e-10, atol=1e-12)
 
 
 def test_forward_mode_pieces_say_so_in_one_line():
-    with pytest.raises(ValueError, match=r"^GaussNewton\(jacobian='forward'\) needs forward-mode .*jacobian='reverse'") as info:
+    with pytest.raises(
+        ValueError, match=r"^GaussNewton\(jacobian='forward'\) needs forward-mode .*jacobian='reverse'"
+    ) as info:
         solve(GaussNewton(jacobian="forward"), reverse_only)
     assert "\n" not in str(info.value)
     with pytest.raises(ValueError, match=r"^LinearSolve needs forward-mode .*GaussNewton\(\).*LBFGS\(\)") as info:
@@ -149,7 +153,9 @@ def test_forward_mode_pieces_say_so_in_one_line():
 @pytest.mark.parametrize("fn", [reverse_only, nested], ids=["custom_vjp", "nested_custom_vjp"])
 def test_saddle_free_newton_falls_back_to_reverse_over_reverse(fn):
     # jax.hessian (forward over reverse) differentiates a plain backward pass, not a nested one
-    forward_over_reverse = jacobian.supports_forward_mode(lambda z: jnp.sum(fn(z)), jnp.asarray(X), transform=jax.hessian)
+    forward_over_reverse = jacobian.supports_forward_mode(
+        lambda z: jnp.sum(fn(z)), jnp.asarray(X), transform=jax.hessian
+    )
     assert forward_over_reverse == (fn is reverse_only)
     got = solve(SaddleFreeNewton(0.2), fn)
     want = solve(SaddleFreeNewton(0.2), plain)

@@ -115,7 +115,9 @@ def test_modified_and_regular_equal_hand_written_adjoints_on_a_linear_system(pol
     _, g = value_and_grad(system, jnp.asarray(theta), jnp.asarray(s0), policy)
     np.testing.assert_allclose(np.asarray(g), linear_reference(A, B, theta, s0, w, modified), rtol=1e-10)
     _, g_m, g_r = joint_gradients(system, jnp.asarray(theta), jnp.asarray(s0), M(), R())
-    np.testing.assert_allclose(np.asarray(g_m if modified else g_r), linear_reference(A, B, theta, s0, w, modified), rtol=1e-10)
+    np.testing.assert_allclose(
+        np.asarray(g_m if modified else g_r), linear_reference(A, B, theta, s0, w, modified), rtol=1e-10
+    )
 
 
 @pytest.mark.parametrize(
@@ -181,7 +183,9 @@ def test_checkpointing_changes_memory_not_values():
     def control(p, s):
         return jnp.tanh(p["W2"] @ jnp.tanh(p["W1"] @ s))
 
-    system = closed_loop(control, lambda s, c: s + 0.01 * jnp.tanh(c), lambda s, c, k: jnp.sum(s**2), m, jnp.ones(m, F32) / m)
+    system = closed_loop(
+        control, lambda s, c: s + 0.01 * jnp.tanh(c), lambda s, c, k: jnp.sum(s**2), m, jnp.ones(m, F32) / m
+    )
     k1, k2, k3 = jax.random.split(jax.random.key(2), 3)
     params = {"W1": 0.1 * jax.random.normal(k1, (64, 8), F32), "W2": 0.1 * jax.random.normal(k2, (8, 64), F32)}
     s0 = jax.random.normal(k3, (16, 8), F32)

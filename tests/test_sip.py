@@ -31,7 +31,9 @@ def jit_step(method, objective, params, batch):
 
 
 def test_sip_on_linear_invertible_physics_targets_the_ground_truth():
-    setup, stage, batch = one_step("poisson", "sip", {"resolution": 16, "n_train": 8, "n_test": 8, "batch_size": 8, "levels": 2})
+    setup, stage, batch = one_step(
+        "poisson", "sip", {"resolution": 16, "n_train": 8, "n_test": 8, "batch_size": 8, "levels": 2}
+    )
     obj = setup.objective
     x = jax.vmap(obj.network_output, (None, 0))(setup.params, batch)
     y = jax.vmap(obj.simulate)(x, batch)
@@ -42,7 +44,15 @@ def test_sip_on_linear_invertible_physics_targets_the_ground_truth():
 
 def test_sip_gradient_is_the_supervised_gradient_on_linear_physics():
     """η = 1, exact inverse: ∇_θ proxy = ∇_θ (1/b) Σ ½‖f(y*) − x*‖² (SIP = supervised)."""
-    settings = {"resolution": 16, "n_train": 8, "n_test": 8, "batch_size": 8, "levels": 2, "lr": 1.0, "optimizer": "sgd"}
+    settings = {
+        "resolution": 16,
+        "n_train": 8,
+        "n_test": 8,
+        "batch_size": 8,
+        "levels": 2,
+        "lr": 1.0,
+        "optimizer": "sgd",
+    }
     setup, stage, batch = one_step("poisson", "sip", settings)
     obj = setup.objective
 
@@ -61,7 +71,9 @@ def test_sip_gradient_is_the_supervised_gradient_on_linear_physics():
 def test_generic_solvers_agree_with_the_analytic_inverse(solver):
     """exp is invertible per sample: GN (one step), Krylov (one Newton–Krylov step) and
     L-BFGS are different routes; at η small enough for GN to be accurate they match log."""
-    setup, stage, batch = one_step("exp_inverse", "sip", {"solver": solver, "eta": 1e-3, "tol": 1e-12, "max_steps": 200})
+    setup, stage, batch = one_step(
+        "exp_inverse", "sip", {"solver": solver, "eta": 1e-3, "tol": 1e-12, "max_steps": 200}
+    )
     obj = setup.objective
     x = jax.vmap(obj.network_output, (None, 0))(setup.params, batch).astype(jnp.float64)
     y = jnp.exp(x)
@@ -179,7 +191,9 @@ def test_toy2d_trajectories_equal_hand_written_loops(rule, tmp_path):
 
 def test_toy2d_ordering_after_ten_iterations(tmp_path):
     dist = {
-        rule: train(make_config("toy2d", rule, budget=Budget(steps=10)), tmp_path / rule)["final_test_metrics"]["x_dist"]
+        rule: train(make_config("toy2d", rule, budget=Budget(steps=10)), tmp_path / rule)["final_test_metrics"][
+            "x_dist"
+        ]
         for rule in ("sgd", "newton", "sip")
     }
     assert dist["sip"] < dist["newton"] < dist["sgd"]  # the book's ordering
@@ -206,4 +220,3 @@ def test_newton_method_equals_numpy_newton_on_the_toy():
     new, _, _ = jit_step(stage.method, setup.objective, setup.params, batch)
     x = np.array([3.0, 3.0])
     np.testing.assert_allclose(new.x, x - np.array([2 * x[0], 4 * x[1] ** 3]) / np.array([2.0, 12 * x[1] ** 2]))
-

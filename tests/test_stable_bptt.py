@@ -161,11 +161,17 @@ def test_crank_nicolson_is_unitary_and_evolves_eigenstates_by_the_cayley_phase()
 def test_quantum_controller_equals_equinox_convolutions():
     net = QuantumController(32, 60, key=jax.random.key(0))
     assert physgrad.parameter_count(net) == 11_701
-    net = eqx.tree_at(lambda m: (m.bias1, m.bias2), net, (0.1 * jnp.arange(60.0, dtype=jnp.float32), -0.05 * jnp.ones(60, jnp.float32)))
+    net = eqx.tree_at(
+        lambda m: (m.bias1, m.bias2),
+        net,
+        (0.1 * jnp.arange(60.0, dtype=jnp.float32), -0.05 * jnp.ones(60, jnp.float32)),
+    )
     conv2 = eqx.nn.Conv2d(1, 60, (3, 2), stride=2, key=jax.random.key(1), dtype=jnp.float32)
     conv2 = eqx.tree_at(lambda c: (c.weight, c.bias), conv2, (net.kernel1[:, None], net.bias1[:, None, None]))
     conv1 = eqx.nn.Conv1d(60, 60, 3, stride=2, key=jax.random.key(2), dtype=jnp.float32)
-    conv1 = eqx.tree_at(lambda c: (c.weight, c.bias), conv1, (jnp.transpose(net.kernel2, (0, 2, 1)), net.bias2[:, None]))
+    conv1 = eqx.tree_at(
+        lambda c: (c.weight, c.bias), conv1, (jnp.transpose(net.kernel2, (0, 2, 1)), net.bias2[:, None])
+    )
     psi = QuantumControl().make_data(None)["test"][1]
     h = jnp.tanh(conv2(jnp.stack([psi.real, psi.imag], -1)[None]))[:, :, 0]  # (60, 15)
     h = jnp.tanh(conv1(h))  # (60, 7)
@@ -276,14 +282,28 @@ def test_grid_panels_survive_a_partly_finished_grid(tmp_path):
     from physgrad.plots import grid_panels
 
     rows = [{"method": "bptt", "seed": "0", "epoch": e, "value": str(1.0 / (e + 1))} for e in range(5)]
-    path = grid_panels([({"poles": "1"}, []), ({"poles": "2"}, rows)], tmp_path / "g.png", panel="poles", methods=["bptt"])
+    path = grid_panels(
+        [({"poles": "1"}, []), ({"poles": "2"}, rows)], tmp_path / "g.png", panel="poles", methods=["bptt"]
+    )
     assert path.exists()
     assert grid_panels([], tmp_path / "empty.png", panel="poles", methods=["bptt"]).exists()
 
 
 def test_a_reused_study_directory_reports_only_its_planned_runs(tmp_path, capsys):
     out = tmp_path / "s"
-    base = ["compare", "cartpole", "--methods", "bptt", "--set", "n_train=16", "--set", "n_test=8", "--out", str(out), "--quiet"]
+    base = [
+        "compare",
+        "cartpole",
+        "--methods",
+        "bptt",
+        "--set",
+        "n_train=16",
+        "--set",
+        "n_test=8",
+        "--out",
+        str(out),
+        "--quiet",
+    ]
     assert main([*base, "--steps", "2"]) == 0
     assert main([*base, "--steps", "3"]) == 0  # same names, another budget: new run dirs beside the old
     assert len(list((out / "runs").iterdir())) == 2

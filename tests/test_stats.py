@@ -167,7 +167,12 @@ def test_status_falls_back_to_the_run_summary(tmp_path):
     """A summary.csv without a status column (written by hand or by an older version):
     each run's summary.json decides, and a run with neither counts as finished."""
     rows = ["problem,method,seed,run_dir"]
-    for method, seed, status in (("a", 0, "finished"), ("a", 1, "finished"), ("b", 0, "finished"), ("b", 1, "diverged")):
+    for method, seed, status in (
+        ("a", 0, "finished"),
+        ("a", 1, "finished"),
+        ("b", 0, "finished"),
+        ("b", 1, "diverged"),
+    ):
         write_run(tmp_path, method, seed, status, np.arange(1.0, CASES + 1) + (method == "b"))
         rows.append(f"toy,{method},{seed},runs/{method}-seed{seed}-0000")
     (tmp_path / "runs" / "a-seed1-0000" / "summary.json").unlink()

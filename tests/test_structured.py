@@ -117,7 +117,9 @@ def test_structured_gram_equals_the_explicit_gram(name):
     block, _ = factors(plan, params, batch)
     jac, _ = stacked_jacobian(objective.predict, params, batch)
     j = np.asarray(jac)
-    np.testing.assert_allclose(np.asarray(cross_gram(plan, block, block)), j @ j.T, rtol=1e-12, atol=1e-12 * np.abs(j @ j.T).max())
+    np.testing.assert_allclose(
+        np.asarray(cross_gram(plan, block, block)), j @ j.T, rtol=1e-12, atol=1e-12 * np.abs(j @ j.T).max()
+    )
 
 
 def test_dense_layers_are_found_in_the_program_and_the_rest_is_explicit():
@@ -136,6 +138,7 @@ def test_dense_layers_are_found_in_the_program_and_the_rest_is_explicit():
     pointwise = lambda p, s: jax.vmap(eqx.combine(p, static))(s["x"][:, None]).ravel()  # noqa: E731
     plan = find_structure(pointwise, params, {"x": jnp.zeros(3)}, rows=3)
     assert plan.dense == () and plan.explicit_parameters == 4 + 4 + 4 + 1
+
     # a bias used elsewhere too is not folded: its rows stay explicit
     class TwiceBias(eqx.Module):
         w: jax.Array
@@ -183,18 +186,24 @@ def _mixed():
 def test_mixed_conv_dense_network_equals_the_gram_route(chunk):
     objective, params, batch = _mixed()
     rows = 5 * 3
-    plan = find_structure(objective.predict, params, jax.tree.map(lambda a: a[0], batch), rows, chunk_elements=chunk * rows)
+    plan = find_structure(
+        objective.predict, params, jax.tree.map(lambda a: a[0], batch), rows, chunk_elements=chunk * rows
+    )
     assert len(plan.dense) == 2 and plan.explicit_parameters == 2 * 3 + 2  # the convolution's kernel and bias
     assert (len(plan.groups) > 1) == (chunk == 4)
     for exponent in (-0.5, -1.0):
         want = routes.Gram()(objective, params, batch, exponent, 1e-6)[0]
         got = routes.Structured(chunk_elements=chunk * rows)(objective, params, batch, exponent, 1e-6)[0]
-        np.testing.assert_allclose(np.asarray(got), np.asarray(want), rtol=1e-8, atol=1e-10 * float(jnp.abs(want).max()))
+        np.testing.assert_allclose(
+            np.asarray(got), np.asarray(want), rtol=1e-8, atol=1e-10 * float(jnp.abs(want).max())
+        )
 
 
 def test_complex_outputs_equal_the_gram_route():
     """A real network, complex physics (as the quantum dipole): J has (Re, Im) rows."""
-    net = jax.tree.map(lambda a: a.astype(jnp.float64) if eqx.is_inexact_array(a) else a, MLP((3, 8, 2), "tanh", key=jax.random.key(7)))
+    net = jax.tree.map(
+        lambda a: a.astype(jnp.float64) if eqx.is_inexact_array(a) else a, MLP((3, 8, 2), "tanh", key=jax.random.key(7))
+    )
     objective, params = _objective(
         net, physics=lambda u: jnp.exp(1j * u) * (1 + u), loss=lambda y, s: jnp.sum(jnp.abs(y - s["t"]) ** 2)
     )
@@ -218,7 +227,9 @@ def test_auto_picks_structured_for_dense_networks_and_gram_otherwise():
     assert isinstance(routes.Auto().choose(objective, params, _batch(3, 2)), routes.Structured)
     conv = eqx.nn.Conv1d(1, 1, 3, padding="SAME", key=jax.random.key(1))
     objective, params = _objective(conv, physics=lambda y: jnp.sin(y[0]))
-    assert isinstance(routes.Auto().choose(objective, params, {"x": jnp.ones((2, 1, 8)), "t": jnp.ones((2, 8))}), routes.Gram)
+    assert isinstance(
+        routes.Auto().choose(objective, params, {"x": jnp.ones((2, 1, 8)), "t": jnp.ones((2, 8))}), routes.Gram
+    )
 
 
 def test_structured_footprint_is_far_below_the_gram_routes():

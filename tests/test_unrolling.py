@@ -131,6 +131,7 @@ def test_modalities_on_ks_equal_hand_written_loops(setup_name, method):
 def numpy_conv_resnet(net, x, lift_activation):
     """List et al.'s KS ResNet forward in float64 NumPy: circular kernel-3 cross-correlations,
     LeakyReLU(0.01), residual blocks; the lifting convolution activated only when asked."""
+
     def conv(layer, h):
         w, b = np.asarray(layer.weight, np.float64), np.asarray(layer.bias, np.float64).reshape(-1)
         shifted = np.stack([np.roll(h, 1 - j, axis=-1) for j in range(w.shape[-1])], axis=-1)  # h[c, i + j - 1]
@@ -152,7 +153,9 @@ def test_conv_resnet_matches_a_numpy_float64_forward(lift_activation):
 
     net = ConvResNet(1, 2, 1, 5, 2, key=jax.random.key(3), lift_activation=lift_activation)
     x = np.random.default_rng(0).normal(size=(2, 12))
-    np.testing.assert_allclose(net(jnp.asarray(x, jnp.float32)), numpy_conv_resnet(net, x, lift_activation), rtol=1e-4, atol=1e-5)
+    np.testing.assert_allclose(
+        net(jnp.asarray(x, jnp.float32)), numpy_conv_resnet(net, x, lift_activation), rtol=1e-4, atol=1e-5
+    )
     assert physgrad.parameter_count(ConvResNet(1, 2, 1, 26, 8, key=jax.random.key(0))) == 33_125
 
 
@@ -507,7 +510,10 @@ def test_paired_tests_pair_by_seed_and_case(tmp_path):
 
 
 def test_problem_and_setting_errors_are_one_line(capsys, tmp_path):
-    assert main(["train", "ks", "--method", "wig", "--steps", "1", "--set", "setup=bogus", "--out", str(tmp_path / "x")]) == 2
+    assert (
+        main(["train", "ks", "--method", "wig", "--steps", "1", "--set", "setup=bogus", "--out", str(tmp_path / "x")])
+        == 2
+    )
     assert "valid choices: prediction, correction" in capsys.readouterr().err
     assert main(["train", "ks", "--method", "wig", "--steps", "1", "--set", "composition=bypass", "--set",
                  "setup=prediction", "--out", str(tmp_path / "y")]) == 2  # fmt: skip
@@ -551,8 +557,9 @@ def test_too_short_trajectories_are_a_one_line_error(capsys, tmp_path):
     assert "too short for m = 5" in err and "\n" not in err
 
 
-@pytest.mark.parametrize("make", [lambda z: Kolmogorov(n=16, forcing_mode=4, zero_init=z),
-                                  lambda z: Advection1d(zero_init=z)])
+@pytest.mark.parametrize(
+    "make", [lambda z: Kolmogorov(n=16, forcing_mode=4, zero_init=z), lambda z: Advection1d(zero_init=z)]
+)
 def test_zero_init_starts_the_corrector_at_the_bare_solver(make):
     """zero_init zeroes the output layer (weights and bias): the corrected step is the solver's;
     without it the paper's initialisation changes the step."""

@@ -273,7 +273,9 @@ def applicability(problem: str, methods: Sequence[str], settings: dict[str, Any]
     verdicts = []
     for method in methods:
         try:
-            config = make_config(problem, method, budget=Budget(steps=1), settings=problem_settings(problem, method, settings))
+            config = make_config(
+                problem, method, budget=Budget(steps=1), settings=problem_settings(problem, method, settings)
+            )
         except MissingExtra as e:  # an optional extra is not installed: listed with the pip line
             verdicts.append(Verdict(method, "skipped", _one_line(e)))
             continue
@@ -391,7 +393,11 @@ def run_problem(
         try:
             summary = train(config, run_dir, resume=True, progress=progress() if progress else None, devices=devices)
         except Exception as e:  # noqa: BLE001 — KeyboardInterrupt is not an Exception: it still stops the bench
-            failures[name] = {"method": config.method, "seed": config.seed, "error": f"{type(e).__name__}: {_one_line(e)}"}
+            failures[name] = {
+                "method": config.method,
+                "seed": config.seed,
+                "error": f"{type(e).__name__}: {_one_line(e)}",
+            }
             _write_json(out / "failures.json", failures)
             echo(f"{prefix}: failed, recorded ({failures[name]['error']})")
             continue
@@ -541,7 +547,17 @@ TABLE_COLUMNS = (
     "final_test_loss_std", "rank", "ratio_to_adam", "best", "p_vs_best", "pairs", "seeds_best_lower",
     "seeds_compared", "reason",
 )  # fmt: skip
-BOARD_COLUMNS = ("method", "score", "geomean_ratio_to_adam", "ratio_problems", "wins", "divergences", "failures", "runs", "problems")
+BOARD_COLUMNS = (
+    "method",
+    "score",
+    "geomean_ratio_to_adam",
+    "ratio_problems",
+    "wins",
+    "divergences",
+    "failures",
+    "runs",
+    "problems",
+)
 
 
 def _number(x: float, spec: str = ".3e") -> str:
@@ -561,7 +577,9 @@ def table_records(problem: str, table: Sequence[dict[str, Any]]) -> list[dict[st
     } for t in table]  # fmt: skip
 
 
-def table_lines(table: Sequence[dict[str, Any]], reference: str = REFERENCE, inapplicable: bool = True) -> list[list[str]]:
+def table_lines(
+    table: Sequence[dict[str, Any]], reference: str = REFERENCE, inapplicable: bool = True
+) -> list[list[str]]:
     """A problem's table as printable lines (header first): ranked methods first, then the
     diverged/failed/pending ones, then (with ``inapplicable``) the skipped methods and
     those that do not apply, with the reason."""
@@ -585,7 +603,9 @@ def table_lines(table: Sequence[dict[str, Any]], reference: str = REFERENCE, ina
         if t["status"] == "ok":
             loss = f"{t['mean']:.3e} ± {t['std']:.1e}"
         else:
-            loss = {"diverged": "all diverged", "failed": "failed", "pending": "not run yet"}.get(t["status"], str(t["status"]))
+            loss = {"diverged": "all diverged", "failed": "failed", "pending": "not run yet"}.get(
+                t["status"], str(t["status"])
+            )
         if t["method"] == best:
             test = "best"
         elif t.get("pairs"):
@@ -624,7 +644,9 @@ def _write_rows(path: Path, columns: Sequence[str], rows: Sequence[dict[str, Any
         writer.writerows(rows)
 
 
-def heatmap(tables: dict[str, Sequence[dict[str, Any]]], path: str | Path, *, title: str = "", reference: str = REFERENCE) -> Path:
+def heatmap(
+    tables: dict[str, Sequence[dict[str, Any]]], path: str | Path, *, title: str = "", reference: str = REFERENCE
+) -> Path:
     """Method × problem heat map of log₁₀(mean final test loss / the reference's): blue
     below the reference, red above; the ratio is written in each cell (``†``: some seeds
     diverged or failed). Cells whose runs all diverged or failed are grey, hatched and
@@ -655,7 +677,9 @@ def heatmap(tables: dict[str, Sequence[dict[str, Any]]], path: str | Path, *, ti
                 continue
             if t["status"] in ("diverged", "failed"):
                 ax.add_patch(Rectangle((j - 0.5, i - 0.5), 1, 1, facecolor="0.85", hatch="xx", edgecolor="0.5", lw=0))
-                ax.text(j, i, "diverged" if t["status"] == "diverged" else "failed", ha="center", va="center", fontsize=6)
+                ax.text(
+                    j, i, "diverged" if t["status"] == "diverged" else "failed", ha="center", va="center", fontsize=6
+                )
             elif np.isfinite(values[i, j]):
                 mark = "†" if t["diverged"] or t["failed"] else ""
                 ax.text(j, i, f"{t['ratio']:.2g}{mark}", ha="center", va="center", fontsize=6,
@@ -815,7 +839,9 @@ def report(out: str | Path) -> BenchReport:
     _write_rows(out / "leaderboard.csv", BOARD_COLUMNS, board_records(board))
     (out / "leaderboard.md").write_text(markdown(board_lines(board)) + "\n")
     _write_rows(out / "bench_table.csv", TABLE_COLUMNS, [r for p, t in tables.items() for r in table_records(p, t)])
-    files["heatmap"] = heatmap(tables, out / "heatmap.png", title=f"{_budget_text(info)}: final test loss relative to {REFERENCE}")
+    files["heatmap"] = heatmap(
+        tables, out / "heatmap.png", title=f"{_budget_text(info)}: final test loss relative to {REFERENCE}"
+    )
     files["leaderboard"] = out / "leaderboard.csv"
     files["table"] = out / "bench_table.csv"
     files["markdown"] = out / "bench.md"
@@ -829,7 +855,9 @@ def _budget_text(info: dict[str, Any]) -> str:
     return f"{budget} per run, {seeds} seed{'s' if seeds != 1 else ''}"
 
 
-def bench_markdown(info: dict[str, Any], tables: dict[str, Sequence[dict[str, Any]]], board: Sequence[dict[str, Any]]) -> str:
+def bench_markdown(
+    info: dict[str, Any], tables: dict[str, Sequence[dict[str, Any]]], board: Sequence[dict[str, Any]]
+) -> str:
     """``bench.md``: budgets, machine, settings, leaderboard, heat map and every problem's table."""
     from .study import markdown
 
@@ -851,7 +879,11 @@ def bench_markdown(info: dict[str, Any], tables: dict[str, Sequence[dict[str, An
         f"- **Problems**: {', '.join(info['problems'])}.",
         f"- **Candidate methods**: {', '.join(info['methods'])} (each problem runs those that apply).",
         "- **Settings** (`--set`; `problem.name` applies to that problem only): "
-        + (", ".join(f"`{k}={v}`" for k, v in settings.items()) if settings else "none (every problem and method at its paper defaults)"),
+        + (
+            ", ".join(f"`{k}={v}`" for k, v in settings.items())
+            if settings
+            else "none (every problem and method at its paper defaults)"
+        ),
         f"- **Machine**: {m.get('cpu_count')} CPU cores ({m.get('usable_cpus')} usable by the process), "
         f"backend {m.get('backend')} ({m.get('device_kind')}; {len(m.get('devices', []))} device(s)), "
         f"JAX {versions.get('jax')}, jaxlib {versions.get('jaxlib')}, physgrad {versions.get('physgrad')}, "
@@ -861,7 +893,7 @@ def bench_markdown(info: dict[str, Any], tables: dict[str, Sequence[dict[str, An
         "finished seeds. Rank: by the fraction of runs that diverged or failed, then by that mean. "
         f"Ratio: mean / {REFERENCE}'s mean. The paired test against each problem's best method is the two-sided "
         "Wilcoxon signed-rank test on (seed, test case) pairs of the per-case final test loss, finished seeds of "
-        "both methods only (`physgrad.stats`); \"seeds lower\" counts the seeds on which the best method's mean "
+        'both methods only (`physgrad.stats`); "seeds lower" counts the seeds on which the best method\'s mean '
         "over test cases is lower.",
         "",
         "## Leaderboard",

@@ -59,7 +59,9 @@ class Parser(argparse.ArgumentParser):
 def _budget(args):
     from .config import Budget
 
-    given: dict[str, Any] = {k: getattr(args, k) for k in ("steps", "epochs", "seconds") if getattr(args, k) is not None}
+    given: dict[str, Any] = {
+        k: getattr(args, k) for k in ("steps", "epochs", "seconds") if getattr(args, k) is not None
+    }
     if not given:
         given = {"seconds": DEFAULT_SECONDS}
     if len(given) > 1:
@@ -90,8 +92,11 @@ def _add_budget(p):
     g.add_argument("--seconds", type=float, help="training wall-clock seconds (evaluation excluded)")
     g.add_argument("--steps", type=int, help="training steps")
     g.add_argument("--epochs", type=int, help="epochs over the training set")
-    p.add_argument("--no-network", action="store_true",
-                   help="direct optimisation: optimise x itself for each test sample (no network)")
+    p.add_argument(
+        "--no-network",
+        action="store_true",
+        help="direct optimisation: optimise x itself for each test sample (no network)",
+    )
     p.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
                    help="a problem setting, method hyperparameter or training setting; repeatable")  # fmt: skip
     _add_compilation_cache(p)
@@ -104,7 +109,9 @@ def _add_compilation_cache(p):
 
 
 def build_parser() -> Parser:
-    parser = Parser(prog="physgrad", description="Train networks through physics simulators with improved update rules.")
+    parser = Parser(
+        prog="physgrad", description="Train networks through physics simulators with improved update rules."
+    )
     from . import __version__
 
     parser.add_argument("--version", action="version", version=f"physgrad {__version__}")
@@ -113,22 +120,34 @@ def build_parser() -> Parser:
 
     p = sub.add_parser("train", help="train one method on one problem")
     p.add_argument("problem")
-    p.add_argument("--method", required=True, help="a method, or a sequence such as adam:2000,hig (Adam for 2000 steps, then HIG)")
+    p.add_argument(
+        "--method", required=True, help="a method, or a sequence such as adam:2000,hig (Adam for 2000 steps, then HIG)"
+    )
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", help="run directory (default runs/PROBLEM-METHOD-seedK)")
     p.add_argument("--resume", action="store_true", help="continue the run in --out from its last checkpoint")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
-    g = p.add_argument_group("devices and hosts (data parallel: the batch is split, the update is the single-device one)")
-    g.add_argument("--devices", default=None, metavar="N|all",
-                   help="devices to split each batch over (default 1; all of them in a multi-process run)")
-    g.add_argument("--coordinator", metavar="HOST:PORT", help="multi-process run: address of process 0 (jax.distributed)")
+    g = p.add_argument_group(
+        "devices and hosts (data parallel: the batch is split, the update is the single-device one)"
+    )
+    g.add_argument(
+        "--devices",
+        default=None,
+        metavar="N|all",
+        help="devices to split each batch over (default 1; all of them in a multi-process run)",
+    )
+    g.add_argument(
+        "--coordinator", metavar="HOST:PORT", help="multi-process run: address of process 0 (jax.distributed)"
+    )
     g.add_argument("--num-processes", type=int, metavar="P", help="multi-process run: number of processes")
     g.add_argument("--process-id", type=int, metavar="I", help="multi-process run: this process's index 0..P-1")
     _add_budget(p)
 
     p = sub.add_parser("compare", help="every method x seed on the same budget; table and figure")
     p.add_argument("problem")
-    p.add_argument("--methods", help="comma-separated, sequences allowed: adam,hig,adam:2000,hig (default: the paper's comparison)")
+    p.add_argument(
+        "--methods", help="comma-separated, sequences allowed: adam,hig,adam:2000,hig (default: the paper's comparison)"
+    )
     p.add_argument("--seeds", type=int, default=1, help="number of seeds 0..N-1 (default 1)")
     p.add_argument("--devices", default="1", metavar="N|all", help="devices to split each batch over (default 1)")
     p.add_argument("--out", help="study directory (default studies/PROBLEM)")
@@ -138,7 +157,11 @@ def build_parser() -> Parser:
     p = sub.add_parser("report", help="re-draw a study's (or a sweep's) table and figure from its files")
     p.add_argument("dir")
     p.add_argument("--panel", help="sweeps: the swept setting with one panel per value (default: the first)")
-    p.add_argument("--metric", default="loss", help="sweeps: the metric to draw (default loss; e.g. step_grad_norm2 with --split train)")
+    p.add_argument(
+        "--metric",
+        default="loss",
+        help="sweeps: the metric to draw (default loss; e.g. step_grad_norm2 with --split train)",
+    )
     p.add_argument("--split", default="test", help="sweeps: the split of --metric (default test)")
     p.add_argument("--smooth", type=int, default=1, help="sweeps: moving average over this many epochs (the paper: 30)")
 
@@ -159,8 +182,11 @@ def build_parser() -> Parser:
                                      "method; each problem runs those that apply)")  # fmt: skip
     p.add_argument("--seeds", type=int, default=None, help="number of seeds 0..N-1 (default 1; --quick: 2)")
     p.add_argument("--out", help="bench directory (default bench, --quick: bench-quick)")
-    p.add_argument("--quick", action="store_true",
-                   help="the quick profile: a few fast open-loop problems, small datasets, 10 s per run, 2 seeds")
+    p.add_argument(
+        "--quick",
+        action="store_true",
+        help="the quick profile: a few fast open-loop problems, small datasets, 10 s per run, 2 seeds",
+    )
     p.add_argument("--devices", default="1", metavar="N|all", help="devices to split each batch over (default 1)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     _add_budget(p)
@@ -237,7 +263,9 @@ def cmd_train(args, console):
     config = make_config(args.problem, args.method, budget=_budget(args), seed=args.seed, settings=_run_settings(args))
     out = Path(args.out or f"runs/{args.problem}-{method_slug(args.method)}-seed{args.seed}")
     stages = "; then ".join(
-        f"{p.method}" + (f" for {p.steps} steps" if p.steps else "") + f": batch {p.batch_size}, "
+        f"{p.method}"
+        + (f" for {p.steps} steps" if p.steps else "")
+        + f": batch {p.batch_size}, "
         + ", ".join(f"{k} {v}" for k, v in p.hyperparameters.items())
         for p in config.phases
     )
@@ -245,8 +273,11 @@ def cmd_train(args, console):
 
     if jax.process_index() > 0:  # process 0 reports; the others compute alike
         console.quiet = True
-    where = "" if devices == "1" else f" on {devices} devices" + (
-        f" of {jax.process_count()} processes" if jax.process_count() > 1 else "")
+    where = (
+        ""
+        if devices == "1"
+        else f" on {devices} devices" + (f" of {jax.process_count()} processes" if jax.process_count() > 1 else "")
+    )
     console.print(f"{config.problem} / {stages}; seed {config.seed}, budget {config.budget}{where} -> {out}")
     summary = train(config, out, resume=args.resume, progress=_progress(args, console), devices=devices)
     console.print(f"{summary['status']}: {describe_run(summary)}")
@@ -258,9 +289,13 @@ def _run_compare(console, problem, methods, seeds, budget, settings, out, quiet=
     from .study import compare, plan, report
 
     plan(problem, methods, seeds, budget, settings)  # validate every name before anything runs
-    console.print(f"comparing on {problem}: budget {budget} per run, seeds {list(seeds)}, settings {settings or 'paper defaults'}")
+    console.print(
+        f"comparing on {problem}: budget {budget} per run, seeds {list(seeds)}, settings {settings or 'paper defaults'}"
+    )
     meter = None if quiet or not console.is_terminal else RichProgressMeter
-    compare(problem, methods, seeds, budget, out, settings=settings, progress=meter, echo=console.print, devices=devices)
+    compare(
+        problem, methods, seeds, budget, out, settings=settings, progress=meter, echo=console.print, devices=devices
+    )
     result = report(out)
     _print_table(console, result.lines, title=f"{problem}: {budget} per run")
     _print_paired_tests(console, out)
@@ -279,7 +314,9 @@ def cmd_compare(args, console):
     from .study import split_grid
 
     if split_grid(settings)[1]:
-        _run_grid(console, args.problem, methods, range(args.seeds), _budget(args), settings, out, args.quiet, args.devices)
+        _run_grid(
+            console, args.problem, methods, range(args.seeds), _budget(args), settings, out, args.quiet, args.devices
+        )
     else:
         _run_compare(console, args.problem, methods, range(args.seeds), _budget(args), settings, out, args.quiet,
                      args.devices)  # fmt: skip
@@ -310,7 +347,11 @@ def _print_paired_tests(console, out):
     from .stats import format_tests, paired_tests
 
     out = Path(out)
-    cells = [(c.name, c) for c in sorted(out.iterdir()) if (c / "study.json").exists()] if (out / "grid.json").exists() else [("", out)]
+    cells = (
+        [(c.name, c) for c in sorted(out.iterdir()) if (c / "study.json").exists()]
+        if (out / "grid.json").exists()
+        else [("", out)]
+    )
     lines = []
     for name, directory in cells:
         study = json.loads((directory / "study.json").read_text()) if (directory / "study.json").exists() else {}
@@ -390,7 +431,12 @@ def cmd_demo(args, console):
         f"settings {DEMO['settings']}"
     )
     result = _run_compare(
-        console, DEMO["problem"], DEMO["methods"], range(DEMO["seeds"]), Budget(seconds=args.seconds), DEMO["settings"],
+        console,
+        DEMO["problem"],
+        DEMO["methods"],
+        range(DEMO["seeds"]),
+        Budget(seconds=args.seconds),
+        DEMO["settings"],
         args.out,
     )
     adam, hig = result.final_test_loss("adam"), result.final_test_loss("hig")
@@ -401,8 +447,14 @@ def cmd_demo(args, console):
     return 0
 
 
-COMMANDS = {"list": cmd_list, "train": cmd_train, "compare": cmd_compare, "report": cmd_report, "bench": cmd_bench,
-            "demo": cmd_demo}
+COMMANDS = {
+    "list": cmd_list,
+    "train": cmd_train,
+    "compare": cmd_compare,
+    "report": cmd_report,
+    "bench": cmd_bench,
+    "demo": cmd_demo,
+}
 
 
 def main(argv=None) -> int:
@@ -434,7 +486,9 @@ def main(argv=None) -> int:
         err.print(f"physgrad: error: {e}", markup=False, highlight=False, soft_wrap=True)
         return 2
     except KeyboardInterrupt:
-        err.print("physgrad: interrupted; finished runs are kept, run the same command (train: with --resume) to continue")
+        err.print(
+            "physgrad: interrupted; finished runs are kept, run the same command (train: with --resume) to continue"
+        )
         return 130
 
 

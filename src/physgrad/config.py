@@ -241,7 +241,9 @@ def make_config(
     for key, value in (settings or {}).items():
         target, _, name = key.rpartition(".")
         if target and target not in names:
-            raise ConfigError(f"setting {key!r}: {target!r} is not a method of {method!r}; valid choices: {', '.join(names)}")
+            raise ConfigError(
+                f"setting {key!r}: {target!r} is not a method of {method!r}; valid choices: {', '.join(names)}"
+            )
         if name not in valid:
             raise ConfigError(
                 f"unknown setting {name!r} for {problem}/{method}; valid choices: {', '.join(sorted(valid))}"
@@ -275,9 +277,7 @@ def make_config(
         if batch_size <= 0:
             raise ConfigError(f"batch_size must be positive, got {batch_size}")
         phases.append(Phase(name, hyper, batch_size, steps))
-    train = {
-        k: parse_value(k, run_level.get(k, d), d) for k, d in TRAIN_SETTINGS.items() if k != "batch_size"
-    }
+    train = {k: parse_value(k, run_level.get(k, d), d) for k, d in TRAIN_SETTINGS.items() if k != "batch_size"}
     return RunConfig(
         problem=problem,
         method=method,

@@ -221,7 +221,9 @@ def initial_network(problem: AbstractProblem, key, data) -> eqx.Module:
         return problem.initial_network(key, data)
 
 
-def _stages(problem: AbstractProblem, phases: Sequence[Phase], objective: Objective, data, check: bool = True) -> list[Stage]:
+def _stages(
+    problem: AbstractProblem, phases: Sequence[Phase], objective: Objective, data, check: bool = True
+) -> list[Stage]:
     """The phases as stages (curricula expanded), each method checked against the problem
     (unless ``check`` is False)."""
     n_train = jax.tree.leaves(data["train"])[0].shape[0]
@@ -270,7 +272,9 @@ def preflight(problem: AbstractProblem, phases: Sequence[Phase], seed: int, mesh
         # Non-float arrays stay with the network's static part: zero views of their shape.
         static = jax.tree.map(lambda x: memory.stand_in(x, None) if isinstance(x, jax.ShapeDtypeStruct) else x, static)
         objective = _deferred_objective(lambda: problem.objective(static))
-        stages = _stages(problem, phases, objective, data, check=False)  # build_setup checks (some checks build solvers)
+        stages = _stages(
+            problem, phases, objective, data, check=False
+        )  # build_setup checks (some checks build solvers)
     except Exception:  # noqa: BLE001 — not traceable abstractly, or a setting build_setup will report
         return
     for stage in stages:
@@ -494,7 +498,9 @@ class Steps:
                 self._check(setup, stage)
             compiled = lower(stage.batch_size).compile()
             if guard:
-                self._check(setup, stage, compiled, lambda size: memory.compiled_bytes(lower(size).compile(), arguments=False))
+                self._check(
+                    setup, stage, compiled, lambda size: memory.compiled_bytes(lower(size).compile(), arguments=False)
+                )
             return compiled
 
         compiled, _ = programs.STEPS.get(self._key(state, setup, stage), build)
@@ -558,7 +564,11 @@ class Fidelity:
         return state.prdp
 
     def initial(self) -> dict | None:
-        return prdp_control.initial_state(min(self.settings.prdp_start, self._setting()[1])) if self.settings.prdp else None
+        return (
+            prdp_control.initial_state(min(self.settings.prdp_start, self._setting()[1]))
+            if self.settings.prdp
+            else None
+        )
 
     def iterations(self, state: TrainState) -> int:
         """The solver's iteration count at ``state``; only for a problem with a refinable setting."""
@@ -610,7 +620,9 @@ class Recorder:
     step statistics averaged since the last evaluation (``step_<name>``), written to
     ``metrics.csv``; feeds PRDP the validation error."""
 
-    def __init__(self, setup: Setup, settings: TrainSettings, placement: Placement, fidelity: Fidelity, log: MetricsLog):
+    def __init__(
+        self, setup: Setup, settings: TrainSettings, placement: Placement, fidelity: Fidelity, log: MetricsLog
+    ):
         self.settings, self.placement, self.fidelity, self.log = settings, placement, fidelity, log
         self.window: dict[str, tuple[float, int]] = {}
         self.last: dict[str, float] = {}
@@ -787,7 +799,9 @@ def _describe(problem, phases, seed, budget, settings) -> dict[str, Any]:
             "budget": budget.to_dict(), "settings": dataclasses.asdict(settings)}  # fmt: skip
 
 
-def _run(problem, phases, seed, budget, settings, run_dir, resume, progress, placement, record, same_run, label, identity):
+def _run(
+    problem, phases, seed, budget, settings, run_dir, resume, progress, placement, record, same_run, label, identity
+):
     config_path = run_dir / "config.json"
     if config_path.exists():
         if not resume:
@@ -799,7 +813,9 @@ def _run(problem, phases, seed, budget, settings, run_dir, resume, progress, pla
     if not placement.writer:  # other processes compute alike and write nothing
         progress = NoProgressMeter()
     done = read_summary(run_dir) if has_ckpt else None
-    if done and (done["status"] == "diverged" or (done["status"] == "finished" and done.get("budget") == budget.to_dict())):
+    if done and (
+        done["status"] == "diverged" or (done["status"] == "finished" and done.get("budget") == budget.to_dict())
+    ):
         return done  # nothing to do (checked before building data and network)
 
     fidelity = Fidelity.of(problem, settings)
@@ -827,9 +843,13 @@ def _run(problem, phases, seed, budget, settings, run_dir, resume, progress, pla
         run_dir.mkdir(parents=True, exist_ok=True)
         write_json(config_path, record)
         write_json(run_dir / "env.json", {**environment(), "mesh_devices": distributed.mesh_size(placement.mesh)})
-    log = MetricsLog(run_dir / "metrics.csv", keep_until_step=state.step if has_ckpt else None, enabled=placement.writer)
+    log = MetricsLog(
+        run_dir / "metrics.csv", keep_until_step=state.step if has_ckpt else None, enabled=placement.writer
+    )
     recorder = Recorder(setup, settings, placement, fidelity, log)
-    progress.start(budget=budget, steps_per_epoch=setup.steps_per_epoch, step=state.step, train_time=state.train_time, label=label)
+    progress.start(
+        budget=budget, steps_per_epoch=setup.steps_per_epoch, step=state.step, train_time=state.train_time, label=label
+    )
     try:
         state, setup, status, diverged_step, last_finite = _loop(
             state, setup, steps, compiled, StopRule(budget, setup), EvalSchedule(settings), placement, fidelity,
@@ -840,7 +860,10 @@ def _run(problem, phases, seed, budget, settings, run_dir, resume, progress, pla
     if status == "interrupted":  # Ctrl-C: keep what was done, then let it propagate
         checkpointer.save(state)
         if placement.writer:
-            write_json(run_dir / "summary.json", {"status": "interrupted", "steps": state.step, "train_seconds": state.train_time})
+            write_json(
+                run_dir / "summary.json",
+                {"status": "interrupted", "steps": state.step, "train_seconds": state.train_time},
+            )
         raise KeyboardInterrupt
     summary = {**identity, **_finish(state, setup, status, diverged_step, last_finite, recorder, checkpointer, placement,
                                      budget, run_dir)}  # fmt: skip
@@ -877,7 +900,9 @@ def _loop(state, setup, steps, compiled, stop, schedule, placement, fidelity, re
                                                                 train_time=train_time)  # fmt: skip
             if fidelity.name:
                 state = state._replace(solver_iterations=state.solver_iterations + fidelity.iterations(state))
-            boundary = stop.met(state.step, state.train_time) or (stage.steps is not None and state.step == stage.start + stage.steps)
+            boundary = stop.met(state.step, state.train_time) or (
+                stage.steps is not None and state.step == stage.start + stage.steps
+            )
             if schedule.due(state.step, state.train_time, stage, boundary):
                 state, finite = recorder(state, final=stop.met(state.step, state.train_time))
                 if not finite:

@@ -95,7 +95,9 @@ def stagger(centred: Float[Array, "2 n n"]) -> Float[Array, "2 n n"]:
 
 def centre(velocity: Float[Array, "2 n n"]) -> Float[Array, "2 n n"]:
     """A staggered velocity at the cell centres (mean of each cell's two faces)."""
-    return jnp.stack([0.5 * (velocity[0] + jnp.roll(velocity[0], -1, 0)), 0.5 * (velocity[1] + jnp.roll(velocity[1], -1, 1))])
+    return jnp.stack(
+        [0.5 * (velocity[0] + jnp.roll(velocity[0], -1, 0)), 0.5 * (velocity[1] + jnp.roll(velocity[1], -1, 1))]
+    )
 
 
 # --- projection --------------------------------------------------------------------------

@@ -145,9 +145,7 @@ def half_inverse(
         the step ``θ ← θ − η · half_inverse(J, g)``.
     """
     if jacobian.ndim != 2 or grad.shape != jacobian.shape[:1]:
-        raise ValueError(
-            f"half_inverse needs jacobian (m, P) and grad (m,); got {jacobian.shape} and {grad.shape}"
-        )
+        raise ValueError(f"half_inverse needs jacobian (m, P) and grad (m,); got {jacobian.shape} and {grad.shape}")
     if route not in ROUTES:
         raise ValueError(f"unknown route {route!r}; valid choices: {', '.join(ROUTES)}")
     if route == "auto":

@@ -22,9 +22,7 @@ def flat_output(y: Array) -> Array:
     return jnp.ravel(y)
 
 
-def stacked_jacobian(
-    predict: Callable[[PyTree, PyTree], Array], params: PyTree, batch: PyTree
-) -> tuple[Array, Array]:
+def stacked_jacobian(predict: Callable[[PyTree, PyTree], Array], params: PyTree, batch: PyTree) -> tuple[Array, Array]:
     """The joint Jacobian ∂y/∂θ of all samples, rows sample-major, and the outputs.
 
     ``J[i·d + k, j] = ∂ y_i[k] / ∂ θ_j`` where ``d`` is the (flattened) output size, ``i``

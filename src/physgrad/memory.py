@@ -208,7 +208,11 @@ def check_step_fits(
     if step is not None and step > footprint:
         note = "compiled step" + (f"; {note}" if note else "")
     where = "the host" if mine[0].platform == "cpu" else "the device"
-    fit = f"would fit: {' or '.join(suggestions)}" if suggestions else "found no batch size, variant or device count that fits"
+    fit = (
+        f"would fit: {' or '.join(suggestions)}"
+        if suggestions
+        else "found no batch size, variant or device count that fits"
+    )
     raise ConfigError(
         f"{label or 'the'} step needs ~{_size(need * shared)}" + (f" ({note})" if note else "")
         + f" but {where} has {_size(min(free))} available; {fit} (memory_guard=false skips this check)"

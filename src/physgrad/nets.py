@@ -115,7 +115,9 @@ class _DoubleConv(eqx.Module):
     def __init__(self, c_in: int, c_out: int, *, key: PRNGKeyArray, dtype, activation: str = "relu",
                  standardise: bool = False):  # fmt: skip
         k1, k2 = jax.random.split(key)
-        make = _he_conv if standardise else (lambda i, o, k, *, key, dtype: eqx.nn.Conv2d(i, o, k, key=key, dtype=dtype))
+        make = (
+            _he_conv if standardise else (lambda i, o, k, *, key, dtype: eqx.nn.Conv2d(i, o, k, key=key, dtype=dtype))
+        )
         self.first = make(c_in, c_out, 3, key=k1, dtype=dtype)
         self.second = make(c_out, c_out, 3, key=k2, dtype=dtype)
         self.activation = activation
@@ -228,7 +230,9 @@ class ConvResNet(eqx.Module):
 
         keys = jax.random.split(key, 2 * blocks + 2)
         self.conv_in = conv(in_channels, width, keys[0])
-        self.blocks = tuple((conv(width, width, keys[1 + 2 * i]), conv(width, width, keys[2 + 2 * i])) for i in range(blocks))
+        self.blocks = tuple(
+            (conv(width, width, keys[1 + 2 * i]), conv(width, width, keys[2 + 2 * i])) for i in range(blocks)
+        )
         self.conv_out = conv(width, out_channels, keys[-1])
         self.lift_activation = lift_activation
 

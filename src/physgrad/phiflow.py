@@ -207,7 +207,9 @@ def to_field(flow, kind: str, array, domain: Domain):
     if kind == "vector":
         return flow.CenteredGrid(values, **domain.grid_kwargs(flow))
     if domain.boundary != "periodic":
-        raise ValueError("staggered arrays are supported on periodic domains only (other boundaries add a face per axis)")
+        raise ValueError(
+            "staggered arrays are supported on periodic domains only (other boundaries add a face per axis)"
+        )
     return flow.StaggeredGrid(values, **domain.grid_kwargs(flow))
 
 
@@ -419,7 +421,9 @@ def step_fields(marker, velocity, pressure, dt: float, solver_tol: float = 1e-4)
     math, field = flow.math, flow.field
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message=r"Rank deficiency >= 1 detected", category=RuntimeWarning)
-        warnings.filterwarnings("ignore", message=r"Field.closest_values\(\) is deprecated", category=DeprecationWarning)
+        warnings.filterwarnings(
+            "ignore", message=r"Field.closest_values\(\) is deprecated", category=DeprecationWarning
+        )
         e0 = field.mean(velocity**2)
         velocity = flow.advect.mac_cormack(velocity, velocity, dt)
         solve = flow.Solve("CG", 0, solver_tol, x0=pressure)
@@ -477,4 +481,3 @@ __all__ = [
     "step_function",
     "wrap",
 ]
-

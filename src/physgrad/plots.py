@@ -52,7 +52,9 @@ def loss_vs_time(
         if not curves:
             continue
         colour = colours[i % len(colours)]
-        extras = ([f"{len(curves)} seeds"] if len(curves) > 1 else []) + ([notes[method]] if notes and method in notes else [])
+        extras = ([f"{len(curves)} seeds"] if len(curves) > 1 else []) + (
+            [notes[method]] if notes and method in notes else []
+        )
         label = f"{method} ({', '.join(extras)})" if extras else method
         if len(curves) == 1:
             ax.plot(*curves[0], color=colour, label=label, lw=1.5)
@@ -138,7 +140,9 @@ def grid_panels(
             legend.setdefault(label, handle)
     labels = list(legend)
     if labels:
-        fig.legend(list(legend.values()), labels, loc="lower center", ncol=min(len(labels), 4), fontsize=7, frameon=False)
+        fig.legend(
+            list(legend.values()), labels, loc="lower center", ncol=min(len(labels), 4), fontsize=7, frameon=False
+        )
     fig.suptitle(title, fontsize=10)
     fig.tight_layout(rect=(0, 0.04 + 0.035 * math.ceil(len(labels) / 4), 1, 0.95))
     path = Path(path)

@@ -47,7 +47,9 @@ class RichProgressMeter(AbstractProgressMeter):
         self._progress = Progress(
             TextColumn("{task.description}"),
             BarColumn(),
-            TextColumn("step {task.fields[step]}  loss {task.fields[loss]}  train {task.fields[time]}  left {task.fields[left]}"),
+            TextColumn(
+                "step {task.fields[step]}  loss {task.fields[loss]}  train {task.fields[time]}  left {task.fields[left]}"
+            ),
             transient=True,
         )
         self._progress.start()

@@ -188,11 +188,15 @@ def clipping(mode: str, threshold: float) -> optax.GradientTransformation:
     _choose("clip mode", mode, CLIP_MODES)
     if threshold <= 0:
         raise ValueError(f"clip_threshold must be positive, got {threshold}")
-    return {"value": optax.clip(threshold), "norm": optax.clip_by_global_norm(threshold), "none": optax.identity()}[mode]
+    return {"value": optax.clip(threshold), "norm": optax.clip_by_global_norm(threshold), "none": optax.identity()}[
+        mode
+    ]
 
 
 def _rollout_method(policy, clip, clip_threshold, lr, eps, checkpoint):
-    return Method(RolloutGradient(policy, checkpoint), optax.chain(clipping(clip, clip_threshold), optax.adam(lr, eps=eps)))
+    return Method(
+        RolloutGradient(policy, checkpoint), optax.chain(clipping(clip, clip_threshold), optax.adam(lr, eps=eps))
+    )
 
 
 def bptt(*, clip: str = "value", clip_threshold: float = 1.0, lr: float = 1e-3, eps: float = 1e-7,
@@ -231,7 +235,12 @@ def parse_list(text: str, kind, name: str) -> tuple:
 
 def _unrolled(policy, teacher_forcing, *, m, checkpoint=False, curriculum="", stage_lr="", **options):
     rule = UnrolledGradient(policy, teacher_forcing, m, checkpoint)
-    return Unrolled(rule, curriculum=parse_list(curriculum, int, "curriculum"), stage_lr=parse_list(stage_lr, float, "stage_lr"), **options)
+    return Unrolled(
+        rule,
+        curriculum=parse_list(curriculum, int, "curriculum"),
+        stage_lr=parse_list(stage_lr, float, "stage_lr"),
+        **options,
+    )
 
 
 def one(*, lr: float = 1e-3, lr_warmup: int = 0, decay: float = 1.0, decay_every: int = 0, clip: float = 0.0,
@@ -339,11 +348,25 @@ class _Methods(dict):
 
 
 PROBLEMS: dict[str, type[AbstractProblem]] = {
-    cls.name: cls for cls in (
-        HigToy, Oscillators, QuantumDipole, PoissonHig, LinearOscillators,
-        Toy2d, ExpInverse, Sine, Poisson, Heat, NavierStokes,
-        CartPole, Guidance, QuantumControl,
-        KuramotoSivashinsky, Kolmogorov, Advection1d,
+    cls.name: cls
+    for cls in (
+        HigToy,
+        Oscillators,
+        QuantumDipole,
+        PoissonHig,
+        LinearOscillators,
+        Toy2d,
+        ExpInverse,
+        Sine,
+        Poisson,
+        Heat,
+        NavierStokes,
+        CartPole,
+        Guidance,
+        QuantumControl,
+        KuramotoSivashinsky,
+        Kolmogorov,
+        Advection1d,
     )  # fmt: skip
 }
 

@@ -249,7 +249,9 @@ def _assemble(params, pieces: dict, cast: bool = True) -> jax.Array:
     """The flat direction (P,) in ``ravel_pytree`` order from per-leaf pieces (cast to
     each leaf's dtype, or kept as they are)."""
     leaves = jax.tree.leaves(params)
-    return jnp.concatenate([pieces[k].reshape(-1).astype(x.dtype if cast else pieces[k].dtype) for k, x in enumerate(leaves)])
+    return jnp.concatenate(
+        [pieces[k].reshape(-1).astype(x.dtype if cast else pieces[k].dtype) for k, x in enumerate(leaves)]
+    )
 
 
 def _structured_direction(objective, params, batch, chunk_elements, exponent, truncation):

@@ -225,5 +225,7 @@ def format_tests(rows: list[dict[str, Any]], cell: str = "") -> list[list[str]]:
         else:
             cells = [count, f"{100 * float(r['a_lower']):.0f}%", f"{r['seeds_a_lower']}/{r['seeds']}",
                      format_ratio(float(r["ratio"])), format_p(float(r["p_value"]))]  # fmt: skip
-        lines.append(([cell] if cell else []) + [f"{r['method_a']} vs {r['method_b']}", r["metric"], diverged_note(r)] + cells)
+        lines.append(
+            ([cell] if cell else []) + [f"{r['method_a']} vs {r['method_b']}", r["metric"], diverged_note(r)] + cells
+        )
     return lines

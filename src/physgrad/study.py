@@ -164,7 +164,9 @@ def collect(out: str | Path) -> list[dict[str, Any]]:
         rows.append({**{k: summary.get(k) for k in SUMMARY_COLUMNS}, **ident, "run_dir": str(run_dir.relative_to(out))})
         results += [{**ident, **r} for r in read_metrics(run_dir / "metrics.csv")]
     _write_csv(out / "summary.csv", SUMMARY_COLUMNS, rows)
-    _write_csv(out / "results.csv", ("problem", "method", "seed", "step", "wall_time", "split", "metric", "value"), results)
+    _write_csv(
+        out / "results.csv", ("problem", "method", "seed", "step", "wall_time", "split", "metric", "value"), results
+    )
     return rows
 
 
@@ -414,8 +416,14 @@ def compare_grid(
     out.mkdir(parents=True, exist_ok=True)
     (out / "grid.json").write_text(
         json.dumps(
-            {"problem": problem, "methods": list(methods or PROBLEMS[problem].default_methods), "seeds": list(seeds),
-             "budget": budget.to_dict(), "settings": fixed, "grid": grid},
+            {
+                "problem": problem,
+                "methods": list(methods or PROBLEMS[problem].default_methods),
+                "seeds": list(seeds),
+                "budget": budget.to_dict(),
+                "settings": fixed,
+                "grid": grid,
+            },
             indent=2,
         )  # fmt: skip
         + "\n"
@@ -483,7 +491,15 @@ def grid_report(
             final = f"{fm:.3e} ± {fs:.1e}" if math.isfinite(fm) else "all diverged"
             lines.append([label, t["method"], runs, final, f"{bm:.3e} ± {bs:.1e}", f"{t['ms_per_step']:.2f}"])
         curves.append((cell, results))
-    columns = list(grid) + ["method", "runs", "diverged", "final_test_loss", "final_test_loss_std", "best_test_loss", "ms_per_step"]
+    columns = list(grid) + [
+        "method",
+        "runs",
+        "diverged",
+        "final_test_loss",
+        "final_test_loss_std",
+        "best_test_loss",
+        "ms_per_step",
+    ]
     _write_csv(out / "grid_summary.csv", columns, rows)
     suffix = "" if metric == "loss" else f"_{metric}"
     smoothing = f", {smooth}-epoch moving average" if smooth > 1 else ""

@@ -25,6 +25,8 @@ class Analytic(AbstractInverseSolver):
 
     def __call__(self, simulate, x, y, y_target, sample):
         if self.fn is None:
-            raise ValueError("Analytic() without fn needs the problem's inverse; pass Analytic(fn) or use it through sip")
+            raise ValueError(
+                "Analytic() without fn needs the problem's inverse; pass Analytic(fn) or use it through sip"
+            )
         x_new = self.fn(x, y, y_target, sample)
         return InverseResult(x_new, all_finite(x_new))

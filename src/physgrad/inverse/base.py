@@ -75,6 +75,3 @@ def half_squared_misfit(forward, y_target_flat):
         return 0.5 * jnp.sum((forward(x_flat) - y_target_flat) ** 2)
 
     return objective
-
-
-

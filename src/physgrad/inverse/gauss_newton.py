@@ -43,4 +43,3 @@ class GaussNewton(AbstractInverseSolver):
         step = jnp.linalg.pinv(jac, rtol=self.rcond) @ residual
         x_new = (x_flat + step).reshape(x.shape)
         return InverseResult(x_new, all_finite(x_new))
-

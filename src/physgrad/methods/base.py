@@ -90,7 +90,9 @@ class Objective(NamedTuple):
         """Raise the one-line error of a rule that back-propagates through ``predict``
         when the problem declares its solver non-differentiable."""
         if not self.differentiable:
-            raise ValueError("this method differentiates through the solver, which is not differentiable; use nog or one")
+            raise ValueError(
+                "this method differentiates through the solver, which is not differentiable; use nog or one"
+            )
 
     def sample_losses(self, params: PyTree, batch: PyTree) -> Array:
         predict, loss = required(self.predict, "predict"), required(self.loss, "loss")

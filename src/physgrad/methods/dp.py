@@ -57,7 +57,9 @@ class LossAwareDP(Method):
     def __check_init__(self):
         unknown = set(self.extras) - {"value", "grad", "value_fn", "obj_fn"}
         if unknown:
-            raise ValueError(f"unknown optimizer extras {sorted(unknown)}; valid choices: grad, obj_fn, value, value_fn")
+            raise ValueError(
+                f"unknown optimizer extras {sorted(unknown)}; valid choices: grad, obj_fn, value, value_fn"
+            )
 
     def step(self, objective, params, state, batch):
         direction, stats = self.rule(objective, params, batch)

@@ -61,7 +61,9 @@ class JacobianPower(AbstractRule):
         with ever more sample groups), then lanczos (approximate). Settings as the command
         line names them (``--set route=blockgram --set blocks=16``)."""
         exact = [("route=structured", Structured()), ("route=gram", Gram()), ("route=svd", SVD())]
-        groups = [(f"route=blockgram blocks={k}", BlockGram(k)) for k in range(2, batch_size + 1) if batch_size % k == 0]
+        groups = [
+            (f"route=blockgram blocks={k}", BlockGram(k)) for k in range(2, batch_size + 1) if batch_size % k == 0
+        ]
         variants = exact + groups + [("route=lanczos", Lanczos())]
         return [(setting, dataclasses.replace(self, route=route)) for setting, route in variants if route != self.route]
 

@@ -192,8 +192,11 @@ def _graph_patterns():
 
     ours = tuple(
         tgm.GraphPattern(
-            name=name, tag_primitive=kfac_jax.layers_and_loss_tags.layer_tag, compute_func=func,
-            parameters_extractor_func=_dense_parameters, example_args=[np.zeros((2, 3)), [np.zeros(s) for s in shapes]],  # pyright: ignore[reportArgumentType]  # kfac-jax types them as JAX arrays; NumPy ones trace the same
+            name=name,
+            tag_primitive=kfac_jax.layers_and_loss_tags.layer_tag,
+            compute_func=func,
+            parameters_extractor_func=_dense_parameters,
+            example_args=[np.zeros((2, 3)), [np.zeros(s) for s in shapes]],  # pyright: ignore[reportArgumentType]  # kfac-jax types them as JAX arrays; NumPy ones trace the same
         )  # fmt: skip
         for name, func, shapes in (
             ("equinox_dense_with_bias", _dense_with_bias, ((3, 4), (4,))),
@@ -317,7 +320,9 @@ class KFAC(AbstractMethod):
     def step(self, objective, params, state, batch):
         real = jnp.result_type(*[leaf.dtype for leaf in jax.tree.leaves(params)])
         if any(jnp.iscomplexobj(leaf) for leaf in jax.tree.leaves(params)):
-            raise ValueError("kfac: the network has complex parameters, which kfac-jax does not support; use gn, hig or adam")
+            raise ValueError(
+                "kfac: the network has complex parameters, which kfac-jax does not support; use gn, hig or adam"
+            )
         # Checked on one sample before kfac-jax traces anything (a plain call: no JAX
         # boundary adds to the message when the step is called outside a jit).
         predict, loss = required(objective.predict, "predict"), required(objective.loss, "loss")

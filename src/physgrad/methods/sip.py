@@ -106,7 +106,9 @@ class ScaleInvariantPhysics(AbstractRule):
             y_, y_star = cast(y), cast(jax.vmap(objective.target)(batch))
             # (1 − η) y + η y*, not y + η (y* − y): exactly y* at η = 1 even when y* ≪ y.
             y_target = (1 - self.eta) * y_ + self.eta * y_star
-            result = jax.vmap(lambda *a: solver(objective.simulate, *a))(cast(x), y_, y_target, jax.tree.map(cast, batch))
+            result = jax.vmap(lambda *a: solver(objective.simulate, *a))(
+                cast(x), y_, y_target, jax.tree.map(cast, batch)
+            )
             ok = result.converged & jnp.all(jnp.isfinite(result.x.reshape(x.shape[0], -1)), axis=1)
             x_new = result.x.astype(x.dtype)
         mask = ok.reshape((-1,) + (1,) * (x.ndim - 1))

@@ -43,7 +43,9 @@ class RolloutGradient(AbstractRule):
             )
         differentiates_physics = isinstance(self.policy, Combined) or not self.policy.stop_physics
         if differentiates_physics and not objective.rollout.differentiable_physics:
-            raise ValueError("this method differentiates through the solver, which is not differentiable; use no_temporal")
+            raise ValueError(
+                "this method differentiates through the solver, which is not differentiable; use no_temporal"
+            )
 
     def gradient(self, system, params, s0):
         """(loss, gradient, extra statistics) of one batch of initial states."""

@@ -62,7 +62,9 @@ class UnrolledGradient(AbstractRule):
 
     def check(self, objective):
         if objective.unrolled is None:
-            raise ValueError("this method trains a neural time-stepper; use a time-stepper problem (ks, kolmogorov, advection_1d)")
+            raise ValueError(
+                "this method trains a neural time-stepper; use a time-stepper problem (ks, kolmogorov, advection_1d)"
+            )
         system = self.system(objective)
         if not system.differentiable_physics and not self.teacher_forcing and not self.policy.stop_physics:
             raise ValueError(
@@ -87,14 +89,20 @@ def unrolled(system, *, policy: GradientFlow = S(), checkpoint: bool = False) ->
     :class:`physgrad.rollout.System`; its final state may carry an ``"ok"`` flag per sample
     (solver failures), reported as ``stats["solver_ok"]``.
     """
-    return Estimator(UnrolledGradient(policy, False, 0, checkpoint), Objective(unrolled=lambda m=None, tf=False: system))
+    return Estimator(
+        UnrolledGradient(policy, False, 0, checkpoint), Objective(unrolled=lambda m=None, tf=False: system)
+    )
 
 
 def schedule(lr: float, warmup: int = 0, decay: float = 1.0, every: int = 0) -> optax.Schedule:
     """``lr · min(1, (t+1)/warmup) · decay^⌊t/every⌋`` from optax's schedules (t = updates
     applied so far): a linear warm-up over the first ``warmup`` updates (KOLM: 64·m) times
     a staircase exponential decay (KS: 0.9 every 2000)."""
-    decayed = optax.exponential_decay(lr, every, decay, staircase=True) if every and decay != 1.0 else optax.constant_schedule(lr)
+    decayed = (
+        optax.exponential_decay(lr, every, decay, staircase=True)
+        if every and decay != 1.0
+        else optax.constant_schedule(lr)
+    )
     if not warmup:
         return decayed
     ramp = optax.linear_schedule(1.0 / warmup, 1.0, max(warmup - 1, 1))
@@ -146,7 +154,9 @@ class Unrolled(AbstractMethod):
         lrs = self.stage_lr or (self.lr,) * len(self.curriculum)
         out = []
         for i, (m, lr) in enumerate(zip(self.curriculum, lrs)):
-            stage = dataclasses.replace(self, rule=dataclasses.replace(self.rule, m=m), lr=lr, curriculum=(), stage_lr=())
+            stage = dataclasses.replace(
+                self, rule=dataclasses.replace(self.rule, m=m), lr=lr, curriculum=(), stage_lr=()
+            )
             out.append((stage, None if i == len(self.curriculum) - 1 else self.stage_epochs))
         return out
 
@@ -184,7 +194,11 @@ class Unrolled(AbstractMethod):
         if self.skip_solver_failure:  # no update at all where the solver failed
             keep = lambda new, old: jax.tree.map(lambda a, b: jnp.where(solver_ok, a, b), new, old)  # noqa: E731
             new_params, new_state = keep(new_params, params), keep(new_state, state)
-        accept = (finite | (not self.skip_nan)) & (within | (not self.norm_guard)) & (solver_ok | (not self.skip_solver_failure))
+        accept = (
+            (finite | (not self.skip_nan))
+            & (within | (not self.norm_guard))
+            & (solver_ok | (not self.skip_solver_failure))
+        )
         skipped = ~accept
         stats.update(
             skipped=skipped.astype(jnp.float32),

@@ -21,4 +21,25 @@ from .sine import Sine
 from .time_stepper import TimeStepperProblem
 from .toy2d import Toy2d
 
-__all__ = ["TimeStepperProblem", "KuramotoSivashinsky", "Kolmogorov", "Advection1d", "AbstractProblem", "CartPole", "ClosedLoopProblem", "Guidance", "QuantumControl", "ExpInverse", "Heat", "Poisson", "Sine", "Toy2d", "HigToy", "LinearOscillators", "NavierStokes", "Oscillators", "PoissonHig", "QuantumDipole"]
+__all__ = [
+    "TimeStepperProblem",
+    "KuramotoSivashinsky",
+    "Kolmogorov",
+    "Advection1d",
+    "AbstractProblem",
+    "CartPole",
+    "ClosedLoopProblem",
+    "Guidance",
+    "QuantumControl",
+    "ExpInverse",
+    "Heat",
+    "Poisson",
+    "Sine",
+    "Toy2d",
+    "HigToy",
+    "LinearOscillators",
+    "NavierStokes",
+    "Oscillators",
+    "PoissonHig",
+    "QuantumDipole",
+]

@@ -56,7 +56,9 @@ def fou_distance(network, cfl: float = -0.75) -> float:
 
 class Advection1d(TimeStepperProblem):
     name: ClassVar[str] = "advection_1d"
-    description: ClassVar[str] = "1D advection at CFL -0.75: a 2-tap linear stencil (trainax quick-start), PRDP smoke test"
+    description: ClassVar[str] = (
+        "1D advection at CFL -0.75: a 2-tap linear stencil (trainax quick-start), PRDP smoke test"
+    )
     source: ClassVar[str] = "trainax README; List et al. 2025; Bhatia et al. ICLR 2025"
     extra: ClassVar[str | None] = "pde"  # exponax (the reference)
     method_defaults: ClassVar[dict] = {name: {"lr": 1e-2, "batch_size": 32} for name in ("one", "nog", "wig", "adam")}
@@ -104,8 +106,9 @@ class Advection1d(TimeStepperProblem):
         return {"u": u, "cond": np.zeros(count, np.float32), "index": np.zeros(count, np.int32)}
 
     def make_network(self, key):
-        return eqx.nn.Conv1d(1, 1, 2, padding="SAME", padding_mode="CIRCULAR", use_bias=False, dtype=jnp.float32, key=key)
+        return eqx.nn.Conv1d(
+            1, 1, 2, padding="SAME", padding_mode="CIRCULAR", use_bias=False, dtype=jnp.float32, key=key
+        )
 
     def apply(self, network, u, cond):
         return network(u)
-

@@ -120,6 +120,7 @@ class AbstractProblem(eqx.Module):
 
     def check_refinable(self) -> None:
         """Raise ``ValueError`` if this instance's solver cannot be refined (PRDP)."""
+
     default_eval_samples: ClassVar[int] = 0  # evaluate the train split on a strided subset of this size
 
     @classmethod
@@ -131,4 +132,3 @@ class AbstractProblem(eqx.Module):
     def settings(cls) -> dict[str, Any]:
         """The problem's settings (dataclass fields) and their defaults."""
         return {f.name: f.default for f in dataclasses.fields(cls) if f.default is not dataclasses.MISSING}
-

@@ -113,8 +113,10 @@ class ClosedLoopProblem(AbstractProblem):
 
     def objective(self, static):
         """The open-loop pieces and the rollout system (BPTT and its variants)."""
-        return super().objective(static)._replace(
-            rollout=self.system(lambda p, s: self.control(eqx.combine(p, static), s))
+        return (
+            super()
+            .objective(static)
+            ._replace(rollout=self.system(lambda p, s: self.control(eqx.combine(p, static), s)))
         )
 
     def system(self, control) -> System:

@@ -115,7 +115,9 @@ class Heat(AbstractProblem):
     n_test: int = eqx.field(static=True, default=128)
 
     name: ClassVar[str] = "heat"
-    description: ClassVar[str] = "SIP paper: recover box-shaped heat from its 64x64 periodic diffusion (nu t = 8), U-Net"
+    description: ClassVar[str] = (
+        "SIP paper: recover box-shaped heat from its 64x64 periodic diffusion (nu t = 8), U-Net"
+    )
     source: ClassVar[str] = "Holl et al., NeurIPS 2022, Fig. 6c,d"
     default_batch_size: ClassVar[int] = 128
     method_defaults: ClassVar[dict] = {

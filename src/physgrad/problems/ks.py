@@ -52,7 +52,9 @@ def ks_stepper(factor: float, n: int, dt: float, order: int):
 
 class KuramotoSivashinsky(TimeStepperProblem):
     name: ClassVar[str] = "ks"
-    description: ClassVar[str] = "Kuramoto-Sivashinsky N=48: ETD1 + conv ResNet vs ETRK2 reference, domain size as input"
+    description: ClassVar[str] = (
+        "Kuramoto-Sivashinsky N=48: ETD1 + conv ResNet vs ETRK2 reference, domain size as input"
+    )
     source: ClassVar[str] = "List et al., CMAME 2025"
     extra: ClassVar[str | None] = "pde"  # exponax
     # Adam 1e-4 with ExponentialLR γ = 0.9 every 2000 iterations, batch 16 (the KS code)

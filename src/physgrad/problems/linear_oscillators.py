@@ -46,7 +46,9 @@ class LinearOscillators(Oscillators):
     activation: str = eqx.field(static=True, default="tanh")
 
     name: ClassVar[str] = "linear_oscillators"
-    description: ClassVar[str] = "PBDL book: 2 linearly coupled oscillators, RK4 0.5 x 24, learn 24 controls to return to start"
+    description: ClassVar[str] = (
+        "PBDL book: 2 linearly coupled oscillators, RK4 0.5 x 24, learn 24 controls to return to start"
+    )
     source: ClassVar[str] = "PBDL book, physgrad-hig-code.ipynb"
     default_batch_size: ClassVar[int] = 32
     method_defaults: ClassVar[dict] = {

@@ -80,11 +80,7 @@ class Oscillators(AbstractProblem):
         # Differences to the right neighbour; the last oscillator has none (free end).
         right = jnp.concatenate([q[1:] - q[:-1], jnp.zeros_like(q[:1])])
         left = jnp.concatenate([jnp.zeros_like(q[:1]), q[:-1] - q[1:]])
-        force = (
-            -q
-            + self.cubic_coupling * (right**3 + left**3)
-            + self.linear_coupling * (right + left)
-        )
+        force = -q + self.cubic_coupling * (right**3 + left**3) + self.linear_coupling * (right + left)
         force = force.at[n - 1].add(self.control_gain * control)
         return jnp.concatenate([p, force])
 

@@ -74,7 +74,9 @@ class Poisson(AbstractProblem):
     dtype: str = eqx.field(static=True, default="float32")
 
     name: ClassVar[str] = "poisson"
-    description: ClassVar[str] = "SIP paper: recover x from the solution of laplace(y) = x on 64x64 (zero padding), U-Net"
+    description: ClassVar[str] = (
+        "SIP paper: recover x from the solution of laplace(y) = x on 64x64 (zero padding), U-Net"
+    )
     source: ClassVar[str] = "Holl et al., NeurIPS 2022, Fig. 6a,b"
     default_batch_size: ClassVar[int] = 128
     method_defaults: ClassVar[dict] = {
@@ -92,6 +94,7 @@ class Poisson(AbstractProblem):
     def make_data(self, key):
         if self.needs_float64:
             require_float64(f"{self.name} with dtype={self.dtype}")
+
         def draw(k, n):
             x_gt = phiflow_noise(k, (n, self.resolution, self.resolution), scale=self.noise_scale,
                                  smoothness=self.noise_smoothness, dtype=jnp.dtype(self.dtype))  # fmt: skip

@@ -100,6 +100,7 @@ class PoissonHig(AbstractProblem):
     def make_data(self, key):
         if self.needs_float64:
             require_float64(f"{self.name} with dtype={self.dtype}")
+
         def draw(k, n):
             x_gt = phiflow_noise(
                 k, (n, self.resolution, self.resolution), scale=self.noise_scale,

@@ -117,7 +117,9 @@ class QuantumDipole(AbstractProblem):
         rhs = psi - half * h_psi
         ctype = self.complex_dtype
         solved = jax.lax.linalg.tridiagonal_solve(
-            (half * lower).astype(ctype), (1.0 + half * diagonal).astype(ctype), (half * upper).astype(ctype),
+            (half * lower).astype(ctype),
+            (1.0 + half * diagonal).astype(ctype),
+            (half * upper).astype(ctype),
             rhs.astype(ctype)[:, None],
         )
         return solved[:, 0]

@@ -41,12 +41,20 @@ class Sine(AbstractProblem):
     n_test: int = eqx.field(static=True, default=1024)
 
     name: ClassVar[str] = "sine"
-    description: ClassVar[str] = "SIP paper Fig. 5: invert the rotated ill-conditioned sine (settings xi, phi), relu 32-64-32"
+    description: ClassVar[str] = (
+        "SIP paper Fig. 5: invert the rotated ill-conditioned sine (settings xi, phi), relu 32-64-32"
+    )
     source: ClassVar[str] = "Holl et al., NeurIPS 2022, Fig. 5"
     default_batch_size: ClassVar[int] = 100
     method_defaults: ClassVar[dict] = {
         "adam": {"lr": 1e-3},
-        "sip": {"lr": 1e-3, "solver": "saddle_free_newton", "max_loss_change": 0.2, "proxy": "l1", "precision": "float64"},
+        "sip": {
+            "lr": 1e-3,
+            "solver": "saddle_free_newton",
+            "max_loss_change": 0.2,
+            "proxy": "l1",
+            "precision": "float64",
+        },
         "sgd": {"lr": 1e-4},
         "adadelta": {"lr": 3e-3},
         "adagrad": {"lr": 3e-3},

@@ -155,6 +155,7 @@ class TimeStepperProblem(AbstractProblem):
         net = self.make_network(key)
         if not self.zero_init:
             return net
+
         # the ResNets' output convolution, or a single-layer network itself
         def last(n):
             return n.conv_out if hasattr(n, "conv_out") else n
@@ -195,7 +196,9 @@ class TimeStepperProblem(AbstractProblem):
             solver = select(solvers, index) if isinstance(solvers, tuple) else solvers
             if not self.differentiable_solver:
                 solver = NonDifferentiable(solver)
-        return stepper_step(self.setup, self.stepper_composition, solver, network_fn, u_net, u_phys, cond, self.network_scale)
+        return stepper_step(
+            self.setup, self.stepper_composition, solver, network_fn, u_net, u_phys, cond, self.network_scale
+        )
 
     def system(self, apply, m: int | None = None, teacher_forcing: bool = False) -> System:
         """The rollout :class:`~physgrad.rollout.System` over a batch of windows, with
@@ -243,8 +246,10 @@ class TimeStepperProblem(AbstractProblem):
             return self.system(apply, m, teacher_forcing)
 
         rollout = unrolled()
-        return super().objective(static)._replace(
-            rollout=rollout, unrolled=unrolled, differentiable=rollout.differentiable_physics
+        return (
+            super()
+            .objective(static)
+            ._replace(rollout=rollout, unrolled=unrolled, differentiable=rollout.differentiable_physics)
         )
 
     # --- the open-loop contract and the metrics -------------------------------------------

@@ -195,7 +195,9 @@ def joint_gradients(
         return s_next, (step_loss, s if checkpoint else split(pullback))
 
     _, (step_losses, saved) = jax.lax.scan(forward, s0, steps)
-    masks = jax.vmap(lambda k: jnp.stack([base.loss_mask(k) * jnp.ones(()), comparison.loss_mask(k) * jnp.ones(())]))(steps)
+    masks = jax.vmap(lambda k: jnp.stack([base.loss_mask(k) * jnp.ones(()), comparison.loss_mask(k) * jnp.ones(())]))(
+        steps
+    )
     # (m, 2): w_k · mask_k for (base, comparison), in the dtype of the step losses
     weights = (system.weights[:, None] * masks).astype(step_losses.dtype)
     loss = jnp.sum(weights[:, 1] * step_losses).astype(system.weights.dtype)
