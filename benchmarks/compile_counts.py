@@ -46,15 +46,20 @@ def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--demo-seconds", type=float, default=5.0, help="the demo's training seconds per run")
     parser.add_argument("--steps", type=int, default=50, help="steps per run of the comparison")
+    parser.add_argument("--only", choices=("demo", "compare"), help="run one of the two (each in a fresh process)")
     args = parser.parse_args()
-    print(f"physgrad {getattr(physgrad, '__version__', '?')} from {Path(physgrad.__file__).parent}, jax {jax.__version__}")
+    print(
+        f"physgrad {getattr(physgrad, '__version__', '?')} from {Path(physgrad.__file__).parent}, jax {jax.__version__}"
+    )
     counter = Counter()
     with tempfile.TemporaryDirectory() as out:
-        measure(counter, f"demo (--seconds {args.demo_seconds:g})", ["demo", "--out", f"{out}/demo", "--seconds",
-                                                                      str(args.demo_seconds)])  # fmt: skip
-        measure(counter, f"compare oscillators adam,gn,hig x 3 seeds", [
-            "compare", "oscillators", "--methods", "adam,gn,hig", "--seeds", "3", "--steps", str(args.steps),
-            "--out", f"{out}/compare", "--quiet"])  # fmt: skip
+        if args.only != "compare":
+            demo = ["demo", "--out", f"{out}/demo", "--seconds", str(args.demo_seconds)]
+            measure(counter, f"demo (--seconds {args.demo_seconds:g})", demo)
+        if args.only != "demo":
+            compare = ["compare", "oscillators", "--methods", "adam,gn,hig", "--seeds", "3", "--steps", str(args.steps),
+                       "--out", f"{out}/compare", "--quiet"]  # fmt: skip
+            measure(counter, "compare oscillators adam,gn,hig x 3 seeds", compare)
 
 
 if __name__ == "__main__":

@@ -144,6 +144,7 @@ def test_a_failing_run_is_recorded_and_the_problem_goes_on(tmp_path, monkeypatch
     assert table["hig"]["status"] == "failed" and table["adam"]["rank"] == 1
 
 
+@pytest.mark.slow
 def test_bench_cli_end_to_end_and_resume(tmp_path, capsys):
     out = tmp_path / "bench"
     argv = ["bench", "--problems", "hig_toy,toy2d", "--methods", "adam,sgd,bptt", "--steps", "3", "--seeds", "1",

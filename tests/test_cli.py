@@ -226,6 +226,7 @@ def test_rich_progress_meter_runs_through_a_training_run(tmp_path):
     assert summary["steps"] == 8 and meter._progress is None  # closed
 
 
+@pytest.mark.slow
 def test_demo_runs_and_prints_its_settings_and_ratio(tmp_path, capsys):
     assert main(["demo", "--seconds", "0.3", "--out", str(tmp_path / "demo")]) == 0
     out = capsys.readouterr().out

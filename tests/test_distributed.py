@@ -248,6 +248,7 @@ def free_port():
         return s.getsockname()[1]
 
 
+@pytest.mark.slow
 def test_two_process_loopback_run_matches_a_single_process_run(tmp_path):
     """The README's example: two `physgrad train` processes (1 CPU device each) over
     127.0.0.1 train one run; process 0 writes it; it equals the single-process run."""

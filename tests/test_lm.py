@@ -149,6 +149,7 @@ def test_lm_step_accepts_good_steps_and_rejects_bad_ones():
     assert float(state2.damping) == pytest.approx(2e-2) and float(state2.growth) == 4.0
 
 
+@pytest.mark.slow
 def test_lm_trains_an_open_loop_problem_from_the_command_line(tmp_path, capsys):
     out = tmp_path / "study"
     settings = ["--set", "n_steps=8", "--set", "hidden=6", "--set", "n_train=64", "--set", "n_test=32",

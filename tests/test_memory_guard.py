@@ -200,6 +200,7 @@ def test_cli_memory_guard_setting(tmp_path, capsys, available):
     assert main(args) == 0
 
 
+@pytest.mark.slow
 def test_cli_refuses_hig_on_heat_in_seconds(tmp_path, capsys):
     """The issue's case: one line, exit 2, no traceback, before generating the data."""
     t0 = time.perf_counter()

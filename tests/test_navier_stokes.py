@@ -105,6 +105,7 @@ def test_inverse_at_the_truth_stays_near_it(problem, samples):
         assert rel < 0.02, rel
 
 
+@pytest.mark.slow
 def test_compare_adam_and_sip_from_the_command_line(tmp_path, monkeypatch, capsys):
     monkeypatch.setenv("PHYSGRAD_CACHE", str(tmp_path / "cache"))
     settings = [f"--set={k}={v}" for k, v in SMALL.items()] + ["--set=batch_size=4", "--set=eval_every=2"]
@@ -117,6 +118,7 @@ def test_compare_adam_and_sip_from_the_command_line(tmp_path, monkeypatch, capsy
     assert "valid choices: fft, cg" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_phiflow_simulator_trains_the_same_problem(tmp_path, monkeypatch, capsys):
     """The README's command on a small grid: adam back-propagates through PhiFlow's step and
     sip runs the authors' inverse with it (data from the JAX fluid with PhiFlow's limiter)."""
@@ -151,7 +153,8 @@ def test_weight_standardisation_equals_numpy_and_is_scale_invariant():
     net = UNet(2, 2, levels=3, filters=4, key=jax.random.key(0), activation="leaky_relu", weight_standardisation=True)
     scaled = eqx.tree_at(lambda n: n.down[1].first.weight, net, 7.0 * net.down[1].first.weight)
     x = jax.random.uniform(jax.random.key(1), (2, 16, 16))
-    np.testing.assert_allclose(np.asarray(scaled(x)), np.asarray(net(x)), rtol=1e-4, atol=1e-5)
+    apply = eqx.filter_jit(lambda n, x: n(x))  # one program, not hundreds of eager ops
+    np.testing.assert_allclose(np.asarray(apply(scaled, x)), np.asarray(apply(net, x)), rtol=1e-4, atol=1e-5)
 
 
 def test_default_network_keeps_its_channels_alive_under_sip(problem, samples):

@@ -249,6 +249,7 @@ def test_rollout_methods_refuse_open_loop_problems_and_bad_clip_modes():
         make_config("cartpole", "sbptt_c", budget=Budget(steps=1), settings={"clip": "max"})
 
 
+@pytest.mark.slow
 def test_cli_sweep_runs_every_cell_and_draws_panels(tmp_path, capsys):
     out = tmp_path / "grid"
     code = main(["compare", "cartpole", "--methods", "bptt,sbptt_c", "--steps", "4", "--set", "poles=1,2",
