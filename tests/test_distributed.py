@@ -79,7 +79,15 @@ def relative_update_difference(start, a, b):
 
 
 @needs_devices
-@pytest.mark.parametrize("method", sorted(METHODS))
+# make test runs one method per sharded code path (DP/optax, Jacobian rules, SIP, the rollout
+# policies, the unrolled modalities); the other methods take the same paths and run in the
+# slow tier, as does kfac (kfac-jax's own curvature blocks, compiled twice: minutes).
+FAST_SHARDED = {"adam", "gn", "hig", "lm", "sip", "sbptt_c", "one", "wig"}
+
+
+@pytest.mark.parametrize(
+    "method", [m if m in FAST_SHARDED else pytest.param(m, marks=pytest.mark.slow) for m in sorted(METHODS)]
+)
 def test_every_method_sharded_over_4_devices_gives_the_single_device_update(method):
     problem, settings = problem_for(method)
     start, single, loss1 = one_step(problem, method, settings, 1)
@@ -92,7 +100,9 @@ def test_every_method_sharded_over_4_devices_gives_the_single_device_update(meth
 
 
 @needs_devices
-@pytest.mark.parametrize("route", ["gram", "svd", "structured", "blockgram", "lanczos"])
+# the matrix-free routes' sharded paths in the slow tier (each is compared with the Gram route
+# on one device by test_lanczos_and_blockgram_inside_the_hig_method_match_the_gram_route)
+@pytest.mark.parametrize("route", ["gram", "structured", *(pytest.param(r, marks=pytest.mark.slow) for r in ("svd", "blockgram", "lanczos"))])
 def test_hig_routes_sharded_over_4_devices(route):
     settings = {**OSC, "route": route, "blocks": "4", "lanczos_steps": "200", "truncation": "1e-3"}
     start, single, _ = one_step("oscillators", "hig", settings, 1)
@@ -101,7 +111,7 @@ def test_hig_routes_sharded_over_4_devices(route):
 
 
 @needs_devices
-@pytest.mark.parametrize("route", ["gram", "structured", "auto"])
+@pytest.mark.parametrize("route", ["gram", pytest.param("structured", marks=pytest.mark.slow), "auto"])  # auto: structured here
 def test_sharded_hig_step_uses_the_ring_not_a_gathered_jacobian(route):
     """The compiled 4-device step passes row blocks around (collective-permute) and never
     holds all of J: the Gram route holds its own rows of J, the structured route (which
@@ -230,6 +240,7 @@ def test_devices_setting_errors_are_one_line():
 
 
 @needs_devices
+@pytest.mark.slow
 def test_training_on_4_devices_matches_one_device(tmp_path):
     settings = {**OSC, "eval_every": "5", "truncation": "1e-3"}  # τ: see problem_for
     config = make_config("oscillators", "hig", budget=Budget(steps=5), settings=settings)

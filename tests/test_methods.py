@@ -67,7 +67,14 @@ ROLLOUT_METHODS = ("bptt", "sbptt_m", "sbptt_c", "no_temporal")
 STEPPER_METHODS = ("one", "nog", "wig")
 
 
-@pytest.mark.parametrize("method", sorted(METHODS))
+# make test: one method per update-rule family; the rest (more optax optimizers, newton, the
+# other rollout policies and modalities, kfac) in the slow tier
+FAST_METHODS = {"adam", "gn", "hig", "lm", "sip", "sbptt_c", "one", "wig"}
+
+
+@pytest.mark.parametrize(
+    "method", [m if m in FAST_METHODS else pytest.param(m, marks=pytest.mark.slow) for m in sorted(METHODS)]
+)
 def test_every_method_lowers_the_loss_in_float32_without_recompiling(method):
     settings = {k: v for k, v in TINY.items() if k != "dtype"}
     if method == "gn":

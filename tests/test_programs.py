@@ -103,24 +103,29 @@ def test_program_cache_keys_and_eviction():
 
 def test_persistent_compilation_cache_from_the_command_line(tmp_path):
     """``--compilation-cache DIR`` turns on JAX's persistent cache in the CLI's own process
-    (the library never touches JAX's configuration); compiled steps land in DIR."""
+    (the library never touches JAX's configuration); compiled programs land in DIR. (JAX
+    opens its cache once per process, so each case runs in its own interpreter.)"""
     import subprocess
     import sys
     import textwrap
 
-    code = textwrap.dedent(f"""
+    cli = textwrap.dedent(f"""
         import jax
         from physgrad.cli import main
-        from physgrad import programs
         assert jax.config.jax_compilation_cache_dir is None  # importing physgrad set nothing
         code = main(["train", "hig_toy", "--method", "hig", "--steps", "2", "--quiet",
                      "--out", {str(tmp_path / "run")!r}, "--compilation-cache", {str(tmp_path / "xla")!r}])
         assert code == 0, code
         assert jax.config.jax_compilation_cache_dir == {str(tmp_path / "xla")!r}
+    """)
+    library = textwrap.dedent(f"""
+        import jax
+        from physgrad import programs
         programs.use_compilation_cache({str(tmp_path / "xla2")!r}, min_compile_seconds=0)
         jax.jit(lambda x: x * 3 + 1)(jax.numpy.ones(5)).block_until_ready()
     """)
-    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600)
-    assert result.returncode == 0, result.stderr[-2000:]
+    for code in (cli, library):
+        result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600)
+        assert result.returncode == 0, result.stderr[-2000:]
     assert (tmp_path / "run" / "summary.json").exists()
     assert any((tmp_path / "xla2").iterdir())

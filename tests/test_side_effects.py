@@ -224,7 +224,7 @@ def float32_problem_arrays() -> dict[str, np.ndarray]:
     chosen = {
         "oscillators": problems.Oscillators(n_train=32, n_test=32),
         "poisson_hig": problems.PoissonHig(n_train=32, n_test=32),
-        "cartpole": problems.CartPole(),
+        "cartpole": problems.CartPole(n_train=16, n_test=16),
     }
     trees = {}
     for name, problem in chosen.items():

@@ -470,6 +470,7 @@ def test_prdp_training_raises_the_iteration_count_and_counts_iterations(tmp_path
 # --- command line and statistics ------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_compare_sweeps_setups_and_reports_paired_tests(tmp_path, capsys):
     out = tmp_path / "study"
     args = ["compare", "advection_1d", "--methods", "one,nog,wig", "--steps", "20", "--seeds", "2", "--quiet",
