@@ -78,13 +78,13 @@ def relative_update_difference(start, a, b):
     return float(np.linalg.norm(ua - ub) / max(np.linalg.norm(ua), 1e-300))
 
 
-@needs_devices
 # make test runs one method per sharded code path (DP/optax, Jacobian rules, SIP, the rollout
 # policies, the unrolled modalities); the other methods take the same paths and run in the
 # slow tier, as does kfac (kfac-jax's own curvature blocks, compiled twice: minutes).
 FAST_SHARDED = {"adam", "gn", "hig", "lm", "sip", "sbptt_c", "one", "wig"}
 
 
+@needs_devices
 @pytest.mark.parametrize(
     "method", [m if m in FAST_SHARDED else pytest.param(m, marks=pytest.mark.slow) for m in sorted(METHODS)]
 )
@@ -102,7 +102,9 @@ def test_every_method_sharded_over_4_devices_gives_the_single_device_update(meth
 @needs_devices
 # the matrix-free routes' sharded paths in the slow tier (each is compared with the Gram route
 # on one device by test_lanczos_and_blockgram_inside_the_hig_method_match_the_gram_route)
-@pytest.mark.parametrize("route", ["gram", "structured", *(pytest.param(r, marks=pytest.mark.slow) for r in ("svd", "blockgram", "lanczos"))])
+@pytest.mark.parametrize(
+    "route", ["gram", "structured", *(pytest.param(r, marks=pytest.mark.slow) for r in ("svd", "blockgram", "lanczos"))]
+)
 def test_hig_routes_sharded_over_4_devices(route):
     settings = {**OSC, "route": route, "blocks": "4", "lanczos_steps": "200", "truncation": "1e-3"}
     start, single, _ = one_step("oscillators", "hig", settings, 1)
@@ -111,7 +113,9 @@ def test_hig_routes_sharded_over_4_devices(route):
 
 
 @needs_devices
-@pytest.mark.parametrize("route", ["gram", pytest.param("structured", marks=pytest.mark.slow), "auto"])  # auto: structured here
+@pytest.mark.parametrize(
+    "route", ["gram", pytest.param("structured", marks=pytest.mark.slow), "auto"]
+)  # auto: structured here
 def test_sharded_hig_step_uses_the_ring_not_a_gathered_jacobian(route):
     """The compiled 4-device step passes row blocks around (collective-permute) and never
     holds all of J: the Gram route holds its own rows of J, the structured route (which
