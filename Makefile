@@ -22,7 +22,9 @@ demo: $(STAMP)
 # `make test`: every test but the slow tier, on every core (pytest-xdist), in under 10 minutes
 # on 2 cores; `make test-slow`: the end-to-end command-line studies and paper-size builds;
 # `make test-all`: both. CI (.ci/run) runs make test, then make test-slow.
-PYTEST := $(BIN)/python -m pytest -n auto --durations=20
+# --dist loadfile: a module's tests run in one worker, so its module fixtures (generated
+# data, reference rollouts) are built once, not once per worker
+PYTEST := $(BIN)/python -m pytest -n auto --dist loadfile --durations=30
 
 test: $(STAMP)
 	$(PYTEST) -m "not slow"

@@ -157,6 +157,7 @@ def test_weight_standardisation_equals_numpy_and_is_scale_invariant():
     np.testing.assert_allclose(np.asarray(apply(scaled, x)), np.asarray(apply(net, x)), rtol=1e-4, atol=1e-5)
 
 
+@pytest.mark.slow  # five SIP steps through the fluid: a training behaviour, not a formula
 def test_default_network_keeps_its_channels_alive_under_sip(problem, samples):
     """The default U-Net (leaky ReLU, weight-standardised convs) keeps every last-layer
     channel active and its output input-dependent over a few SIP steps at the authors' lr;

@@ -57,7 +57,15 @@ def check_contract(name, settings):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
 
 
-@pytest.mark.parametrize("name", sorted(PROBLEMS))
+# The problems whose data alone take most of a minute to generate (exponax's reference
+# solvers, the fluid's rollouts) are built small by their own modules (test_unrolling,
+# test_navier_stokes); their contract check runs in the slow tier.
+HEAVY_DATA = ("kolmogorov", "ks", "navier_stokes")
+
+
+@pytest.mark.parametrize(
+    "name", [pytest.param(n, marks=pytest.mark.slow) if n in HEAVY_DATA else n for n in sorted(PROBLEMS)]
+)
 def test_registered_problem_contract(name, tmp_path, monkeypatch):
     monkeypatch.setenv("PHYSGRAD_CACHE", str(tmp_path))
     cls = PROBLEMS[name]

@@ -385,6 +385,7 @@ def test_data_generation_is_deterministic_per_seed_and_cached(tmp_path, monkeypa
     np.testing.assert_allclose(np.mean(a["u"], axis=-1), np.mean(a["u"][:, :1], axis=-1).repeat(21, 1), atol=1e-5)
 
 
+@pytest.mark.slow  # two exponax solvers at two resolutions: most of a minute to build
 def test_kolmogorov_reference_is_finer_and_the_coarse_solver_is_close_but_not_exact():
     problem = Kolmogorov(n=16, refinement=2, forcing_mode=4, frames=6, warmup_frames=10, n_test=1, long_horizon=12)
     data = problem.trajectories("train")
