@@ -7,7 +7,7 @@ import pytest
 from physgrad import Budget, study
 from physgrad.engine import initial_network
 from physgrad.problems import HigToy
-from physgrad.programs import ProgramCache, abstract_key, make_key, static_key
+from physgrad.programs import ProgramCache, abstract_key, key, static_key
 
 
 class CompileCounter:
@@ -94,7 +94,7 @@ def test_program_cache_keys_and_eviction():
     assert cache.get(None, build("n")) == ("n", False) and cache.get(None, build("n2")) == ("n2", False)
     assert built == ["a", "b", "c", "a3", "n", "n2"] and (cache.hits, cache.misses) == (1, 6)
     # unhashable parts give no key; arrays are keyed by shape, dtype and sharding
-    assert make_key("x", [1, 2]) is None
+    assert key("x", [1, 2]) is None and key("x", static={"w": jax.numpy.zeros(2)}) is None
     x = jax.numpy.zeros((2, 3))
     assert abstract_key({"a": x}) == abstract_key({"a": x + 1}) != abstract_key({"a": x[:1]})
     with pytest.raises(TypeError):

@@ -272,9 +272,8 @@ def preflight(problem: AbstractProblem, phases: Sequence[Phase], seed: int, mesh
         # Non-float arrays stay with the network's static part: zero views of their shape.
         static = jax.tree.map(lambda x: memory.stand_in(x, None) if isinstance(x, jax.ShapeDtypeStruct) else x, static)
         objective = _deferred_objective(lambda: problem.objective(static))
-        stages = _stages(
-            problem, phases, objective, data, check=False
-        )  # build_setup checks (some checks build solvers)
+        # build_setup checks the methods (some checks build solvers)
+        stages = _stages(problem, phases, objective, data, check=False)
     except Exception:  # noqa: BLE001 — not traceable abstractly, or a setting build_setup will report
         return
     for stage in stages:
@@ -328,10 +327,7 @@ def make_evaluate(setup: Setup, chunk: int = 1024, per_sample: bool = False):
 
     Runs of the same problem and network structure share one jitted function (and so its
     compilations, :mod:`physgrad.programs`): the seeds differ in arguments only."""
-    try:
-        key = programs.make_key("evaluate", setup.problem, programs.static_key(setup.static), chunk, per_sample)
-    except TypeError:
-        key = None
+    key = programs.key("evaluate", setup.problem, chunk, per_sample, static=setup.static)
     return programs.EVALUATIONS.get(key, lambda: _make_evaluate(setup, chunk, per_sample))[0]
 
 
@@ -507,14 +503,12 @@ class Steps:
         return compiled, state._replace(compile_seconds=state.compile_seconds + time.perf_counter() - t0)
 
     def _key(self, state: TrainState, setup: Setup, stage: Stage):
-        """What the compiled step depends on (None: something unhashable, compile afresh)."""
-        try:
-            arguments = programs.abstract_key((state.params, state.opt_state, self.data, self.order(state.stage, 0)))
-            return programs.make_key("step", setup.problem, programs.static_key(setup.static), stage.method,
-                                     stage.batch_size, self.placement.mesh, arguments, self.settings.memory_guard,
-                                     x64_enabled())  # fmt: skip
-        except TypeError:
-            return None
+        """What the compiled step depends on (None: something unhashable, compile afresh).
+        The epoch's sample order is not in it: its shape is the data's length, its placement
+        the mesh's."""
+        return programs.key("step", setup.problem, stage.method, stage.batch_size, self.placement.mesh,
+                            self.settings.memory_guard, x64_enabled(), static=setup.static,
+                            arguments=(state.params, state.opt_state, self.data))  # fmt: skip
 
     def _lower(self, state, setup, stage, batch_size):
         with self.placement.scope():

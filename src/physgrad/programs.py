@@ -60,7 +60,8 @@ def static_key(tree: Any) -> Hashable:
 
 
 class ProgramCache:
-    """A small least-recently-used map from program keys to compiled programs.
+    """A small least-recently-used map from keys to what they build: compiled programs here,
+    the command line's method objects in :func:`physgrad.train.phases_of`.
 
     ``get(key, build)`` returns the program stored under ``key``, or calls ``build()``,
     stores and returns its result; a ``key`` of None (nothing hashable to key on) always
@@ -100,13 +101,16 @@ class ProgramCache:
             self.hits = self.misses = 0
 
 
-def make_key(*parts: Any) -> Hashable | None:
-    """``parts`` as a key, or None if one of them cannot be hashed."""
+def key(*parts: Any, static: Any = None, arguments: Any = None) -> Hashable | None:
+    """``parts``, the structure of ``static`` (a network's non-array part, :func:`static_key`)
+    and the abstract values of ``arguments`` (:func:`abstract_key`) as one key; None if
+    any of them cannot be hashed (the program is then compiled afresh)."""
     try:
-        hash(parts)
+        whole = (*parts, static_key(static), abstract_key(arguments))
+        hash(whole)
     except TypeError:
         return None
-    return parts
+    return whole
 
 
 # The process's programs: training steps (compiled executables) and evaluations (jitted

@@ -9,6 +9,7 @@ configuration into a run directory with the same engine a notebook uses.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 from pathlib import Path
 from typing import Any
@@ -29,6 +30,7 @@ from .engine import (
     read_summary,
 )
 from .problems.direct import DirectOptimisation
+from .programs import ProgramCache
 from .progress import AbstractProgressMeter
 from .registry import METHODS, PROBLEMS
 
@@ -51,18 +53,19 @@ def phases_of(config: RunConfig) -> list[Phase]:
     out = []
     for phase in config.phases:
         key = (phase.method, repr(sorted(phase.hyperparameters.items())))
-        if key not in _METHODS_BUILT:
-            try:
-                _METHODS_BUILT[key] = METHODS[phase.method](**phase.hyperparameters)
-            except (ValueError, TypeError) as e:
-                raise ConfigError(f"{phase.method}: {e}") from None
-            while len(_METHODS_BUILT) > 64:
-                _METHODS_BUILT.pop(next(iter(_METHODS_BUILT)))
-        out.append(Phase(_METHODS_BUILT[key], phase.steps, phase.batch_size, phase.method))
+        method, _ = _METHODS_BUILT.get(key, functools.partial(_build_method, phase.method, phase.hyperparameters))
+        out.append(Phase(method, phase.steps, phase.batch_size, phase.method))
     return out
 
 
-_METHODS_BUILT: dict[tuple[str, str], Any] = {}  # the methods phases_of built, by name and settings
+_METHODS_BUILT = ProgramCache(size=64)  # the methods phases_of built, by name and settings
+
+
+def _build_method(name: str, hyperparameters: dict[str, Any]):
+    try:
+        return METHODS[name](**hyperparameters)
+    except (ValueError, TypeError) as e:
+        raise ConfigError(f"{name}: {e}") from None
 
 
 def settings_of(config: RunConfig) -> TrainSettings:
