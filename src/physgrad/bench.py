@@ -751,7 +751,7 @@ class BenchReport(NamedTuple):
 
     tables: dict[str, list[dict[str, Any]]]
     board: list[dict[str, Any]]
-    files: dict[str, Path]
+    files: dict[str, Path | None]  # the heat map's is None where it could not be drawn (a FigureWarning)
 
     @property
     def lines(self) -> list[list[str]]:
@@ -821,6 +821,7 @@ def problem_table(out: str | Path, verdicts: Sequence[Verdict]) -> list[dict[str
 
 def report(out: str | Path) -> BenchReport:
     """(Re)write a bench's tables, leaderboard, heat map and ``bench.md`` from its files."""
+    from .plots import draw
     from .study import markdown
 
     out = Path(out)
@@ -839,13 +840,13 @@ def report(out: str | Path) -> BenchReport:
     _write_rows(out / "leaderboard.csv", BOARD_COLUMNS, board_records(board))
     (out / "leaderboard.md").write_text(markdown(board_lines(board)) + "\n")
     _write_rows(out / "bench_table.csv", TABLE_COLUMNS, [r for p, t in tables.items() for r in table_records(p, t)])
-    files["heatmap"] = heatmap(
-        tables, out / "heatmap.png", title=f"{_budget_text(info)}: final test loss relative to {REFERENCE}"
-    )
     files["leaderboard"] = out / "leaderboard.csv"
     files["table"] = out / "bench_table.csv"
     files["markdown"] = out / "bench.md"
     (out / "bench.md").write_text(bench_markdown(info, tables, board))
+    files["heatmap"] = draw(  # last: a failing figure is a warning, the tables are written
+        heatmap, tables, out / "heatmap.png", title=f"{_budget_text(info)}: final test loss relative to {REFERENCE}"
+    )
     return BenchReport(tables, board, files)
 
 

@@ -22,6 +22,7 @@ import json
 import math
 import os
 import sys
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -207,6 +208,11 @@ def _print_table(console: Console, lines: list[list[str]], title: str = ""):
     console.print(table)
 
 
+def _files(*paths) -> str:
+    """The files written, comma-separated (a figure that could not be drawn is None: left out)."""
+    return ", ".join(str(p) for p in paths if p is not None)
+
+
 def cmd_list(args, console):
     from .extras import method_extra, missing_note
     from .registry import METHODS, PROBLEMS, describe
@@ -299,7 +305,7 @@ def _run_compare(console, problem, methods, seeds, budget, settings, out, quiet=
     result = report(out)
     _print_table(console, result.lines, title=f"{problem}: {budget} per run")
     _print_paired_tests(console, out)
-    console.print(f"wrote {Path(out) / 'results.csv'}, {Path(out) / 'summary.csv'}, {result.figure}")
+    console.print(f"wrote {_files(Path(out) / 'results.csv', Path(out) / 'summary.csv', result.figure)}")
     return result
 
 
@@ -339,7 +345,7 @@ def _run_grid(console, problem, methods, seeds, budget, settings, out, quiet=Fal
     result = grid_report(out)
     _print_table(console, result.lines, title=f"{problem}: {budget} per run")
     _print_paired_tests(console, out)
-    console.print(f"wrote {Path(out) / 'grid_summary.csv'}, {result.figure}")
+    console.print(f"wrote {_files(Path(out) / 'grid_summary.csv', result.figure)}")
 
 
 def _print_paired_tests(console, out):
@@ -369,12 +375,13 @@ def cmd_report(args, console):
         result = grid_report(args.dir, panel=args.panel, metric=args.metric, split=args.split, smooth=args.smooth)
         _print_table(console, result.lines, title=str(args.dir))
         _print_paired_tests(console, args.dir)
-        console.print(f"wrote {result.figure}")
+        console.print(f"wrote {_files(Path(args.dir) / 'grid_summary.csv', result.figure)}")
         return 0
     result = report(args.dir)
     _print_table(console, result.lines, title=str(args.dir))
     _print_paired_tests(console, args.dir)
-    console.print(f"wrote {result.figure}")
+    if result.figure:
+        console.print(f"wrote {result.figure}")
     return 0
 
 
@@ -415,8 +422,8 @@ def cmd_bench(args, console):
             if names:
                 console.print(f"  {status}: {', '.join(names)} (reasons in {out / problem / 'bench_table.md'})")
     _print_table(console, result.lines, title=f"leaderboard: {budget} per run, {seeds} seed{'s' if seeds != 1 else ''}")
-    console.print(f"wrote {result.files['markdown']}, {result.files['leaderboard']}, {result.files['table']}, "
-                  f"{result.files['heatmap']} and per problem {out}/PROBLEM/bench_table.csv")  # fmt: skip
+    files = _files(*(result.files[k] for k in ("markdown", "leaderboard", "table", "heatmap")))
+    console.print(f"wrote {files} and per problem {out}/PROBLEM/bench_table.csv")
     return 0
 
 
@@ -445,6 +452,20 @@ def cmd_demo(args, console):
     else:
         console.print("No HIG/Adam ratio: every seed of one of them diverged (see the table).")
     return 0
+
+
+def _one_line_warnings(err: Console, show):
+    """``warnings.showwarning`` that prints a :class:`~physgrad.plots.FigureWarning` as one
+    ``physgrad: warning:`` line (and leaves every other warning to ``show``)."""
+    from .plots import FigureWarning
+
+    def showwarning(message, category, filename, lineno, file=None, line=None):
+        if issubclass(category, FigureWarning):
+            err.print(f"physgrad: warning: {message}", markup=False, highlight=False, soft_wrap=True)
+        else:
+            show(message, category, filename, lineno, file, line)
+
+    return showwarning
 
 
 COMMANDS = {
@@ -481,7 +502,9 @@ def main(argv=None) -> int:
             from .programs import use_compilation_cache
 
             use_compilation_cache(cache)
-        return COMMANDS[args.command](args, console)
+        with warnings.catch_warnings():  # a figure that cannot be drawn: one line, the tables stand
+            warnings.showwarning = _one_line_warnings(err, warnings.showwarning)
+            return COMMANDS[args.command](args, console)
     except (UsageError, ConfigError) as e:
         err.print(f"physgrad: error: {e}", markup=False, highlight=False, soft_wrap=True)
         return 2

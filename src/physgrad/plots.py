@@ -1,27 +1,104 @@
-"""Figures drawn from result files only (never from live training state)."""
+"""Figures drawn from result files only (never from live training state).
+
+A figure never loses a study: values a log axis cannot show (NaN, infinities, losses that
+overflow towards 1e308 when a run diverges) are clipped to the axis range and marked with
+an ``x`` at its edge, and :func:`draw` turns any failure into a :class:`FigureWarning`
+(the tables are written before any figure is drawn)."""
 
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+import warnings
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+# The widest log range a figure shows: beyond it matplotlib's log ticks overflow, and no
+# training curve needs it. Above the curves' highest starting value a figure shows at most
+# DECADES_ABOVE_START decades: a diverging run's values beyond that are clipped and marked.
+LOG_LIMITS = (1e-200, 1e200)
+DECADES_ABOVE_START = 3
+MARK_LABEL = "x: diverged or off-scale, drawn at the axis edge"
 
-def _curves(results: list[dict[str, Any]], method: str, split: str, metric: str):
-    """Per seed: (wall_time, value) arrays of one method's metric, sorted by time."""
+
+class FigureWarning(UserWarning):
+    """A figure could not be drawn; the study's tables and CSV files are complete."""
+
+
+def draw(make: Callable[..., Path], *args: Any, **kwargs: Any) -> Path | None:
+    """``make(*args, **kwargs)`` (a figure function such as :func:`loss_vs_time`), or None
+    and one :class:`FigureWarning` line if drawing fails: a figure is never worth a study."""
+    try:
+        return make(*args, **kwargs)
+    except Exception as e:  # noqa: BLE001 — any failure of a figure is only a warning
+        target = kwargs.get("path", args[1] if len(args) > 1 else "")
+        text = " ".join(f"{type(e).__name__}: {e}".split())
+        warnings.warn(f"figure {target} not drawn ({text}); the tables are complete", FigureWarning, stacklevel=2)
+        return None
+
+
+def log_range(series: Sequence[np.ndarray]) -> tuple[float, float]:
+    """The y range of a log-scaled figure of ``series``: from the smallest positive finite
+    value to the largest, but at most :data:`DECADES_ABOVE_START` decades above the
+    highest first value of a series, and within :data:`LOG_LIMITS`."""
+    values = [np.asarray(v, dtype=float) for v in series]
+    shown = [v[np.isfinite(v) & (v > 0)] for v in values]
+    finite = np.concatenate(shown) if shown else np.zeros(0)
+    if not finite.size:
+        return 1e-3, 1.0
+    starts = [v[0] for v in shown if v.size]
+    ceiling = 10.0 ** (math.ceil(math.log10(max(starts))) + DECADES_ABOVE_START)
+    upper = min(float(finite.max()), ceiling, LOG_LIMITS[1])
+    lower = min(max(float(finite.min()), LOG_LIMITS[0]), upper)
+    if lower >= upper:
+        lower, upper = lower / 10, upper * 10
+    return lower, upper
+
+
+def clip_marks(t: np.ndarray, v: np.ndarray, lower: float, upper: float):
+    """``(t, v)`` on a log axis from ``lower`` to ``upper``: non-positive values dropped,
+    values outside the range clipped to it; also the (time, edge value) of every point
+    that was not finite or was clipped (drawn as an ``x`` at the edge)."""
+    t, v = np.asarray(t, dtype=float), np.asarray(v, dtype=float)
+    keep = ~(np.isfinite(v) & (v <= 0))  # a log axis cannot show zero or negative values
+    t, v = t[keep], v[keep]
+    high = ~np.isfinite(v) | (v > upper)  # NaN and ±inf: the run left the range (diverged)
+    low = np.isfinite(v) & (v < lower)
+    edge = np.where(high, upper, lower)
+    marked = high | low
+    clipped = np.where(marked, edge, v)
+    return t, clipped, (t[marked], edge[marked])
+
+
+def _series(results: list[dict[str, Any]], method: str, split: str, metric: str):
+    """Per seed: (wall_time, value) arrays of one method's metric, sorted by time (every
+    value, NaN and infinities included)."""
     by_seed: dict[str, list[tuple[float, float]]] = {}
     for r in results:
         if r["method"] == method and r["split"] == split and r["metric"] == metric:
             by_seed.setdefault(str(r["seed"]), []).append((float(r["wall_time"]), float(r["value"])))
+    return [tuple(np.array(sorted(points, key=lambda p: p[0])).T) for points in by_seed.values() if points]
+
+
+def _curves(results: list[dict[str, Any]], method: str, split: str, metric: str):
+    """Per seed: (wall_time, value) arrays of one method's metric, sorted by time, with
+    only the values a log axis shows (finite and positive)."""
     out = []
-    for points in by_seed.values():
-        t, v = np.array(sorted(points)).T
+    for t, v in _series(results, method, split, metric):
         keep = np.isfinite(v) & (v > 0)
         out.append((t[keep], v[keep]))
     return [c for c in out if c[0].size]
+
+
+def _mark_legend(ax) -> None:
+    from matplotlib.lines import Line2D
+
+    handles, labels = ax.get_legend_handles_labels()
+    handles.append(Line2D([], [], ls="", marker="x", color="0.3"))
+    labels.append(MARK_LABEL)
+    ax.legend(handles, labels)
 
 
 def loss_vs_time(
@@ -47,8 +124,16 @@ def loss_vs_time(
     fig = Figure(figsize=(7, 4.5), dpi=120)
     ax = fig.subplots()
     colours = rcParams["axes.prop_cycle"].by_key()["color"]
+    series = {method: _series(results, method, split, metric) for method in order}
+    lower, upper = log_range([v for runs in series.values() for _, v in runs])
+    marked = False
     for i, method in enumerate(order):
-        curves = _curves(results, method, split, metric)
+        curves, marks = [], []
+        for t, v in series[method]:
+            t, v, mark = clip_marks(t, v, lower, upper)
+            if t.size:
+                curves.append((t, v))
+                marks.append(mark)
         if not curves:
             continue
         colour = colours[i % len(colours)]
@@ -56,6 +141,10 @@ def loss_vs_time(
             [notes[method]] if notes and method in notes else []
         )
         label = f"{method} ({', '.join(extras)})" if extras else method
+        for mt, mv in marks:
+            if mt.size:
+                ax.plot(mt, mv, "x", color=colour, ms=7, mew=1.5, clip_on=False)
+                marked = True
         if len(curves) == 1:
             ax.plot(*curves[0], color=colour, label=label, lw=1.5)
             continue
@@ -64,12 +153,16 @@ def loss_vs_time(
         logs = np.stack([np.interp(grid, t, np.log10(v)) for t, v in curves])
         ax.plot(grid, 10 ** logs.mean(0), color=colour, label=label, lw=1.5)
         ax.fill_between(grid, 10 ** logs.min(0), 10 ** logs.max(0), color=colour, alpha=0.2, lw=0)
+    ax.set_ylim(lower / 1.5, upper * 1.5)
     ax.set_yscale("log")
     ax.set_xlabel("training wall-clock time [s] (evaluation excluded)")
     ax.set_ylabel(f"{split} {metric}")
     ax.set_title(title, fontsize=9)
     ax.grid(True, which="both", alpha=0.3)
-    ax.legend()
+    if marked:
+        _mark_legend(ax)
+    elif ax.get_legend_handles_labels()[0]:
+        ax.legend()
     fig.tight_layout()
     path = Path(path)
     fig.savefig(path)
@@ -110,25 +203,41 @@ def grid_panels(
     colours = rcParams["axes.prop_cycle"].by_key()["color"]
     fig = Figure(figsize=(4.2 * max(len(values), 1), 3.8), dpi=120)
     axes = fig.subplots(1, max(len(values), 1), squeeze=False, sharey=True)
+    # Per cell and method: each seed's (epochs, values), sorted by epoch.
+    seeds: dict[tuple[int, str], list[np.ndarray]] = {}
+    for c, (_, rows) in enumerate(curves):
+        for method in methods:
+            by_seed: dict[str, list[tuple[float, float]]] = {}
+            for r in rows:
+                if r["method"] == method:
+                    by_seed.setdefault(r["seed"], []).append((r["epoch"], float(r["value"])))
+            seeds[c, method] = [np.array(sorted(p, key=lambda q: q[0])).T for p in by_seed.values() if p]
+    lower, upper = log_range([s[1] for series in seeds.values() for s in series])
+    marked = False
     for ax, value in zip(axes[0], values):
-        for cell, rows in curves:
+        for c, (cell, _) in enumerate(curves):
             if cell[panel] != value:
                 continue
             rest = tuple((k, v) for k, v in cell.items() if k != panel)
             style = LINE_STYLES[others.index(rest) % len(LINE_STYLES)]
             for i, method in enumerate(methods):
-                by_seed: dict[str, list[tuple[float, float]]] = {}
-                for r in rows:
-                    if r["method"] == method:
-                        by_seed.setdefault(r["seed"], []).append((r["epoch"], float(r["value"])))
-                series = [np.array(sorted(p)).T for p in by_seed.values() if p]
+                series = seeds[c, method]
                 if not series:
                     continue
                 n = min(s.shape[1] for s in series)
                 epochs = series[0][0][:n]
-                logs = np.stack([np.log10(np.maximum(_moving_average(s[1][:n], smooth), 1e-30)) for s in series])
+                colour = colours[i % len(colours)]
+                logs = []
+                for s in series:  # NaN, infinite and off-scale values at the axis edge, marked
+                    high = ~np.isfinite(s[1][:n]) | (s[1][:n] > upper)
+                    clipped = np.clip(np.where(high, upper, s[1][:n]), lower, upper)
+                    logs.append(np.log10(np.clip(_moving_average(clipped, smooth), lower, upper)))
+                    if high.any():
+                        ax.plot(epochs[high], np.full(int(high.sum()), upper), "x", color=colour, ms=6, clip_on=False)
+                        marked = True
                 label = method + (f" ({', '.join(f'{k}={v}' for k, v in rest)})" if rest else "")
-                ax.plot(epochs, 10 ** logs.mean(0), style, color=colours[i % len(colours)], lw=1.2, label=label)
+                ax.plot(epochs, 10 ** np.mean(logs, axis=0), style, color=colour, lw=1.2, label=label)
+        ax.set_ylim(lower / 1.5, upper * 1.5)
         ax.set_yscale("log")
         ax.set_title(f"{panel} = {value}", fontsize=9)
         ax.set_xlabel("epoch")
@@ -138,6 +247,10 @@ def grid_panels(
     for ax in axes[0]:
         for handle, label in zip(*ax.get_legend_handles_labels()):
             legend.setdefault(label, handle)
+    if marked:
+        from matplotlib.lines import Line2D
+
+        legend[MARK_LABEL] = Line2D([], [], ls="", marker="x", color="0.3")
     labels = list(legend)
     if labels:
         fig.legend(

@@ -247,11 +247,12 @@ def format_table(table: list[dict[str, Any]], reference: str | None = None) -> l
 
 
 class Report(NamedTuple):
-    """A study's aggregated table (per method), its printable lines and the figure's path."""
+    """A study's aggregated table (per method), its printable lines and the figure's path
+    (None: the figure could not be drawn, a :class:`~physgrad.plots.FigureWarning` says why)."""
 
     table: list[dict[str, Any]]
     lines: list[list[str]]
-    figure: Path
+    figure: Path | None
 
     def final_test_loss(self, method: str) -> float:
         """Mean final test loss of one method over its finished seeds (NaN if none)."""
@@ -260,7 +261,7 @@ class Report(NamedTuple):
 
 def report(out: str | Path) -> Report:
     """Re-draw a study's table and figure from its files alone (``summary.csv``, ``results.csv``)."""
-    from .plots import loss_vs_time
+    from .plots import draw, loss_vs_time
 
     out = Path(out)
     for name in ("summary.csv", "results.csv"):
@@ -272,9 +273,10 @@ def report(out: str | Path) -> Report:
     table = aggregate(rows, order)
     reference = "adam" if "adam" in order else None
     notes = {t["method"]: f"{t['diverged']}/{t['runs']} diverged" for t in table if t["diverged"]}
-    figure = loss_vs_time(
-        read_csv(out / "results.csv"), out / "loss_vs_time.png", order=order, title=_title(study, rows), notes=notes
-    )
+    figure = draw(  # the table does not depend on it: a failing figure is a warning
+        loss_vs_time, read_csv(out / "results.csv"), out / "loss_vs_time.png", order=order, title=_title(study, rows),
+        notes=notes,
+    )  # fmt: skip
     return Report(table, format_table(table, reference), figure)
 
 
@@ -336,7 +338,7 @@ def study_section(root: str | Path, title: str, parts, metrics: Sequence[str], f
     """A reproduction report's Markdown section for one problem: the table (final test loss
     and the extra ``metrics[1:]``, mean ± std over seeds) and one figure per metric, drawn
     into ``figures/<name>[_<metric>].png``. ``parts`` as in :func:`load_studies`."""
-    from .plots import loss_vs_time
+    from .plots import draw, loss_vs_time
 
     rows, results, order = load_studies(root, parts)
     if not rows:
@@ -353,11 +355,12 @@ def study_section(root: str | Path, title: str, parts, metrics: Sequence[str], f
     notes = {t["method"]: f"{t['diverged']}/{t['runs']} diverged" for t in table if t["diverged"]}
     for metric in metrics:
         figure = name if metric == "loss" else f"{name}_{metric}"
-        path = loss_vs_time(
-            results, Path(figures) / f"{figure}.png", order=order, metric=metric, notes=notes,
+        path = draw(
+            loss_vs_time, results, Path(figures) / f"{figure}.png", order=order, metric=metric, notes=notes,
             title=f"{title}: test {metric}, {seeds} seeds (line: geometric mean, band: min-max)",
         )  # fmt: skip
-        out.append(f"![{title}](figures/{path.name})\n")
+        if path is not None:  # else a FigureWarning said why
+            out.append(f"![{title}](figures/{path.name})\n")
     return "\n".join(out)
 
 
@@ -440,7 +443,7 @@ class GridReport(NamedTuple):
 
     rows: list[dict[str, Any]]
     lines: list[list[str]]
-    figure: Path
+    figure: Path | None
 
 
 def grid_report(
@@ -459,7 +462,7 @@ def grid_report(
     optionally a ``smooth``-epoch moving average (the StableBPTT plots use 30). The figure
     goes to ``figure`` (default ``OUT/grid[_metric].png``); ``methods`` fixes the colour
     order (default: the grid's methods), so several reports can share colours."""
-    from .plots import grid_panels
+    from .plots import draw, grid_panels
 
     out = Path(out)
     if not (out / "grid.json").exists():
@@ -503,8 +506,8 @@ def grid_report(
     _write_csv(out / "grid_summary.csv", columns, rows)
     suffix = "" if metric == "loss" else f"_{metric}"
     smoothing = f", {smooth}-epoch moving average" if smooth > 1 else ""
-    figure = grid_panels(
-        curves, figure or out / f"grid{suffix}.png", panel=panel, methods=methods or info["methods"], metric=f"{split} {metric}",
+    figure = draw(  # after grid_summary.csv: a failing figure is a warning
+        grid_panels, curves, figure or out / f"grid{suffix}.png", panel=panel, methods=methods or info["methods"], metric=f"{split} {metric}",
         smooth=smooth,
         title=f"{info['problem']}: {split} {metric} per epoch ({len(info['seeds'])} seeds, line: geometric mean{smoothing})",
     )  # fmt: skip
