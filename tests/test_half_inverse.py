@@ -1,5 +1,6 @@
 """half_inverse against a NumPy float64 SVD formula written here, and its two routes."""
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -93,3 +94,47 @@ def test_auto_route_and_errors():
         half_inverse(jnp.ones((3, 4)), jnp.ones(3), route="qr")
     with pytest.raises(ValueError, match="jacobian"):
         half_inverse(jnp.ones((3, 4)), jnp.ones(4))
+
+
+def float32_network_float64_simulator():
+    """A float32 MLP whose outputs a float64 "simulator" maps nonlinearly (as heat: a float32
+    network in front of float64 physics), a float64 loss, and a batch of 6 samples."""
+    import equinox as eqx
+
+    from physgrad.methods import Objective
+
+    net = eqx.nn.MLP(3, 4, 8, 1, activation=jnp.tanh, key=jax.random.key(0), dtype=jnp.float32)
+    params, static = eqx.partition(net, eqx.is_inexact_array)
+
+    def predict(p, s):
+        x = eqx.combine(p, static)(s["x"])
+        return jnp.sin(x.astype(jnp.float64) * s["c"])
+
+    rng = np.random.default_rng(0)
+    batch = {"x": jnp.asarray(rng.normal(size=(6, 3)), jnp.float32), "c": jnp.asarray(rng.uniform(1, 2, (6, 1))),
+             "t": jnp.asarray(rng.normal(size=(6, 4)))}  # fmt: skip
+    objective = Objective(predict=predict, loss=lambda y, s: 0.5 * jnp.sum((y - s["t"]) ** 2))
+    return objective, params, batch
+
+
+def _direction(name):
+    from physgrad.registry import make_route
+
+    objective, params, batch = float32_network_float64_simulator()
+    r = make_route(name, blocks=3, lanczos_steps=24)  # 24 = m: Lanczos exact up to rounding
+    d, loss, _ = jax.jit(lambda p, b: r(objective, p, b, -0.5, 1e-3))(params, batch)
+    assert d.dtype == jnp.float32 and loss.dtype == jnp.float64
+    return np.asarray(d)
+
+
+@pytest.fixture(scope="module")
+def gram_direction():
+    return _direction("gram")
+
+
+@pytest.mark.parametrize("route", ["svd", "structured", "blockgram", "lanczos"])
+def test_every_route_takes_a_simulator_whose_outputs_are_float64_behind_a_float32_network(route, gram_direction):
+    """Issue 29: the Lanczos route failed with 'cotangent type does not match function
+    output' when the simulator's dtype differs from the parameters'."""
+    ref = gram_direction
+    np.testing.assert_allclose(_direction(route), ref, rtol=0, atol=1e-4 * np.abs(ref).max())

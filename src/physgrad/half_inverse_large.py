@@ -169,20 +169,22 @@ def lanczos_half_inverse(
     outputs, flat = batch_output_map(predict, params, batch)
     # Linearised here, in the caller's configuration: inside the scope the products only
     # evaluate the traced linear map, in the network's dtype.
-    _, jvp = jax.linearize(outputs, flat)
+    y, jvp = jax.linearize(outputs, flat)
     vjp = jax.linear_transpose(jvp, flat)
     # The estimate leaves the scope as the caller's default float (float64 where x64 is on,
     # as before; float32 otherwise): no float64 array escapes into an x64-off trace.
     outer_float = jax.dtypes.canonicalize_dtype(jnp.float64)
     with float64_scope():
-        direction, estimate = _lanczos(jvp, vjp, flat.dtype, grad, steps, exponent, truncation)
-        return direction, estimate.astype(outer_float)
+        direction, estimate = _lanczos(jvp, vjp, y.dtype, grad, steps, exponent, truncation)
+        return direction.astype(flat.dtype), estimate.astype(outer_float)
 
 
 def _lanczos(jvp, vjp, dtype, grad, steps, exponent, truncation):
-    """:func:`lanczos_half_inverse`'s iteration, run inside its float64 scope."""
+    """:func:`lanczos_half_inverse`'s iteration, run inside its float64 scope; ``dtype`` is
+    the outputs' (a simulator may compute in another dtype than the network's parameters:
+    the cotangents of ``Jᵀ v`` take the outputs' dtype, ``J v`` the parameters')."""
 
-    def gram_times(v):  # G v = J (Jᵀ v), products in the network's dtype
+    def gram_times(v):  # G v = J (Jᵀ v), products in the network's and the simulator's dtypes
         (jtv,) = vjp(v.astype(dtype))
         return jvp(jtv).astype(jnp.float64)
 
