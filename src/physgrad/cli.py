@@ -263,7 +263,7 @@ def _start_processes(args) -> str | None:
 def cmd_train(args, console):
     from .config import make_config, method_slug
     from .study import describe_run
-    from .train import train
+    from .train import read_summary, train
 
     devices = _start_processes(args)
     config = make_config(args.problem, args.method, budget=_budget(args), seed=args.seed, settings=_run_settings(args))
@@ -285,8 +285,12 @@ def cmd_train(args, console):
         else f" on {devices} devices" + (f" of {jax.process_count()} processes" if jax.process_count() > 1 else "")
     )
     console.print(f"{config.problem} / {stages}; seed {config.seed}, budget {config.budget}{where} -> {out}")
+    before = read_summary(out) if args.resume else None
     summary = train(config, out, resume=args.resume, progress=_progress(args, console), devices=devices)
-    console.print(f"{summary['status']}: {describe_run(summary)}")
+    if before is not None and summary == before:  # a resume with nothing to do leaves every file as it was
+        console.print(f"done already ({summary['status']}): {describe_run(summary)}; every file unchanged")
+    else:
+        console.print(f"{summary['status']}: {describe_run(summary)}")
     return 0
 
 
@@ -505,14 +509,18 @@ def main(argv=None) -> int:
         with warnings.catch_warnings():  # a figure that cannot be drawn: one line, the tables stand
             warnings.showwarning = _one_line_warnings(err, warnings.showwarning)
             return COMMANDS[args.command](args, console)
-    except (UsageError, ConfigError) as e:
-        err.print(f"physgrad: error: {e}", markup=False, highlight=False, soft_wrap=True)
+    except (UsageError, ConfigError) as e:  # the library's line in the command line's words where it has them
+        err.print(f"physgrad: error: {getattr(e, 'flags', None) or e}", markup=False, highlight=False, soft_wrap=True)
         return 2
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as e:  # Ctrl-C, or SIGTERM (rundir.Terminated): runs checkpoint first
+        from .rundir import Terminated
+
         err.print(
-            "physgrad: interrupted; finished runs are kept, run the same command (train: with --resume) to continue"
+            f"physgrad: {'terminated' if isinstance(e, Terminated) else 'interrupted'}; finished runs are kept, "
+            "run the same command (train: with --resume) to continue",
+            soft_wrap=True,
         )
-        return 130
+        return 143 if isinstance(e, Terminated) else 130
 
 
 if __name__ == "__main__":

@@ -30,9 +30,11 @@ budgets compare update rules, not tracing.
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import dataclasses
 import functools
+import io
 import json
 import math
 import os
@@ -48,7 +50,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import distributed, memory, programs
+from . import distributed, memory, programs, rundir
 from . import prdp as prdp_control
 from .errors import ConfigError
 from .methods import AbstractMethod, Objective
@@ -115,8 +117,10 @@ class TrainSettings:
     eval_every: int = 0  # steps between full train/test evaluations; 0 = once per epoch
     eval_seconds: float = 0.0  # if > 0: evaluate every this many training seconds instead
     eval_samples: int = 0  # evaluate the train split on its first N samples only; 0 = all
-    shuffle: bool = False  # the papers take mini-batches in fixed order
-    checkpoint_seconds: float = 60.0  # training seconds between checkpoints (and one at the end)
+    # None: the problem's ``default_shuffle`` (the papers' fixed order; a fresh permutation
+    # every epoch for the time-steppers); True/False: shuffled or fixed for any problem
+    shuffle: bool | None = None
+    checkpoint_seconds: float = 60.0  # wall-clock seconds between checkpoints; also at every evaluation and the end
     prdp: bool = False  # refine the solver's iteration count on validation plateaus (physgrad.prdp)
     prdp_start: int = 1
     prdp_increment: int = 1
@@ -363,8 +367,11 @@ class TrainState(NamedTuple):
 
     ``params``/``opt_state`` are arrays (``state.eqx``); the rest are host scalars
     (``counters.json``): global step, stage index, training and compile seconds, the best
-    test loss so far, per-statistic sums over all steps, the solver's summed iteration count
-    and PRDP's controller state."""
+    test loss so far, per-statistic sums over all steps, the solver's summed iteration count,
+    PRDP's controller state, the per-statistic [sum, count] since the last evaluation (so a
+    resumed run logs the same averages) and the last finite training loss (a diverged run
+    reports it). Checkpointing all of it makes a resumed run end exactly as an
+    uninterrupted one."""
 
     params: Any
     opt_state: Any
@@ -376,6 +383,8 @@ class TrainState(NamedTuple):
     stat_totals: dict = {}
     solver_iterations: int = 0
     prdp: dict | None = None
+    stat_window: dict = {}
+    last_finite_loss: float | None = None
 
     def counters(self) -> dict[str, Any]:
         return {k: getattr(self, k) for k in self._fields[2:]}
@@ -472,13 +481,23 @@ class Steps:
         self.n_train = jax.tree.leaves(setup.data["train"])[0].shape[0]
         self.data = placement.put(setup.data["train"])
         self.shuffle_key = jax.random.fold_in(jax.random.key(seed), 2)
+        self.shuffle = setup.problem.default_shuffle if settings.shuffle is None else settings.shuffle
+        groups = setup.problem.batch_groups(setup.data["train"]) if self.shuffle else None
+        self.groups = None if groups is None else np.asarray(groups)
+        self.batch_sizes = [stage.batch_size for stage in setup.stages]
 
     def order(self, stage: int, epoch: int):
-        """The sample order of a stage's epoch (fixed unless ``shuffle``)."""
-        if not self.settings.shuffle:
+        """The sample order of a stage's epoch: fixed, or with ``shuffle`` a permutation
+        drawn from the seed, the stage and the epoch (so a resumed run takes the same
+        batches). Where the problem labels its samples (``batch_groups``) the permutation
+        keeps each of the stage's batches within one label (:func:`grouped_order`)."""
+        if not self.shuffle:
             return self.placement.put(jnp.arange(self.n_train, dtype=jnp.int32))
         key = jax.random.fold_in(jax.random.fold_in(self.shuffle_key, stage), epoch)
-        return self.placement.put(jax.random.permutation(key, self.n_train).astype(jnp.int32))
+        if self.groups is None:
+            return self.placement.put(jax.random.permutation(key, self.n_train).astype(jnp.int32))
+        rng = np.random.default_rng(np.asarray(jax.random.key_data(key)))
+        return self.placement.put(jnp.asarray(grouped_order(self.groups, self.batch_sizes[stage], rng)))
 
     def compile(self, state: TrainState, setup: Setup) -> tuple[Any, TrainState]:
         """The current stage's step, compiled (and checked by the memory guard), or the
@@ -519,6 +538,23 @@ class Steps:
         batch = memory.stand_in(setup.data["train"], stage.batch_size)
         memory.check_step_fits(stage.method, setup.objective, setup.params, batch, devices=_devices(self.placement.mesh),
                                compiled=compiled, measure=measure, label=stage.label)  # fmt: skip
+
+
+def grouped_order(groups: np.ndarray, batch_size: int, rng: np.random.Generator) -> np.ndarray:
+    """A permutation of ``range(len(groups))`` whose consecutive blocks of ``batch_size``
+    each hold samples of one group: every group's samples in random order cut into full
+    batches, those batches in random order (the groups interleaved at random). A group's
+    remainder (fewer than ``batch_size`` samples) goes to the end, where the epoch's last
+    batches may mix groups; every sample appears once."""
+    batches, rest = [], []
+    for label in np.unique(groups):
+        members = rng.permutation(np.flatnonzero(groups == label))
+        full = len(members) // batch_size * batch_size
+        batches.extend(members[:full].reshape(-1, batch_size))
+        rest.append(members[full:])
+    ordered = [batches[i] for i in rng.permutation(len(batches))]
+    tail = np.concatenate(rest)
+    return np.concatenate([*ordered, rng.permutation(tail)]).astype(np.int32)
 
 
 @dataclasses.dataclass
@@ -584,21 +620,23 @@ class Fidelity:
 
 
 class MetricsLog:
-    """Appends long-format rows to ``metrics.csv``; on resume, drops rows after the checkpoint."""
+    """Appends long-format rows to ``metrics.csv``. On resume it keeps the rows up to the
+    checkpoint's step (``kept``; a row torn by a kill during an append is dropped) and
+    rewrites the file atomically, so a kill never leaves half a table."""
 
     def __init__(self, path: Path, keep_until_step: int | None = None, enabled: bool = True):
         self.path = path
         self.enabled = enabled
+        self.kept: list[dict[str, str]] = []
         if not enabled:
             return
-        rows = []
         if keep_until_step is not None and path.exists():
-            with path.open() as f:
-                rows = [r for r in csv.DictReader(f) if int(r["step"]) <= keep_until_step]
-        with path.open("w", newline="") as f:
-            writer = csv.writer(f)
-            writer.writerow(METRICS_HEADER)
-            writer.writerows([[r[k] for k in METRICS_HEADER] for r in rows])
+            self.kept = [r for r in _complete_rows(path) if int(r["step"]) <= keep_until_step]
+        text = io.StringIO()
+        writer = csv.writer(text)
+        writer.writerow(METRICS_HEADER)
+        writer.writerows([[r[k] for k in METRICS_HEADER] for r in self.kept])
+        rundir.atomic_write(path, text.getvalue())
 
     def write(self, step: int, wall_time: float, values: dict[tuple[str, str], float]):
         if not self.enabled:
@@ -607,6 +645,28 @@ class MetricsLog:
             writer = csv.writer(f)
             for (split, metric), value in values.items():
                 writer.writerow([step, f"{wall_time:.6f}", split, metric, repr(float(value))])
+
+
+def _numbers(step: str, value: str) -> bool:
+    """Whether a row's step and value parse (those of a torn row may not)."""
+    try:
+        int(step)
+        float(value)
+    except ValueError:
+        return False
+    return True
+
+
+def _complete_rows(path: Path) -> list[dict[str, str]]:
+    """The rows of ``metrics.csv`` that were written whole (a kill during an append can cut
+    the last line anywhere, even into a shorter number)."""
+    with path.open(newline="") as f:
+        text = f.read()
+    rows = []
+    for r in csv.DictReader(io.StringIO(text[: text.rfind("\n") + 1])):
+        if all(r.get(k) for k in METRICS_HEADER) and None not in r and _numbers(r["step"], r["value"]):
+            rows.append(r)
+    return rows
 
 
 class Recorder:
@@ -618,7 +678,6 @@ class Recorder:
         self, setup: Setup, settings: TrainSettings, placement: Placement, fidelity: Fidelity, log: MetricsLog
     ):
         self.settings, self.placement, self.fidelity, self.log = settings, placement, fidelity, log
-        self.window: dict[str, tuple[float, int]] = {}
         self.last: dict[str, float] = {}
         train = setup.data["train"]
         n_train = jax.tree.leaves(train)[0].shape[0]
@@ -637,20 +696,30 @@ class Recorder:
         self.evaluate = make_evaluate(setup)
 
     def accumulate(self, state: TrainState, stats: dict[str, Any]) -> TrainState:
-        totals = dict(state.stat_totals)
+        totals, window = dict(state.stat_totals), dict(state.stat_window)
         for name, value in stats.items():
             value = float(value)
             if name == "loss" or not math.isfinite(value):  # e.g. the norm of a skipped NaN gradient
                 continue
-            total, count = self.window.get(name, (0.0, 0))
-            self.window[name] = (total + value, count + 1)
+            total, count = window.get(name, (0.0, 0))
+            window[name] = [total + value, count + 1]
             totals[name] = totals.get(name, 0.0) + value
-        return state._replace(stat_totals=totals)
+        return state._replace(stat_totals=totals, stat_window=window)
+
+    def restore(self, rows: list[dict[str, str]]) -> int | None:
+        """After a resume: the metrics of the last evaluation logged (as if this recorder had
+        made it, for the summary); returns its step (None without one)."""
+        if not rows:
+            return None
+        step = max(int(r["step"]) for r in rows)
+        self.last.update({f"{r['split']}_{r['metric']}": float(r["value"]) for r in rows if int(r["step"]) == step})
+        return step
 
     def __call__(self, state: TrainState, final: bool) -> tuple[TrainState, bool]:
         """Evaluate and log at ``state.step``; returns the state and whether the losses are finite."""
-        values = {("train", f"step_{n}"): total / count for n, (total, count) in self.window.items()}
-        self.window.clear()
+        window = state.stat_window  # sorted: a resumed window (from JSON) logs in the same order
+        values = {("train", f"step_{n}"): window[n][0] / window[n][1] for n in sorted(window)}
+        state = state._replace(stat_window={})
         with self.placement.scope():
             for split, data in self.splits.items():
                 values.update({(split, k): float(v) for k, v in self.evaluate(state.params, data).items()})
@@ -672,48 +741,60 @@ class Recorder:
 
 @dataclasses.dataclass
 class Checkpointer:
-    """Writes the :class:`TrainState` every ``seconds`` of training time (and at the end):
-    arrays to ``checkpoint/state.eqx``, host scalars to ``checkpoint/counters.json``."""
+    """Saves the :class:`TrainState` once ``seconds`` of wall-clock time have passed since
+    the previous save (or the start), at every evaluation and at the end, so a kill loses at
+    most that much work. Each save is one atomic commit of ``checkpoint/`` (arrays in
+    ``state.eqx``, host scalars in ``counters.json``, sizes and checksums in
+    ``manifest.json``: :func:`physgrad.rundir.save_checkpoint`).
+
+    Loading verifies the manifest; a checkpoint of an older physgrad (no manifest) still
+    loads, unverified."""
 
     run_dir: Path
     seconds: float
     writer: bool
-    last: float = 0.0
+    last: float = dataclasses.field(default_factory=time.monotonic)
 
     def maybe(self, state: TrainState):
-        if state.train_time - self.last >= self.seconds:
+        if time.monotonic() - self.last >= self.seconds:
             self.save(state)
 
     def save(self, state: TrainState):
-        self.last = state.train_time
-        if not self.writer:
-            return
-        ckpt = self.run_dir / "checkpoint"
-        ckpt.mkdir(exist_ok=True)
-        tmp = ckpt / "state.eqx.tmp"
-        eqx.tree_serialise_leaves(tmp, distributed.to_host((state.params, state.opt_state)))
-        os.replace(tmp, ckpt / "state.eqx")
-        write_json(ckpt / "counters.json", state.counters())
+        if self.writer:
+            buffer = io.BytesIO()
+            eqx.tree_serialise_leaves(buffer, distributed.to_host((state.params, state.opt_state)))
+            counters = rundir.json_text(state.counters()).encode()
+            rundir.save_checkpoint(
+                self.run_dir, {"state.eqx": buffer.getvalue(), "counters.json": counters}, state.step
+            )
+        self.last = time.monotonic()  # the interval counts from the end of a save
+
+    def exists(self) -> bool:
+        return rundir.checkpoint_path(self.run_dir) is not None
 
     def load(self, like: Callable[[dict[str, Any]], TrainState]) -> TrainState | None:
         """The checkpointed state (None without one); ``like(counters)`` gives its structure
-        (the optimizer state depends on the stage it was taken in)."""
-        ckpt = self.run_dir / "checkpoint"
-        if not (ckpt / "counters.json").exists():
+        (the optimizer state depends on the stage it was taken in). Damaged files are a
+        one-line ConfigError (:func:`physgrad.rundir.load_checkpoint`); files that verify
+        but do not fit ``like`` were written by another version of the method."""
+        found = rundir.load_checkpoint(self.run_dir)
+        if found is None:
             return None
-        counters = json.loads((ckpt / "counters.json").read_text())
+        ckpt, files, verified = found
+        counters = rundir.parse_counters(ckpt, files["counters.json"])
         counters.setdefault("stage", 0)
         counters.setdefault("stat_totals", {})
-        counters = {k: v for k, v in counters.items() if k in TrainState._fields}
-        template = like(counters)
+        counters = {k: v for k, v in counters.items() if k in TrainState._fields[2:]}
         try:
-            params, opt_state = eqx.tree_deserialise_leaves(ckpt / "state.eqx", (template.params, template.opt_state))
-        except (ValueError, RuntimeError, TypeError, EOFError) as e:
-            raise ConfigError(
-                f"the checkpoint in {self.run_dir} does not match this method's state ({type(e).__name__}); "
-                "it was written by another version of the method: delete checkpoint/ to restart the run"
-            ) from None
-        self.last = counters.get("train_time", 0.0)
+            template = like(counters)
+            arrays = (template.params, template.opt_state)
+            params, opt_state = eqx.tree_deserialise_leaves(io.BytesIO(files["state.eqx"]), arrays)
+        except Exception as e:  # noqa: BLE001 — whatever the mismatch, one line
+            why = "it was written by another version of the method" + (
+                "" if verified else " (or is damaged: a checkpoint of an older physgrad has no checksums)"
+            )
+            raise ConfigError(f"the checkpoint {ckpt} does not match this method's state ({type(e).__name__}); "
+                              f"{why}: delete {ckpt} to restart the run from step 0") from None  # fmt: skip
         return template._replace(params=params, opt_state=opt_state, **counters)
 
 
@@ -790,27 +871,69 @@ def _describe(problem, phases, seed, budget, settings) -> dict[str, Any]:
     objects describe alike in every process and session)."""
     text = lambda obj: re.sub(r" at 0x[0-9a-f]+", "", repr(obj))  # noqa: E731
     return {"problem": text(problem), "phases": [text(p) for p in phases], "seed": seed,
-            "budget": budget.to_dict(), "settings": dataclasses.asdict(settings)}  # fmt: skip
+            "budget": budget.to_dict(), "settings": _resolved(settings, problem)}  # fmt: skip
+
+
+def _resolved(settings: TrainSettings, problem: AbstractProblem) -> dict[str, Any]:
+    """The settings as recorded: ``shuffle`` None stands for the problem's default."""
+    out = dataclasses.asdict(settings)
+    out["shuffle"] = problem.default_shuffle if settings.shuffle is None else settings.shuffle
+    return out
 
 
 def _run(
     problem, phases, seed, budget, settings, run_dir, resume, progress, placement, record, same_run, label, identity
 ):
+    """One run while its writer process holds the run directory's lock, with SIGTERM
+    handled as Ctrl-C (a checkpoint, then stop)."""
+    with _writer_lock(run_dir, placement), rundir.terminate_as_interrupt():
+        return _run_locked(problem, phases, seed, budget, settings, run_dir, resume, progress, placement, record,
+                           same_run, label, identity)  # fmt: skip
+
+
+@contextlib.contextmanager
+def _writer_lock(run_dir: Path, placement: Placement):
+    """The writer process locks the run directory (:func:`physgrad.rundir.one_writer`); in a
+    multi-process run every process learns whether it got the lock, so that none waits at a
+    collective for a writer that was refused."""
+    with contextlib.ExitStack() as stack:
+        refused = None
+        try:
+            stack.enter_context(rundir.one_writer(run_dir, "run", enabled=placement.writer))
+        except ConfigError as e:
+            refused = e
+        if jax.process_count() > 1:
+            from jax.experimental import multihost_utils
+
+            flags = np.asarray(multihost_utils.process_allgather(np.array([int(refused is not None)])))
+            if refused is None and flags.any():
+                refused = ConfigError(f"the writer process could not lock {run_dir} (see its error)")
+        if refused is not None:
+            raise refused
+        yield
+
+
+def _run_locked(
+    problem, phases, seed, budget, settings, run_dir, resume, progress, placement, record, same_run, label, identity
+):
     config_path = run_dir / "config.json"
+    old = None
     if config_path.exists():
         if not resume:
-            raise ConfigError(f"run directory {run_dir} exists; pass --resume or choose another --out")
-        if not same_run(json.loads(config_path.read_text())):
-            raise ConfigError(f"run directory {run_dir} holds a different configuration; choose another --out")
-    has_ckpt = resume and (run_dir / "checkpoint" / "counters.json").exists()
+            raise ConfigError(f"run directory {run_dir} exists; resume it (resume=True) or choose another run directory",
+                              flags=f"run directory {run_dir} exists; pass --resume or choose another --out")  # fmt: skip
+        old = _read_json(config_path)
+        if not same_run(old):
+            raise ConfigError(f"run directory {run_dir} holds a different configuration; choose another run directory",
+                              flags=f"run directory {run_dir} holds a different configuration; choose another --out")  # fmt: skip
+    checkpointer = Checkpointer(run_dir, settings.checkpoint_seconds, placement.writer)
+    has_ckpt = resume and checkpointer.exists()
     placement.barrier(f"physgrad.fit:{run_dir}")  # every process has looked before process 0 writes
     if not placement.writer:  # other processes compute alike and write nothing
         progress = NoProgressMeter()
-    done = read_summary(run_dir) if has_ckpt else None
-    if done and (
-        done["status"] == "diverged" or (done["status"] == "finished" and done.get("budget") == budget.to_dict())
-    ):
-        return done  # nothing to do (checked before building data and network)
+    done = _done_already(run_dir, budget) if resume else None
+    if done is not None:
+        return done  # every file unchanged (checked before building data and network)
 
     fidelity = Fidelity.of(problem, settings)
     if settings.memory_guard:
@@ -819,7 +942,6 @@ def _run(
     for stage in setup.stages:
         distributed.check_batch(stage.batch_size, placement.mesh)
     fresh = TrainState(setup.params, setup.method.init(setup.params), prdp=fidelity.initial())
-    checkpointer = Checkpointer(run_dir, settings.checkpoint_seconds, placement.writer)
     like = lambda c: fresh._replace(opt_state=setup.stages[c["stage"]].method.init(setup.params))  # noqa: E731
     state = (checkpointer.load(like) if has_ckpt else None) or fresh
     if jax.process_count() > 1:  # every process must resume from the same checkpoint
@@ -827,52 +949,102 @@ def _run(
 
         seen = multihost_utils.process_allgather(np.array([int(has_ckpt), state.step]))
         if len({tuple(row) for row in np.asarray(seen).reshape(-1, 2)}) > 1:
-            raise ConfigError(f"the processes see different checkpoints in {run_dir}; a multi-process --resume "
-                              "needs --out on a file system every process shares")  # fmt: skip
+            raise ConfigError(f"the processes see different checkpoints in {run_dir}; a multi-process resume "
+                              "needs the run directory on a file system every process shares")  # fmt: skip
+    met = state.step > 0 and _budget_met(budget, (old or {}).get("budget"), state.step, state.train_time,
+                                         setup.epochs, run_dir)  # fmt: skip
+    if met:  # a kill came after the final checkpoint: nothing to train, maybe the summary to write
+        summary = read_summary(run_dir)
+        if summary and summary.get("status") in FINAL_STATUSES and summary.get("steps") == state.step:
+            return summary
     setup = fidelity.problem_at(setup, state)
     state = state._replace(params=placement.put(state.params), opt_state=placement.put(state.opt_state))
-    steps = Steps(setup, placement, settings, seed)
-    compiled, state = steps.compile(state, setup)  # a step the memory guard refuses leaves no files behind
+    steps, compiled = None, None
+    if not met:
+        steps = Steps(setup, placement, settings, seed)
+        compiled, state = steps.compile(state, setup)  # a step the memory guard refuses leaves no files behind
     if placement.writer:
-        run_dir.mkdir(parents=True, exist_ok=True)
         write_json(config_path, record)
         write_json(run_dir / "env.json", {**environment(), "mesh_devices": distributed.mesh_size(placement.mesh)})
-    log = MetricsLog(
-        run_dir / "metrics.csv", keep_until_step=state.step if has_ckpt else None, enabled=placement.writer
-    )
+    # a checkpoint at step 0 precedes the first evaluation, which the resumed loop makes again
+    keep = state.step if has_ckpt and state.step > 0 else None
+    log = MetricsLog(run_dir / "metrics.csv", keep_until_step=keep, enabled=placement.writer)
     recorder = Recorder(setup, settings, placement, fidelity, log)
-    progress.start(
-        budget=budget, steps_per_epoch=setup.steps_per_epoch, step=state.step, train_time=state.train_time, label=label
-    )
-    try:
-        state, setup, status, diverged_step, last_finite = _loop(
-            state, setup, steps, compiled, StopRule(budget, setup), EvalSchedule(settings), placement, fidelity,
-            recorder, checkpointer, progress,
-        )  # fmt: skip
-    finally:
-        progress.close()
-    if status == "interrupted":  # Ctrl-C: keep what was done, then let it propagate
+    evaluated = recorder.restore(log.kept)
+    if met:
+        status, diverged_step = "finished", None
+        if evaluated != state.step:  # the final evaluation was not logged before the kill
+            state, finite = recorder(state, final=True)
+            status, diverged_step = ("finished", None) if finite else ("diverged", state.step)
+    else:
+        progress.start(budget=budget, steps_per_epoch=setup.steps_per_epoch, step=state.step,
+                       train_time=state.train_time, label=label)  # fmt: skip
+        try:
+            state, setup, status, diverged_step = _loop(
+                state, setup, steps, compiled, StopRule(budget, setup), EvalSchedule(settings), placement, fidelity,
+                recorder, checkpointer, progress,
+            )  # fmt: skip
+        finally:
+            progress.close()
+    if status in ("interrupted", "terminated"):  # Ctrl-C or SIGTERM: keep what was done, then stop
         checkpointer.save(state)
         if placement.writer:
             write_json(
                 run_dir / "summary.json",
                 {"status": "interrupted", "steps": state.step, "train_seconds": state.train_time},
             )
-        raise KeyboardInterrupt
-    summary = {**identity, **_finish(state, setup, status, diverged_step, last_finite, recorder, checkpointer, placement,
-                                     budget, run_dir)}  # fmt: skip
+        raise rundir.Terminated if status == "terminated" else KeyboardInterrupt
+    summary = {**identity, **_finish(state, setup, status, diverged_step, recorder, checkpointer, placement, budget,
+                                     run_dir)}  # fmt: skip
     if placement.writer:
         write_json(run_dir / "summary.json", summary)
     return summary
 
 
+def _done_already(run_dir: Path, budget: Budget) -> dict[str, Any] | None:
+    """The summary of a run that needs nothing more for ``budget`` (diverged, or finished
+    exactly at it), read before any work; None if it must train on or finish (a
+    ``summary.json`` without its final losses, as an older physgrad wrote after a resume,
+    is finished again from the checkpoint)."""
+    summary = read_summary(run_dir)
+    if summary is None or summary.get("status") not in FINAL_STATUSES:
+        return None
+    if summary["status"] == "diverged":
+        return summary
+    if summary.get("final_test_loss") is None or not isinstance(summary.get("steps"), int):
+        return None
+    met = _budget_met(budget, summary.get("budget"), summary["steps"], summary.get("train_seconds", 0.0), None, run_dir)
+    return summary if met else None
+
+
+def _budget_met(budget, recorded, step, seconds, epochs, run_dir) -> bool | None:
+    """Whether a run at ``step`` (after ``seconds`` of training) is done with ``budget``:
+    False (train on), True (met at exactly this step, or ``budget`` is the ``recorded`` one
+    it ran to), None (cannot tell without ``epochs``, the data's step-to-epoch map). A budget
+    the run went past is refused: a resumed run cannot undo steps."""
+    kind, amount = budget.kind, budget.amount
+    if kind == "epochs" and epochs is None:
+        return True if recorded == budget.to_dict() else None
+    done = epochs(step) if kind == "epochs" else step if kind == "steps" else seconds
+    if done < amount - (1e-9 if kind == "epochs" else 0.0):
+        return False
+    if recorded == budget.to_dict():
+        return True
+    if kind == "steps" and step == amount or kind == "epochs" and epochs(step - 1) < amount - 1e-9:
+        return True
+    what = {"steps": f"{step} steps", "epochs": f"{done:g} epochs", "seconds": f"{seconds:.4g} training seconds"}[kind]
+    raise ConfigError(f"the run in {run_dir} has already trained {what}, more than the budget of {budget}; "
+                      "resume it with at least that budget, or choose another run directory")  # fmt: skip
+
+
 def _loop(state, setup, steps, compiled, stop, schedule, placement, fidelity, recorder, checkpointer, progress):
     """Steps until the budget is met or the loss stops being finite (the training loop);
-    ``compiled`` is the current stage's step."""
+    ``compiled`` is the current stage's step. Returns the state, the setup, the status and
+    the step it diverged at."""
     if state.step == 0:
         state, _ = recorder(state, final=False)
     schedule.start(state.train_time)
-    order_key, order, last_finite = None, None, None
+    order_key, order = None, None
     try:
         while not stop.met(state.step, state.train_time):
             index = setup.stage_index(state.step)
@@ -888,10 +1060,10 @@ def _loop(state, setup, steps, compiled, stop, schedule, placement, fidelity, re
             loss = float(stats["loss"])  # waits for the step: the timing is honest
             train_time = placement.clock(state.train_time + time.perf_counter() - t_start)
             if not math.isfinite(loss) and not float(stats.get("skipped", 0.0)):
-                return state, setup, "diverged", state.step, last_finite
-            last_finite = loss if math.isfinite(loss) else last_finite
+                return state, setup, "diverged", state.step
+            last_finite = loss if math.isfinite(loss) else state.last_finite_loss
             state = recorder.accumulate(state, stats)._replace(params=params, opt_state=opt_state, step=state.step + 1,
-                                                                train_time=train_time)  # fmt: skip
+                                                                train_time=train_time, last_finite_loss=last_finite)  # fmt: skip
             if fidelity.name:
                 state = state._replace(solver_iterations=state.solver_iterations + fidelity.iterations(state))
             boundary = stop.met(state.step, state.train_time) or (
@@ -900,27 +1072,35 @@ def _loop(state, setup, steps, compiled, stop, schedule, placement, fidelity, re
             if schedule.due(state.step, state.train_time, stage, boundary):
                 state, finite = recorder(state, final=stop.met(state.step, state.train_time))
                 if not finite:
-                    return state, setup, "diverged", state.step, last_finite
+                    return state, setup, "diverged", state.step
                 refined = fidelity.problem_at(setup, state)
                 if refined is not setup:  # PRDP refined the solver: new problem, new step
                     setup = refined
                     recorder.use(setup)
                     compiled, state = steps.compile(state, setup)
-            checkpointer.maybe(state)
+                checkpointer.save(state)  # an evaluation is work too: never lost to a kill
+            else:
+                checkpointer.maybe(state)
+            rundir.fault("step")
             progress.update(step=state.step, train_time=state.train_time, loss=loss)
-    except KeyboardInterrupt:
-        return state, setup, "interrupted", None, last_finite
-    except ConfigError:  # the memory guard refused a later stage's step: keep what was done for --resume
+    except KeyboardInterrupt as e:
+        return state, setup, "terminated" if isinstance(e, rundir.Terminated) else "interrupted", None
+    except ConfigError:  # the memory guard refused a later stage's step: keep what was done for a resume
         checkpointer.save(state)
         raise
-    return state, setup, "finished", None, last_finite
+    return state, setup, "finished", None
 
 
-def _finish(state, setup, status, diverged_step, last_finite, recorder, checkpointer, placement, budget, run_dir):
+def _finish(state, setup, status, diverged_step, recorder, checkpointer, placement, budget, run_dir):
+    """The final checkpoint, ``params.eqx``, ``test_cases.json`` and the summary (which the
+    caller writes last: a run with a final ``summary.json`` has all its files)."""
     checkpointer.save(state)
+    rundir.fault("before-summary")
     params = state.params
     if placement.writer:
-        eqx.tree_serialise_leaves(run_dir / "params.eqx", setup.network(distributed.to_host(params)))
+        network = io.BytesIO()
+        eqx.tree_serialise_leaves(network, setup.network(distributed.to_host(params)))
+        rundir.atomic_write(run_dir / "params.eqx", network.getvalue())
     # Every test case's final metrics, for paired tests between methods (same seeds and cases).
     with placement.scope():
         cases = distributed.to_host(make_evaluate(setup, per_sample=True)(params, recorder.splits["test"]))
@@ -944,7 +1124,7 @@ def _finish(state, setup, status, diverged_step, last_finite, recorder, checkpoi
         "final_test_metrics": {k[5:]: v for k, v in last.items() if k.startswith("test_") and k != "test_loss"},
         "best_test_loss": state.best_test_loss if math.isfinite(state.best_test_loss) else None,
         "diverged_step": diverged_step,
-        "last_finite_loss": last_finite if status == "diverged" else None,
+        "last_finite_loss": state.last_finite_loss if status == "diverged" else None,
         "n_params": parameter_count(setup.params),
         "devices": distributed.mesh_size(placement.mesh),
         "solver_iterations": state.solver_iterations if recorder.fidelity.name else None,
@@ -984,9 +1164,8 @@ def environment() -> dict[str, Any]:
 
 
 def write_json(path: Path, data: dict[str, Any]):
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    tmp.write_text(json.dumps(data, indent=2, sort_keys=True, default=str) + "\n")
-    os.replace(tmp, path)
+    """Write ``data`` as JSON all at once (:func:`physgrad.rundir.atomic_write`)."""
+    rundir.atomic_write(path, rundir.json_text(data))
 
 
 def read_metrics(path: Path) -> list[dict[str, Any]]:
@@ -1002,7 +1181,18 @@ def read_metrics(path: Path) -> list[dict[str, Any]]:
 def read_summary(run_dir: str | Path) -> dict[str, Any] | None:
     """A run's ``summary.json``, or None if it has none."""
     path = Path(run_dir) / "summary.json"
-    return json.loads(path.read_text()) if path.exists() else None
+    return _read_json(path) if path.exists() else None
+
+
+def _read_json(path: Path) -> dict[str, Any]:
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, ValueError) as e:
+        raise ConfigError(f"{path} cannot be read ({type(e).__name__}); the run directory is damaged: move it "
+                          "away and run again") from None  # fmt: skip
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path} is not a JSON object; the run directory is damaged: move it away and run again")
+    return data
 
 
 def is_complete(run_dir: str | Path) -> bool:
