@@ -349,9 +349,9 @@ def read_failures(out: str | Path) -> dict[str, dict[str, Any]]:
 
 
 def _write_json(path: Path, data: Any) -> None:
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    tmp.write_text(json.dumps(data, indent=2, default=str) + "\n")
-    os.replace(tmp, path)  # atomic: an interrupted bench never leaves half a file
+    from .rundir import atomic_write
+
+    atomic_write(path, json.dumps(data, indent=2, default=str) + "\n")  # an interrupted bench never leaves half a file
 
 
 def run_problem(
@@ -371,41 +371,44 @@ def run_problem(
     (the memory guard's refusal, a crash) is recorded in ``failures.json`` and the others go
     on; ``compare`` stops at the first error, which a bench of every method cannot afford.
     Returns the study's summary rows (:func:`physgrad.study.collect`)."""
+    from .rundir import one_writer
     from .study import collect, describe_run, run_name
     from .train import is_complete, read_summary, train
 
     out = Path(out)
     settings = settings or {}
     configs = plan_problem(problem, verdicts, seeds, budget, settings)
-    out.mkdir(parents=True, exist_ok=True)
-    names = [run_name(c) for c in configs]
-    _write_json(out / "study.json", {
-        "problem": problem, "methods": list(dict.fromkeys(c.method for c in configs)), "seeds": list(seeds),
-        "budget": budget.to_dict(), "settings": scoped_settings(problem, settings), "runs": names,
-    })  # fmt: skip
-    failures = {k: v for k, v in read_failures(out).items() if k in names}  # the current plan's only
-    for i, (config, name) in enumerate(zip(configs, names), 1):
-        run_dir = out / "runs" / name
-        prefix = f"{problem} [{i}/{len(configs)}] {config.method} seed {config.seed}"
-        if is_complete(run_dir):
-            echo(f"{prefix}: done already ({(read_summary(run_dir) or {}).get('status')}), skipped")
-            continue
-        try:
-            summary = train(config, run_dir, resume=True, progress=progress() if progress else None, devices=devices)
-        except Exception as e:  # noqa: BLE001 — KeyboardInterrupt is not an Exception: it still stops the bench
-            failures[name] = {
-                "method": config.method,
-                "seed": config.seed,
-                "error": f"{type(e).__name__}: {_one_line(e)}",
-            }
+    with one_writer(out, "study"):  # one writer per study directory (as compare)
+        names = [run_name(c) for c in configs]
+        _write_json(out / "study.json", {
+            "problem": problem, "methods": list(dict.fromkeys(c.method for c in configs)), "seeds": list(seeds),
+            "budget": budget.to_dict(), "settings": scoped_settings(problem, settings), "runs": names,
+        })  # fmt: skip
+        failures = {k: v for k, v in read_failures(out).items() if k in names}  # the current plan's only
+        for i, (config, name) in enumerate(zip(configs, names), 1):
+            run_dir = out / "runs" / name
+            prefix = f"{problem} [{i}/{len(configs)}] {config.method} seed {config.seed}"
+            if is_complete(run_dir):
+                echo(f"{prefix}: done already ({(read_summary(run_dir) or {}).get('status')}), skipped")
+                continue
+            try:
+                summary = train(
+                    config, run_dir, resume=True, progress=progress() if progress else None, devices=devices
+                )
+            except Exception as e:  # noqa: BLE001 — KeyboardInterrupt is not an Exception: it still stops the bench
+                failures[name] = {
+                    "method": config.method,
+                    "seed": config.seed,
+                    "error": f"{type(e).__name__}: {_one_line(e)}",
+                }
+                _write_json(out / "failures.json", failures)
+                echo(f"{prefix}: failed, recorded ({failures[name]['error']})")
+                continue
+            failures.pop(name, None)
             _write_json(out / "failures.json", failures)
-            echo(f"{prefix}: failed, recorded ({failures[name]['error']})")
-            continue
-        failures.pop(name, None)
+            echo(f"{prefix}: {describe_run(summary)}")
         _write_json(out / "failures.json", failures)
-        echo(f"{prefix}: {describe_run(summary)}")
-    _write_json(out / "failures.json", failures)
-    return collect(out)
+        return collect(out)
 
 
 # --- tables: pure functions of summary rows ------------------------------------------------------
@@ -636,12 +639,17 @@ def board_lines(board: Sequence[dict[str, Any]], reference: str = REFERENCE) -> 
 
 
 def _write_rows(path: Path, columns: Sequence[str], rows: Sequence[dict[str, Any]]) -> None:
+    """A table written all at once (:func:`physgrad.rundir.atomic_write`)."""
     import csv
+    import io
 
-    with path.open("w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=list(columns), extrasaction="ignore")
-        writer.writeheader()
-        writer.writerows(rows)
+    from .rundir import atomic_write
+
+    text = io.StringIO()
+    writer = csv.DictWriter(text, fieldnames=list(columns), extrasaction="ignore")
+    writer.writeheader()
+    writer.writerows(rows)
+    atomic_write(path, text.getvalue())
 
 
 def heatmap(
@@ -777,22 +785,26 @@ def bench(
     ``methods`` are the candidates (each problem runs those that apply); ``settings`` the
     ``--set`` values (``p.name`` scopes to problem ``p``); ``profile`` names a preset such
     as ``quick`` in the report."""
+    from .rundir import one_writer
+
     settings = settings or {}
     out = Path(out)
     verdicts = plan(problems, methods, settings, echo=echo)
-    out.mkdir(parents=True, exist_ok=True)
-    _write_json(out / "bench.json", {
-        "problems": list(problems), "methods": list(methods), "seeds": list(seeds), "budget": budget.to_dict(),
-        "settings": settings, "profile": profile, "devices": devices,
-        "verdicts": {p: [dataclasses.asdict(v) for v in vs] for p, vs in verdicts.items()},
-        "machine": machine(),
-    })  # fmt: skip
-    for i, problem in enumerate(problems, 1):
-        runnable = sum(v.runs for v in verdicts[problem])
-        echo(f"problem {i}/{len(problems)} {problem}: {runnable} methods x {len(seeds)} seeds, budget {budget} per run")
-        run_problem(problem, verdicts[problem], seeds, budget, out / problem, settings=settings, progress=progress,
-                    echo=echo, devices=devices)  # fmt: skip
-    return report(out)
+    with one_writer(out, "bench"):  # one writer per bench directory, for the whole bench
+        _write_json(out / "bench.json", {
+            "problems": list(problems), "methods": list(methods), "seeds": list(seeds), "budget": budget.to_dict(),
+            "settings": settings, "profile": profile, "devices": devices,
+            "verdicts": {p: [dataclasses.asdict(v) for v in vs] for p, vs in verdicts.items()},
+            "machine": machine(),
+        })  # fmt: skip
+        for i, problem in enumerate(problems, 1):
+            runnable = sum(v.runs for v in verdicts[problem])
+            echo(
+                f"problem {i}/{len(problems)} {problem}: {runnable} methods x {len(seeds)} seeds, budget {budget} per run"
+            )
+            run_problem(problem, verdicts[problem], seeds, budget, out / problem, settings=settings, progress=progress,
+                        echo=echo, devices=devices)  # fmt: skip
+        return report(out)
 
 
 def problem_table(out: str | Path, verdicts: Sequence[Verdict]) -> list[dict[str, Any]]:
@@ -820,8 +832,10 @@ def problem_table(out: str | Path, verdicts: Sequence[Verdict]) -> list[dict[str
 
 
 def report(out: str | Path) -> BenchReport:
-    """(Re)write a bench's tables, leaderboard, heat map and ``bench.md`` from its files."""
+    """(Re)write a bench's tables, leaderboard, heat map and ``bench.md`` from its files
+    (each written all at once)."""
     from .plots import draw
+    from .rundir import atomic_write
     from .study import markdown
 
     out = Path(out)
@@ -835,15 +849,15 @@ def report(out: str | Path) -> BenchReport:
         tables[problem] = table
         (out / problem).mkdir(exist_ok=True)  # a bench interrupted before this problem: its table says pending
         _write_rows(out / problem / "bench_table.csv", TABLE_COLUMNS, table_records(problem, table))
-        (out / problem / "bench_table.md").write_text(markdown(table_lines(table)) + "\n")
+        atomic_write(out / problem / "bench_table.md", markdown(table_lines(table)) + "\n")
     board = leaderboard(tables)
     _write_rows(out / "leaderboard.csv", BOARD_COLUMNS, board_records(board))
-    (out / "leaderboard.md").write_text(markdown(board_lines(board)) + "\n")
+    atomic_write(out / "leaderboard.md", markdown(board_lines(board)) + "\n")
     _write_rows(out / "bench_table.csv", TABLE_COLUMNS, [r for p, t in tables.items() for r in table_records(p, t)])
     files["leaderboard"] = out / "leaderboard.csv"
     files["table"] = out / "bench_table.csv"
     files["markdown"] = out / "bench.md"
-    (out / "bench.md").write_text(bench_markdown(info, tables, board))
+    atomic_write(out / "bench.md", bench_markdown(info, tables, board))
     files["heatmap"] = draw(  # last: a failing figure is a warning, the tables are written
         heatmap, tables, out / "heatmap.png", title=f"{_budget_text(info)}: final test loss relative to {REFERENCE}"
     )

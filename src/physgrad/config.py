@@ -19,7 +19,7 @@ TRAIN_SETTINGS: dict[str, Any] = {
     "eval_every": 0,  # steps between full train/test evaluations; 0 = once per epoch
     "eval_seconds": 0.0,  # if > 0: evaluate every this many training seconds instead
     "shuffle": False,  # the papers take mini-batches in fixed order
-    "checkpoint_seconds": 60.0,  # training seconds between checkpoints (and one at the end)
+    "checkpoint_seconds": 60.0,  # wall-clock seconds between checkpoints; also at every evaluation and the end
     "eval_samples": 0,  # evaluate the train split on its first N samples only; 0 = all
     "no_network": False,  # optimise x itself for each test sample instead of training a network
     "prdp": False,  # refine the solver's iteration count on validation plateaus (physgrad.prdp)

@@ -1196,6 +1196,10 @@ def _read_json(path: Path) -> dict[str, Any]:
 
 
 def is_complete(run_dir: str | Path) -> bool:
-    """Whether a run finished or diverged (so a study can skip it)."""
+    """Whether a run finished or diverged (so a study can skip it). A finished summary
+    without its final test loss (as an older physgrad wrote after resuming a finished run)
+    is not complete: resuming finishes it again from its checkpoint."""
     summary = read_summary(run_dir)
-    return summary is not None and summary.get("status") in FINAL_STATUSES
+    if summary is None or summary.get("status") not in FINAL_STATUSES:
+        return False
+    return summary["status"] == "diverged" or summary.get("final_test_loss") is not None

@@ -11,6 +11,7 @@ resumes interrupted ones from their checkpoints.
 from __future__ import annotations
 
 import csv
+import io
 import json
 import math
 from collections.abc import Callable, Sequence
@@ -19,6 +20,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
+from . import rundir
 from .config import (
     Budget,
     ConfigError,
@@ -104,33 +106,24 @@ def compare(
     devices: int | str | None = 1,
 ) -> list[dict[str, Any]]:
     """Train every method × seed on the same budget into ``out``; return the summary rows.
-    ``devices``: each run's batch is split over that many devices (``train``)."""
+    ``devices``: each run's batch is split over that many devices (``train``). One study
+    writes to ``out`` at a time (a second is refused in one line naming the first)."""
     out = Path(out)
     configs = plan(problem, methods, seeds, budget, settings)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "study.json").write_text(
-        json.dumps(
-            {
-                "problem": problem,
-                "methods": list(dict.fromkeys(c.method for c in configs)),
-                "seeds": list(seeds),
-                "budget": budget.to_dict(),
-                "settings": settings or {},
-                "runs": [run_name(c) for c in configs],
-            },
-            indent=2,
-        )
-        + "\n"
-    )
-    for i, config in enumerate(configs, 1):
-        run_dir = out / "runs" / run_name(config)
-        prefix = f"[{i}/{len(configs)}] {config.method} seed {config.seed}"
-        if is_complete(run_dir):
-            echo(f"{prefix}: done already ({(read_summary(run_dir) or {}).get('status')}), skipped")
-            continue
-        summary = train(config, run_dir, resume=True, progress=progress() if progress else None, devices=devices)
-        echo(f"{prefix}: {describe_run(summary)}")
-    return collect(out)
+    with rundir.one_writer(out, "study"):  # one writer per study directory, for the whole study
+        rundir.atomic_write(out / "study.json", json.dumps({
+            "problem": problem, "methods": list(dict.fromkeys(c.method for c in configs)), "seeds": list(seeds),
+            "budget": budget.to_dict(), "settings": settings or {}, "runs": [run_name(c) for c in configs],
+        }, indent=2) + "\n")  # fmt: skip
+        for i, config in enumerate(configs, 1):
+            run_dir = out / "runs" / run_name(config)
+            prefix = f"[{i}/{len(configs)}] {config.method} seed {config.seed}"
+            if is_complete(run_dir):
+                echo(f"{prefix}: done already ({(read_summary(run_dir) or {}).get('status')}), skipped")
+                continue
+            summary = train(config, run_dir, resume=True, progress=progress() if progress else None, devices=devices)
+            echo(f"{prefix}: {describe_run(summary)}")
+        return collect(out)
 
 
 def describe_run(summary: dict[str, Any]) -> str:
@@ -171,10 +164,13 @@ def collect(out: str | Path) -> list[dict[str, Any]]:
 
 
 def _write_csv(path: Path, columns: Sequence[str], rows: list[dict[str, Any]]):
-    with path.open("w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=list(columns), extrasaction="ignore")
-        writer.writeheader()
-        writer.writerows(rows)
+    """A table written all at once (:func:`physgrad.rundir.atomic_write`): a kill never
+    leaves half of it."""
+    text = io.StringIO()
+    writer = csv.DictWriter(text, fieldnames=list(columns), extrasaction="ignore")
+    writer.writeheader()
+    writer.writerows(rows)
+    rundir.atomic_write(path, text.getvalue())
 
 
 def read_csv(path: str | Path) -> list[dict[str, Any]]:  # str values; callers add numbers
@@ -236,7 +232,7 @@ def format_table(table: list[dict[str, Any]], reference: str | None = None) -> l
         fm, fs = t["final_test_loss"]
         bm, bs = t["best_test_loss"]
         runs = f"{t['runs']}" + (f" ({t['diverged']} diverged)" if t["diverged"] else "")
-        final = f"{fm:.3e} ± {fs:.1e}" if math.isfinite(fm) else "all diverged"
+        final = f"{fm:.3e} ± {fs:.1e}" if math.isfinite(fm) else _no_loss(t)
         line = [t["method"], runs, final, f"{bm:.3e} ± {bs:.1e}", f"{t['steps']:.0f}", f"{t['ms_per_step']:.2f}"]
         if ref is not None:
             base = ref["final_test_loss"][0]  # 0 or NaN (all diverged): no ratio to show
@@ -244,6 +240,12 @@ def format_table(table: list[dict[str, Any]], reference: str | None = None) -> l
             line.append(f"{ratio:.3g}" if math.isfinite(ratio) else "-")
         lines.append(line)
     return lines
+
+
+def _no_loss(row: dict[str, Any]) -> str:
+    """What a table says for a method without a finite mean final loss: "all diverged" only
+    where every run did."""
+    return "all diverged" if row["diverged"] == row["runs"] else "no final loss"
 
 
 class Report(NamedTuple):
@@ -416,26 +418,16 @@ def compare_grid(
     for cell in cells:  # every name and value is checked before anything runs
         plan(problem, methods, seeds, budget, {**fixed, **cell})
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "grid.json").write_text(
-        json.dumps(
-            {
-                "problem": problem,
-                "methods": list(methods or PROBLEMS[problem].default_methods),
-                "seeds": list(seeds),
-                "budget": budget.to_dict(),
-                "settings": fixed,
-                "grid": grid,
-            },
-            indent=2,
-        )  # fmt: skip
-        + "\n"
-    )
-    for i, cell in enumerate(cells, 1):
-        echo(f"cell {i}/{len(cells)}: {', '.join(f'{k}={v}' for k, v in cell.items())}")
-        compare(problem, methods, seeds, budget, out / cell_name(cell), settings={**fixed, **cell}, progress=progress,
-                echo=echo, devices=devices)  # fmt: skip
-        report(out / cell_name(cell))
+    with rundir.one_writer(out, "sweep"):  # one writer per sweep directory, for the whole sweep
+        rundir.atomic_write(out / "grid.json", json.dumps({
+            "problem": problem, "methods": list(methods or PROBLEMS[problem].default_methods), "seeds": list(seeds),
+            "budget": budget.to_dict(), "settings": fixed, "grid": grid,
+        }, indent=2) + "\n")  # fmt: skip
+        for i, cell in enumerate(cells, 1):
+            echo(f"cell {i}/{len(cells)}: {', '.join(f'{k}={v}' for k, v in cell.items())}")
+            compare(problem, methods, seeds, budget, out / cell_name(cell), settings={**fixed, **cell},
+                    progress=progress, echo=echo, devices=devices)  # fmt: skip
+            report(out / cell_name(cell))
 
 
 class GridReport(NamedTuple):
@@ -491,7 +483,7 @@ def grid_report(
                          "final_test_loss": fm, "final_test_loss_std": fs, "best_test_loss": bm,
                          "ms_per_step": t["ms_per_step"]})  # fmt: skip
             runs = f"{t['runs']}" + (f" ({t['diverged']} diverged)" if t["diverged"] else "")
-            final = f"{fm:.3e} ± {fs:.1e}" if math.isfinite(fm) else "all diverged"
+            final = f"{fm:.3e} ± {fs:.1e}" if math.isfinite(fm) else _no_loss(t)
             lines.append([label, t["method"], runs, final, f"{bm:.3e} ± {bs:.1e}", f"{t['ms_per_step']:.2f}"])
         curves.append((cell, results))
     columns = list(grid) + [
