@@ -79,9 +79,12 @@ class Budget:
     def __post_init__(self):
         given = [k for k in ("steps", "epochs", "seconds") if getattr(self, k) is not None]
         if len(given) != 1:
-            raise ConfigError("give exactly one budget: --steps N, --epochs E or --seconds S")
+            raise ConfigError("give exactly one budget: Budget(steps=N), Budget(epochs=E) or Budget(seconds=S)",
+                              flags="give exactly one budget: --steps N, --epochs E or --seconds S")  # fmt: skip
         if getattr(self, given[0]) <= 0:
-            raise ConfigError(f"the budget --{given[0]} must be positive")
+            raise ConfigError(
+                f"the budget {given[0]} must be positive", flags=f"the budget --{given[0]} must be positive"
+            )
 
     @property
     def kind(self) -> str:
