@@ -100,7 +100,8 @@ def test_a_footprint_refusal_names_the_largest_batch_that_fits_and_it_passes(tmp
     method = hig_method()
     setup = cubic_setup(method)
     size = sum(x.size for x in jax.tree.leaves(setup.params))
-    limit = int(gram_bytes(2 * 96, size, 4) / memory.SAFETY) + 1  # fits at 96 samples, not at 97
+    held = memory.tree_bytes((setup.data, setup.params))  # counted before the data exist
+    limit = int((gram_bytes(2 * 96, size, 4) + held) / memory.SAFETY) + 1  # fits at 96 samples, not at 97
     available(limit)
     with pytest.raises(physgrad.ConfigError) as refused:
         physgrad.fit(
@@ -216,3 +217,38 @@ def test_cli_refuses_hig_on_heat_in_seconds(tmp_path, capsys):
     # Gauss–Newton holds the same Jacobian
     assert main(["train", "heat", "--method", "gn", "--out", str(tmp_path / "gn")]) == 2
     assert "gn step needs" in capsys.readouterr().err and not (tmp_path / "gn").exists()
+
+
+class CubicBigTest(Cubic):
+    """Cubic with a test split of 65,536 samples (1 MiB): data that is not in memory when
+    the guard first looks, but is when the step is compiled."""
+
+    n_test: int = 65536
+
+    def make_data(self, key):
+        x = jax.random.uniform(key, (self.n + self.n_test, 2), jnp.float32, -1.0, 1.0)
+        data = {"x": x, "y": x + 0.1 * x**3}
+        return {"train": jax.tree.map(lambda a: a[: self.n], data), "test": jax.tree.map(lambda a: a[self.n :], data)}
+
+
+def test_the_first_suggestion_counts_the_dataset_and_passes(tmp_path, monkeypatch):
+    """Issue 29: heat with hig was told batch_size=7 before the data existed, then refused
+    at 7 once they did (the dataset's memory was not counted). Here the memory free is a
+    limit less what JAX arrays hold, as on a device: the suggestion must pass."""
+    base = sum(a.nbytes for a in jax.live_arrays())
+    limit = 2_000_000  # without the data counted: batch_size=832 suggested, refused once the data exist
+    monkeypatch.setattr(
+        memory, "available_bytes", lambda device=None: limit - (sum(a.nbytes for a in jax.live_arrays()) - base)
+    )
+    method, problem = hig_method(), CubicBigTest(n=1024)
+    with pytest.raises(physgrad.ConfigError) as refused:
+        physgrad.fit(problem, method, budget=physgrad.Budget(steps=1), out=tmp_path / "a", batch_size=1024, name="hig")
+    message = str(refused.value)
+    del refused  # its traceback would keep arrays alive
+    assert "of it for the data and parameters" in message and not (tmp_path / "a").exists()
+    b = suggested_batch(message)
+    data = 1024 * 16 + 65536 * 16
+    size = sum(x.size for x in jax.tree.leaves(cubic_setup(method).params))
+    assert gram_bytes(2 * b, size, 4) + data <= memory.SAFETY * limit < gram_bytes(2 * b + 2, size, 4) + data + 1000
+    summary = physgrad.fit(problem, method, budget=physgrad.Budget(steps=1), out=tmp_path / "b", batch_size=b)
+    assert summary["status"] == "finished"

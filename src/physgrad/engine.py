@@ -267,6 +267,10 @@ def preflight(problem: AbstractProblem, phases: Sequence[Phase], seed: int, mesh
     network alone (``eqx.filter_eval_shape``: nothing is generated or initialised), so a
     step that cannot fit is refused in seconds, not after minutes of data generation.
 
+    What the run will hold besides the step (the dataset, the parameters and each stage's
+    optimizer state) is not in memory yet; it is counted against the available memory, so
+    that a batch size suggested here passes the check after the data exist.
+
     Problems whose data cannot be traced abstractly (made by NumPy code or read from a
     cache) are skipped here; their steps are checked after the data exist, before
     compiling (:class:`Steps`); so are settings that :func:`build_setup` refuses (it says why)."""
@@ -288,11 +292,21 @@ def preflight(problem: AbstractProblem, phases: Sequence[Phase], seed: int, mesh
             continue  # reported by the run's own check
         batch = memory.stand_in(data["train"], stage.batch_size)
         try:
-            memory.check_step_fits(stage.method, objective, params, batch, devices=_devices(mesh), label=stage.label)
+            resident = memory.tree_bytes((data, params, _optimizer_state_shape(stage.method, params)))
+            memory.check_step_fits(stage.method, objective, params, batch, devices=_devices(mesh), label=stage.label,
+                                   resident=resident)  # fmt: skip
         except ConfigError:
             raise
         except Exception:  # noqa: BLE001 — a footprint that needs concrete values: checked once they exist
             return
+
+
+def _optimizer_state_shape(method: AbstractMethod, params) -> Any:
+    """The shapes of ``method.init(params)`` (None where they cannot be traced abstractly)."""
+    try:
+        return jax.eval_shape(method.init, params)
+    except Exception:  # noqa: BLE001 — an optimizer whose init needs concrete values: not counted
+        return None
 
 
 def _deferred_objective(make: Callable[[], Objective]) -> Objective:

@@ -26,8 +26,10 @@ A refused step raises :class:`physgrad.ConfigError` with what would fit: the lar
 size found (halving, then bisecting; confirmed by compiling when the compiled figure
 decided), a lighter variant of the method at this batch size (another half-inverse route),
 or a device count where the run could use more devices. Before the data exist only the
-footprint is known, so a batch size suggested then fits the method's own arrays; the
-compiled check that follows may still lower it. ``memory_guard=False``
+footprint is known, and what the run will hold besides the step (the dataset, parameters
+and optimizer state: ``resident``) is not in use yet, so it is counted against the
+available memory: a batch size suggested then passes the footprint check once the data
+exist (the compiled check that follows may still lower it). ``memory_guard=False``
 (:class:`physgrad.TrainSettings`, ``--set memory_guard=false``) turns the guard off.
 """
 
@@ -131,6 +133,7 @@ def check_step_fits(
     compiled: Any = None,
     measure: Callable[[int], int | None] | None = None,
     label: str = "",
+    resident: int = 0,
 ) -> int:
     """Raise :class:`~physgrad.ConfigError` (one line, with what would fit) unless one
     step of ``method`` on ``batch`` fits in memory; return the bytes it needs per device.
@@ -148,6 +151,9 @@ def check_step_fits(
             returns its :func:`compiled_bytes` without arguments; used to confirm a
             suggested batch size when the compiled figure decided.
         label: the method's name in the message.
+        resident: bytes per device that the run will hold while the step runs but that
+            are not in memory yet (before the data exist: the dataset, parameters and
+            optimizer state, :func:`tree_bytes`); counted against the available memory.
     """
     devices = devices or [jax.local_devices()[0]]
     mine = [d for d in devices if d.process_index == jax.process_index()] or devices
@@ -157,7 +163,7 @@ def check_step_fits(
         return 0  # this backend does not say: no check
     # CPU devices are one host's memory: every local device's share lands in the same pool.
     shared = len(mine) if mine[0].platform == "cpu" else 1
-    budget = SAFETY * min(free)
+    budget = SAFETY * min(free) - resident * shared
     n, b = len(devices), _batch_size(batch)
     step = compiled_bytes(compiled, arguments=False) if compiled is not None else None
     footprint = method.footprint(objective, params, batch, n)
@@ -213,10 +219,16 @@ def check_step_fits(
         if suggestions
         else "found no batch size, variant or device count that fits"
     )
+    held = f", {_size(resident * shared)} of it for the data and parameters" if resident else ""
     raise ConfigError(
         f"{label or 'the'} step needs ~{_size(need * shared)}" + (f" ({note})" if note else "")
-        + f" but {where} has {_size(min(free))} available; {fit} (memory_guard=false skips this check)"
+        + f" but {where} has {_size(min(free))} available{held}; {fit} (memory_guard=false skips this check)"
     )  # fmt: skip
+
+
+def tree_bytes(tree: Any) -> int:
+    """Bytes of a pytree's arrays (or ``jax.ShapeDtypeStruct``s): its size in memory."""
+    return sum(int(np.prod(x.shape)) * np.dtype(x.dtype).itemsize for x in jax.tree.leaves(tree) if hasattr(x, "dtype"))
 
 
 def _batch_size(batch) -> int:
