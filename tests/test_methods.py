@@ -8,8 +8,9 @@ from jax.flatten_util import ravel_pytree
 
 from physgrad import Budget
 from physgrad.config import make_config
+from physgrad.engine import Placement, Steps
 from physgrad.registry import METHODS
-from physgrad.train import build, make_evaluate, make_step
+from physgrad.train import build, make_evaluate, make_step, settings_of
 
 TINY = {"n_steps": "8", "hidden": "6", "n_train": "64", "n_test": "64", "dtype": "float64", "batch_size": "16"}
 
@@ -100,11 +101,12 @@ def test_every_method_lowers_the_loss_in_float32_without_recompiling(method):
     step = make_step(setup, config.phases[0].batch_size)
     evaluate = make_evaluate(setup)
     data = setup.data["train"]
-    order = jnp.arange(64, dtype=jnp.int32)
+    steps = Steps(setup, Placement(), settings_of(config), config.seed)  # the engine's batch order (shuffled: steppers)
     params, state = setup.params, setup.method.init(setup.params)
     before = float(evaluate(params, data)["loss"])
     for i in range(40):
-        params, state, _ = step(params, state, data, order, jnp.int32(i % 4))
+        epoch, batch = divmod(i, 4)
+        params, state, _ = step(params, state, data, steps.order(0, epoch), jnp.int32(batch))
     assert step._cache_size() == 1
     assert all(leaf.dtype == jnp.float32 for leaf in jax.tree.leaves(params))
     assert float(evaluate(params, data)["loss"]) < before

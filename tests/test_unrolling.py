@@ -2,6 +2,7 @@
 compositions against their formulas, solver differentiability, stabilisers, the problems'
 solvers and data, PRDP and paired statistics."""
 
+import dataclasses
 import json
 import math
 
@@ -16,14 +17,15 @@ import physgrad  # noqa: F401
 from physgrad import prdp
 from physgrad.cli import main
 from physgrad.config import Budget, ConfigError, make_config
+from physgrad.engine import Placement, Steps, TrainSettings, grouped_order
 from physgrad.problems import Advection1d, Kolmogorov, KuramotoSivashinsky
 from physgrad.problems.advection_1d import ImplicitUpwind, fou_distance
 from physgrad.problems.ks import ks_stepper
 from physgrad.problems.time_stepper import windows
-from physgrad.registry import METHODS
+from physgrad.registry import METHODS, PROBLEMS
 from physgrad.rollout import value_and_grad
 from physgrad.steppers import NonDifferentiable, NotDifferentiableError, Solver, stepper_step
-from physgrad.train import build, make_step, train
+from physgrad.train import build, make_step, settings_of, train
 
 
 @pytest.fixture(autouse=True)
@@ -332,6 +334,144 @@ def test_curriculum_expands_into_stages_with_their_rollout_and_learning_rate(tmp
     # '/' separates too (compare sweeps on commas)
     slashed = build(adv_config("wig", steps=40, m=4, curriculum="1/2/4", stage_lr="1e-2/1e-3/1e-4", batch_size=4))
     assert [(s.method.m, s.method.lr) for s in slashed.stages] == [(1, 1e-2), (2, 1e-3), (4, 1e-4)]
+
+
+# --- batches: a fresh permutation every epoch, KS one domain size per batch ------------------
+
+SMALL_KS = {"frames": 50, "n_ics": 1, "dataset_fraction": 1.0}  # 51 frames: 48 windows of 4 per domain size
+TIME_STEPPERS = ("ks", "kolmogorov", "advection_1d")
+
+
+def stand_in_setup(config, train):
+    """What :class:`Steps` reads of a setup (problem, training split, stages), without the
+    network and solvers that ``build`` makes."""
+    from types import SimpleNamespace
+
+    problem = PROBLEMS[config.problem](**config.problem_settings)
+    return SimpleNamespace(
+        problem=problem, data={"train": train}, stages=[SimpleNamespace(batch_size=p.batch_size) for p in config.phases]
+    )
+
+
+def epoch_orders(setup, config, epochs=1, seed=0, **settings):
+    """The engine's sample order of the first ``epochs`` epochs (``settings`` replace the config's)."""
+    steps = Steps(setup, Placement(), dataclasses.replace(settings_of(config), **settings), seed)
+    return [np.asarray(steps.order(0, e)) for e in range(epochs)]
+
+
+def batches_of(order, batch_size):
+    return order[: len(order) // batch_size * batch_size].reshape(-1, batch_size)
+
+
+def test_time_steppers_shuffle_by_default_and_the_other_problems_keep_their_papers_fixed_order():
+    for name in PROBLEMS:
+        expected = name in TIME_STEPPERS
+        assert PROBLEMS[name].default_shuffle is expected, name
+    for name in TIME_STEPPERS:
+        assert make_config(name, "one", budget=Budget(steps=1)).shuffle is True
+        assert make_config(name, "one", budget=Budget(steps=1), settings={"shuffle": "false"}).shuffle is False
+    assert make_config("oscillators", "hig", budget=Budget(steps=1)).shuffle is False
+
+
+@pytest.fixture(scope="module")
+def advection():
+    """The small advection problem's config and training windows (4 trajectories x 12
+    windows, as stored), without running the reference solver."""
+
+    def trajectories(self, split):
+        zeros = np.zeros(self.n_train, np.float32)
+        return {"u": np.zeros((self.n_train, 17, 1, 30), np.float32), "cond": zeros, "index": zeros.astype(np.int32)}
+
+    config = adv_config("nog", batch_size=8)
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(Advection1d, "trajectories", trajectories)
+        return config, PROBLEMS["advection_1d"](**config.problem_settings).make_data(jax.random.key(0))["train"]
+
+
+def test_a_time_stepper_batch_is_not_consecutive_windows_of_one_trajectory(advection):
+    config, train = advection
+    setup = stand_in_setup(config, train)
+    (order,) = epoch_orders(setup, config)
+    per_trajectory = train["u"].shape[0] // SMALL_ADV["n_train"]
+    assert per_trajectory == 12
+
+    def consecutive_in_one_trajectory(batch):
+        rows = np.sort(batch)
+        return rows[-1] - rows[0] == len(rows) - 1 and rows[0] // per_trajectory == rows[-1] // per_trajectory
+
+    batches = batches_of(order, 8)
+    assert len(batches) == 6 and not any(consecutive_in_one_trajectory(b) for b in batches)
+    assert all(len(set(b // per_trajectory)) > 1 for b in batches)  # the trajectories mix within a batch
+    # shuffle=false: the stored order, 4 of the 6 batches one trajectory's consecutive windows
+    (fixed,) = epoch_orders(setup, config, shuffle=False)
+    np.testing.assert_array_equal(fixed, np.arange(48))
+    assert sum(consecutive_in_one_trajectory(b) for b in batches_of(fixed, 8)) == 4
+    # the library's TrainSettings() (shuffle None) takes the problem's default
+    library = Steps(setup, Placement(), TrainSettings(), 0)
+    np.testing.assert_array_equal(np.asarray(library.order(0, 0)), order)
+
+
+def test_orders_differ_between_epochs_are_reproducible_per_seed_and_see_every_sample_once(advection):
+    config, train = advection
+    setup = stand_in_setup(config, train)
+    orders, again = epoch_orders(setup, config, epochs=3), epoch_orders(setup, config, epochs=3)
+    other = epoch_orders(setup, config, epochs=3, seed=1)
+    for order in orders:
+        np.testing.assert_array_equal(np.sort(order), np.arange(48))
+    assert not np.array_equal(orders[0], orders[1]) and not np.array_equal(orders[1], orders[2])
+    for a, b in zip(orders, again):
+        np.testing.assert_array_equal(a, b)
+    assert all(not np.array_equal(a, b) for a, b in zip(orders, other))
+
+
+def test_ks_batches_hold_one_domain_size_each_with_the_sizes_interleaved_at_random(monkeypatch):
+    from physgrad.problems.ks import TRAIN_FACTORS
+
+    def trajectories(self, split):  # the stored layout (size by size), without running the solver
+        frames = 51 if split == "train" else 13
+        index = np.repeat(np.arange(6), self.n_ics).astype(np.int32)
+        return {"u": np.zeros((6 * self.n_ics, frames, 1, 48), np.float32), "index": index,
+                "cond": np.asarray(TRAIN_FACTORS, np.float32)[index]}  # fmt: skip
+
+    monkeypatch.setattr(KuramotoSivashinsky, "trajectories", trajectories)
+    config = make_config("ks", "nog", budget=Budget(steps=1), settings=SMALL_KS)
+    train = PROBLEMS["ks"](**config.problem_settings).make_data(jax.random.key(0))["train"]
+    setup = stand_in_setup(config, train)
+    size = np.asarray(train["index"])  # the domain size of every window
+    assert np.bincount(size).tolist() == [48] * 6
+    labels = []
+    orders = epoch_orders(setup, config, epochs=2)
+    for order in orders:
+        np.testing.assert_array_equal(np.sort(order), np.arange(6 * 48))  # every window once per epoch
+        batches = batches_of(order, 16)
+        assert len(batches) == 18
+        assert all(len(set(size[b])) == 1 for b in batches)  # one domain size per batch
+        labels.append([int(size[b[0]]) for b in batches])
+        assert sorted(labels[-1]) == sorted(list(range(6)) * 3)  # every size's 3 batches
+        # interleaved: not the sizes one after another (5 changes of size), far more changes
+        assert sum(a != b for a, b in zip(labels[-1], labels[-1][1:])) > 8
+    assert labels[0] != labels[1] and not np.array_equal(orders[0], orders[1])
+    np.testing.assert_array_equal(orders[0], epoch_orders(setup, config)[0])  # reproducible
+    # another stage's batch size (48) is cut within the sizes too
+    wide = stand_in_setup(config, train)
+    wide.stages[0].batch_size = 48
+    (order,) = epoch_orders(wide, config)
+    assert all(len(set(size[b])) == 1 for b in batches_of(order, 48)) and len(batches_of(order, 48)) == 6
+    # fixed order (shuffle=false): size by size, as stored
+    (fixed,) = epoch_orders(setup, config, shuffle=False)
+    np.testing.assert_array_equal(fixed, np.arange(6 * 48))
+
+
+def test_grouped_order_cuts_full_batches_per_group_and_puts_the_remainders_last():
+    groups = np.repeat([2, 0, 1], [10, 7, 5])  # batch 4: 2 + 1 + 1 full batches, remainders 2 + 3 + 1
+    order = grouped_order(groups, 4, np.random.default_rng(0))
+    np.testing.assert_array_equal(np.sort(order), np.arange(22))
+    full = order[:16].reshape(4, 4)
+    assert all(len(set(groups[b])) == 1 for b in full)
+    assert sorted(int(groups[b[0]]) for b in full) == [0, 1, 2, 2]
+    again = grouped_order(groups, 4, np.random.default_rng(0))
+    np.testing.assert_array_equal(order, again)
+    assert not np.array_equal(order, grouped_order(groups, 4, np.random.default_rng(1)))
 
 
 # --- problems: solvers and data --------------------------------------------------------------

@@ -18,7 +18,9 @@ TRAIN_SETTINGS: dict[str, Any] = {
     "batch_size": None,  # None: the problem's default for the method (the paper's)
     "eval_every": 0,  # steps between full train/test evaluations; 0 = once per epoch
     "eval_seconds": 0.0,  # if > 0: evaluate every this many training seconds instead
-    "shuffle": False,  # the papers take mini-batches in fixed order
+    # each problem's default_shuffle replaces this one: False (a fixed batch order, as the
+    # HIG, SIP and StableBPTT papers) or True (a fresh permutation every epoch: the time-steppers)
+    "shuffle": False,
     "checkpoint_seconds": 60.0,  # wall-clock seconds between checkpoints; also at every evaluation and the end
     "eval_samples": 0,  # evaluate the train split on its first N samples only; 0 = all
     "no_network": False,  # optimise x itself for each test sample instead of training a network
@@ -213,7 +215,12 @@ def valid_settings(problem: str, method: str) -> dict[str, Any]:
     hyper = {}
     for name in phase_methods(method):
         hyper.update(hyperparameters(name))
-    return {**PROBLEMS[problem].settings(), **hyper, **TRAIN_SETTINGS}
+    return {**PROBLEMS[problem].settings(), **hyper, **train_settings(problem)}
+
+
+def train_settings(problem: str) -> dict[str, Any]:
+    """The training settings and their defaults for ``problem`` (``shuffle``: the problem's)."""
+    return {**TRAIN_SETTINGS, "shuffle": PROBLEMS[problem].default_shuffle}
 
 
 def make_config(
@@ -277,7 +284,8 @@ def make_config(
         if batch_size <= 0:
             raise ConfigError(f"batch_size must be positive, got {batch_size}")
         phases.append(Phase(name, hyper, batch_size, steps))
-    train = {k: parse_value(k, run_level.get(k, d), d) for k, d in TRAIN_SETTINGS.items() if k != "batch_size"}
+    defaults = train_settings(problem)
+    train = {k: parse_value(k, run_level.get(k, d), d) for k, d in defaults.items() if k != "batch_size"}
     return RunConfig(
         problem=problem,
         method=method,

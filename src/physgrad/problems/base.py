@@ -9,6 +9,7 @@ from typing import TYPE_CHECKING, Any, ClassVar
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import PRNGKeyArray, PyTree
 
 if TYPE_CHECKING:
@@ -41,7 +42,11 @@ class AbstractProblem(eqx.Module):
     - optionally ``inverse(x, y, y_target, sample) -> x̃``: the analytic local inverse of
       ``simulate`` near the prediction x (SIP's ``analytic`` solver);
     - optionally ``initial_guess(sample) -> x``: where direct optimisation without a
-      network (``--no-network``) starts (zeros by default).
+      network (``--no-network``) starts (zeros by default);
+    - ``default_shuffle``: the paper's batch order, fixed (False, the default) or a fresh
+      permutation of the training samples every epoch (True); optionally
+      ``batch_groups(train) -> labels``: when shuffled, every batch holds samples of one
+      label, the labels' batches interleaved at random (KS: one domain size per batch).
 
     All per-sample functions must be pure and traceable (vmap, jit, jacrev).
     """
@@ -122,6 +127,16 @@ class AbstractProblem(eqx.Module):
         """Raise ``ValueError`` if this instance's solver cannot be refined (PRDP)."""
 
     default_eval_samples: ClassVar[int] = 0  # evaluate the train split on a strided subset of this size
+    # The paper's batch order, the default of the ``shuffle`` training setting: fixed (every
+    # epoch takes the same batches in the same order) or a fresh permutation every epoch.
+    default_shuffle: ClassVar[bool] = False
+
+    def batch_groups(self, train: Sample) -> np.ndarray | None:
+        """One label per training sample (``train`` is the data's train split), or None: when
+        the order is shuffled, every batch then holds samples of one label only, and the
+        labels' batches follow each other at random (the KS code batches each domain size
+        by itself). None (the default): batches are cut from one permutation of all samples."""
+        return None
 
     @classmethod
     def defaults_for(cls, method: str) -> dict[str, Any]:

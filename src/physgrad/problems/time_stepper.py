@@ -18,6 +18,11 @@ them and by the exponax version; no downloads. Splits: ``train`` (all overlappin
 m+1 frames, materialised), ``val`` (short trajectories for schedule decisions such as PRDP)
 and ``test`` (trajectories of ``long_horizon`` frames from held-out conditions or seeds).
 
+Batches: shuffled by default (``shuffle=true``, as the authors' code): every epoch a fresh
+permutation of the windows, drawn from the run's seed; ``--set shuffle=false`` takes them in
+stored order (consecutive windows of one trajectory per batch; physgrad's default before
+issue 32). KS keeps each batch within one domain size (its ``batch_groups``).
+
 Open-loop contract (so ``adam`` & co. run too, as plain BPTT): ``network_output`` rolls the
 stepper out over the whole sample, ``simulate`` is the identity, ``loss`` is L on the first
 m steps. Metrics on trajectories at least ``eval_horizon`` long (§1.5):
@@ -85,6 +90,11 @@ class TimeStepperProblem(AbstractProblem):
     default_batch_size: ClassVar[int] = 16
     default_methods: ClassVar[tuple[str, ...]] = ("one", "nog", "wig")
     default_eval_samples: ClassVar[int] = 512
+    # Windows are stored trajectory by trajectory, so a fixed order would make every batch
+    # consecutive, overlapping windows of one trajectory; the authors' code permutes every
+    # epoch (KS: per domain size, :meth:`KuramotoSivashinsky.batch_groups`; Kolmogorov:
+    # one permutation of all windows; trainax: a fresh permutation per epoch).
+    default_shuffle: ClassVar[bool] = True
     state_channels: ClassVar[int] = 1
 
     setup: str = eqx.field(static=True, default="correction")
