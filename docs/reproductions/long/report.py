@@ -5,8 +5,12 @@ Each study has one directory per method (its own step budget: the paper's wall-c
 divided by the method's time per step measured alone, calibration.csv). A curve is drawn
 against the calibrated time axis t = step × (seconds per step measured alone) and, in a
 second panel, against the run's raw training wall-clock (load-dependent: the studies ran on
-one core beside other work). Runs still in progress are drawn to their last evaluation and
-marked "partial" in the table.
+one core beside other work). Runs still in progress (no summary, or a summary that did not
+reach the budget) are drawn to their last evaluation and marked "partial" in the table and
+in the figure (an open circle at their last evaluation, "(partial …)" in the legend); runs
+with no evaluation after the first are left out of the figure. Studies of the stabilised-BPTT
+paper are drawn smoothed as the paper's plots (a 30-epoch moving average), and a study may
+ask for log–log axes (Poisson, as the authors plot it).
 
     python docs/reproductions/long/report.py [STUDY ...]     # default: every study under data/
 """
@@ -38,7 +42,9 @@ class Study:
     (``calibrated``: step × seconds per step measured alone; ``steps``: equal-update budgets,
     the papers' own parity), the half-inverse route, and whether a run's value is its last
     evaluation (``tail=0``) or its mean over the last ``tail`` fraction of evaluations (the
-    stabilised-BPTT protocol: the last 10 % of epochs)."""
+    stabilised-BPTT protocol: the last 10 % of epochs). ``smooth``: the figure draws a moving
+    average over this many evaluations, left-padded with the first value (the stabilised-BPTT
+    paper's 30-epoch smoothing); ``logx``: log–log axes."""
 
     problem: str
     minutes: float | None = None
@@ -47,6 +53,8 @@ class Study:
     axis: str = "calibrated"
     route: str = "gram"
     tail: float = 0.0
+    smooth: int = 0
+    logx: bool = False
 
 
 STUDIES = {
@@ -54,12 +62,13 @@ STUDIES = {
     "quantum_dipole_90min": Study("quantum_dipole", 90),
     "quantum_dipole_screen": Study("quantum_dipole", axis="steps"),
     # the structured route (the oscillator and dipole studies ran before it existed)
-    "poisson_hig_b64": Study("poisson_hig", route="structured"),
+    "poisson_hig_b64": Study("poisson_hig", route="structured", logx=True),
     "sip_navier_stokes": Study("navier_stokes", metric="v0_l1"),
     "sip_navier_stokes_ws": Study("navier_stokes", metric="v0_l1"),
-    "quantum_control_1000ep": Study("quantum_control", baseline="bptt", axis="steps", tail=0.1),
-    "guidance_1000ep": Study("guidance", baseline="bptt-clipnorm", axis="steps", tail=0.1),
+    "quantum_control_1000ep": Study("quantum_control", baseline="bptt", axis="steps", tail=0.1, smooth=30),
+    "guidance_1000ep": Study("guidance", baseline="bptt-clipnorm", axis="steps", tail=0.1, smooth=30),
     "ks_correction_2ep": Study("ks", metric="rel_error", baseline="one", axis="steps"),
+    "ks_correction_2ep_shuffled": Study("ks", metric="rel_error", baseline="one", axis="steps"),
     "ks_correction_20ep": Study("ks", metric="rel_error", baseline="one", axis="steps"),
     "kolmogorov_zero_init": Study("kolmogorov", metric="rel_error", baseline="nog", axis="steps"),
     "kolmogorov_32": Study("kolmogorov", metric="rel_error", baseline="one", axis="steps"),
@@ -106,7 +115,7 @@ def seconds(cal, study: str, method: str, step):
     step = np.asarray(step, float)
     if n is not None:
         return np.minimum(step, n) * rate(first) + np.maximum(step - n, 0) * rate(second)
-    setting = method[len(first) + 1:].removeprefix(first)
+    setting = method[len(first) + 1 :].removeprefix(first)
     same_work = first == method or setting.startswith(COST_NEUTRAL)
     return step * (rate(first) if same_work else math.nan)
 
@@ -127,6 +136,7 @@ def runs(study: Path, method: str) -> list[dict]:
             "step": np.array([int(r["step"]) for r in rows]), "wall": np.array([float(r["wall_time"]) for r in rows]),
             "loss": np.array([float(r["value"]) for r in rows]),
             "status": summary["status"] if summary else "partial",
+            "partial": summary is None or (summary["status"] != "diverged" and summary["steps"] < config["budget"]["steps"]),
             "last_step": (summary.get("diverged_step") or summary["steps"]) if summary else (int(rows[-1]["step"]) if rows else 0),
         })  # fmt: skip
     return out
@@ -136,7 +146,7 @@ def final_value(run: dict, tail: float) -> float:
     """The run's last evaluation, or its mean over the last ``tail`` fraction of evaluations."""
     if not tail:
         return run["loss"][-1]
-    return float(np.mean(run["loss"][-max(1, int(round(tail * (len(run["loss"]) - 1)))):]))
+    return float(np.mean(run["loss"][-max(1, int(round(tail * (len(run["loss"]) - 1)))) :]))
 
 
 def table(study: Path, cal) -> tuple[list[str], dict]:
@@ -163,9 +173,22 @@ def table(study: Path, cal) -> tuple[list[str], dict]:
     for i, line in enumerate(lines):
         for m in methods:
             if f"RATIO_{m}" in line:
-                ok = base is not None and len(base) and len(finals[m])
-                lines[i] = line.replace(f"RATIO_{m}", f"{finals[m].mean() / base.mean():.3g}" if ok else "-")
+                ratio = (
+                    f"{finals[m].mean() / base.mean():.3g}"
+                    if base is not None and len(base) and len(finals[m])
+                    else "-"
+                )
+                lines[i] = line.replace(f"RATIO_{m}", ratio)
     return lines, data
+
+
+def smoothed(values: np.ndarray, window: int) -> np.ndarray:
+    """Moving average over ``window`` values, left-padded with the first value (the
+    stabilised-BPTT paper's smoothing of its curves); ``window`` 0 or 1: unchanged."""
+    if window <= 1 or not len(values):
+        return values
+    padded = np.concatenate([np.full(window - 1, values[0]), values])
+    return np.convolve(padded, np.ones(window) / window, mode="valid")
 
 
 def figure(study: Path, data: dict, cal, out: Path):
@@ -175,22 +198,42 @@ def figure(study: Path, data: dict, cal, out: Path):
     # colour cycle has colours, and two methods must never share one
     colours = plt.get_cmap("tab10" if len(data) <= 10 else "tab20")
     dashes = ["-", "--", ":", "-."]
+    any_partial = False
     for k, (m, rs) in enumerate(sorted(data.items())):
         for r in rs:
-            if not len(r["loss"]):
+            # no data: nothing evaluated after the first evaluation (a diverged run's one
+            # point is kept: its label says that it diverged)
+            if not len(r["loss"]) or (len(r["loss"]) < 2 and r["status"] != "diverged"):
                 continue
             t = seconds(cal, study.name, m, r["step"]) / 60 if spec.axis == "calibrated" else r["step"]
             label = f"{m} seed {r['seed']}" + (" (diverged)" if r["status"] == "diverged" else "")
-            style = dict(alpha=0.8, lw=1, color=colours(k), ls=dashes[int(r["seed"]) % len(dashes)], label=label)
-            axes[0].semilogy(t, r["loss"], **style)
-            axes[1].semilogy(r["wall"] / 60, r["loss"], **style)
+            if r["partial"]:
+                label += f" (partial: step {r['last_step']:,} of {r['budget']:,})"
+                any_partial = True
+            alpha = 0.45 if r["partial"] else 0.8
+            style = dict(alpha=alpha, lw=1, color=colours(k), ls=dashes[int(r["seed"]) % len(dashes)], label=label)
+            y = smoothed(r["loss"], spec.smooth)
+            for ax, x in ((axes[0], np.asarray(t, float)), (axes[1], r["wall"] / 60)):
+                keep = x > 0 if spec.logx else np.ones(len(x), bool)  # a log axis has no t = 0
+                ax.semilogy(x[keep], y[keep], **style)
+                if r["partial"] and keep.any():
+                    ax.plot(x[keep][-1], y[keep][-1], "o", mfc="none", mec=colours(k), ms=6)
+    for ax in axes if spec.logx else ():
+        ax.set_xscale("log")
     axes[0].set_xlabel("calibrated time (min): step × s/step measured alone" if spec.axis == "calibrated" else "update")
     axes[1].set_xlabel("raw training wall-clock (min, one core under load)")
-    axes[0].set_ylabel(f"test {spec.metric}")
+    axes[0].set_ylabel(f"test {spec.metric}" + (f" ({spec.smooth}-epoch moving average)" if spec.smooth else ""))
     if spec.minutes and spec.axis == "calibrated":
         axes[0].axvline(spec.minutes, color="k", ls=":", lw=1)
     axes[0].legend(fontsize=7)
-    fig.suptitle(f"{spec.problem}: long study ({study.name})")
+    notes = [f"smoothed over {spec.smooth} epochs as the paper" if spec.smooth else "",
+             "open circle: a partial run's last evaluation" if any_partial else ""]  # fmt: skip
+    note = "; ".join(n for n in notes if n)
+    title = f"{spec.problem}: long study ({study.name})"
+    if note:
+        fig.suptitle(f"{title}\n{note}", fontsize=10)
+    else:
+        fig.suptitle(title)
     fig.tight_layout()
     fig.savefig(out, dpi=110)
     plt.close(fig)

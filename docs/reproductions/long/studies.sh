@@ -71,8 +71,9 @@ lane_dipole() {
 # Issue 16 item 5, HIG paper Poisson 8×8 at the paper's batch 64 with the structured route
 # (physgrad after it landed, POISSON_COMMIT): 100 HIG steps per run (calibrated: hig structured
 # 18.77 s per step, adam 0.60 ms per step at batch 64, one core), Adam for the same calibrated
-# time (1,877 s = 3.13M steps), and HIG for 100 steps after 1,413 Adam steps (the authors'
-# pretrained network).
+# time (1,877 s = 3.13M steps), and HIG for 100 steps after 1,413 Adam steps (our reading of the
+# authors' pretraining experiment; their example network netIG_0_it1413.h5 is, by their script's
+# naming, most likely (H)IG-pretrained: see hig.md).
 lane_poisson() {
   use_commit "$ROOT/../studycode-poisson" "${POISSON_COMMIT:-2bee393}"
   lane_study poisson_hig_b64 poisson_hig "hig@100@2 adam:1413,hig@1513@10 adam@3128000@31280"
@@ -92,6 +93,12 @@ lane_navier_stokes() {
 }
 
 # The lanes below run physgrad at LATE_COMMIT (the KS correction fixed to the authors' ETD1 + 0.5·f_θ).
+# Fixed-order batches: at LATE_COMMIT the time-steppers (ks, kolmogorov) take their windows in
+# stored order (16 consecutive windows of one trajectory per batch, KS sizes one after another),
+# a data-pipeline bug fixed since (shuffled by default, KS one domain size per batch, as the
+# authors). The ks, ks_screen, kolmogorov_zero and kolmogorov lanes below therefore measure
+# fixed-order training, and their rows are to be re-decided with shuffled batches
+# (ks_screen_shuffled is the first such screen).
 late() { use_commit "$ROOT/../studycode-late" "${LATE_COMMIT:-a0d5057}"; }
 
 # Claim 3, the dipole stall: HIG at the paper's settings (η 0.5, batch 16, τ 1e-5) levels off near
