@@ -241,6 +241,7 @@ def float32_problem_arrays() -> dict[str, np.ndarray]:
     return out
 
 
+@pytest.mark.slow  # builds four problems twice (a fresh interpreter and this one): a minute
 def test_float32_problems_build_identical_float32_arrays_with_x64_off(tmp_path, monkeypatch):
     fresh = save_in_fresh("float32_problem_arrays", tmp_path)
     monkeypatch.setenv("PHYSGRAD_CACHE", str(tmp_path / "cache_x64"))  # regenerate here too

@@ -211,9 +211,16 @@ def one_update(problem, method, settings=None):
     return setup, step(setup.params, state, setup.data["train"], order, 3)
 
 
-# the combination is the same code for every problem: quantum control (the costliest to
-# compile) runs in the slow tier
-@pytest.mark.parametrize("problem", ["cartpole", "guidance", pytest.param("quantum_control", marks=pytest.mark.slow)])
+# the combination is the same code for every problem: cart-pole runs in `make test`, guidance
+# and quantum control (the costliest to compile) in the slow tier
+@pytest.mark.parametrize(
+    "problem",
+    [
+        "cartpole",
+        pytest.param("guidance", marks=pytest.mark.slow),
+        pytest.param("quantum_control", marks=pytest.mark.slow),
+    ],
+)
 def test_one_pass_and_two_pass_combination_give_the_same_gradient(problem):
     # Not zero-initialised: at a zero last kernel ∂N/∂s = 0 and g_M = g_R, masking nothing.
     settings = {"poles": "2", "zero_init": "false"} if problem == "cartpole" else {}
