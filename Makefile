@@ -65,7 +65,7 @@ test-floors:
 	$(PYTHON) -m venv $(FLOORS_VENV)
 	$(FLOORS_VENV)/bin/python -m pip install --quiet --upgrade pip
 	$(FLOORS_VENV)/bin/python -m pip install --quiet -e ".[all,test]" $(FLOORS)
-	$(FLOORS_VENV)/bin/python -m pytest -n auto -m "not slow"
+	$(FLOORS_VENV)/bin/python -m pytest -n auto --dist loadfile -m "not slow"
 
 clean:
 	rm -rf $(VENV) $(FLOORS_VENV) runs studies
