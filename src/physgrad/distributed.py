@@ -50,11 +50,14 @@ def make_mesh(devices: int | str | None = 1) -> Mesh | None:
         try:
             n = int(devices)
         except ValueError:
-            raise ConfigError(f"--devices must be a number or 'all', got {devices!r}") from None
+            raise ConfigError(f"devices must be a number or 'all', got {devices!r}",
+                              flags=f"--devices must be a number or 'all', got {devices!r}") from None  # fmt: skip
         if not 1 <= n <= available:
-            raise ConfigError(f"--devices {n}: this run sees {available} device(s) ({jax.default_backend()})")
+            seen = f"this run sees {available} device(s) ({jax.default_backend()})"
+            raise ConfigError(f"devices={n}: {seen}", flags=f"--devices {n}: {seen}")
     if jax.process_count() > 1 and n != available:
-        raise ConfigError(f"a multi-process run uses every device ({available}); got --devices {n}")
+        raise ConfigError(f"a multi-process run uses every device ({available}); got devices={n}",
+                          flags=f"a multi-process run uses every device ({available}); got --devices {n}")  # fmt: skip
     if n == 1:
         return None
     axis_type = (jax.sharding.AxisType.Auto,)
