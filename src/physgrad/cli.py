@@ -78,6 +78,17 @@ def _run_settings(args):
     return settings
 
 
+def _out(path) -> Path:
+    """``--out``, refused in one line if it names a file or cannot be written (before any work)."""
+    from .checks import check_directory
+    from .config import ConfigError
+
+    try:
+        return check_directory(path, "--out")
+    except ConfigError as e:
+        raise UsageError(str(e)) from None
+
+
 def _settings(pairs):
     settings = {}
     for pair in pairs:
@@ -267,7 +278,7 @@ def cmd_train(args, console):
 
     devices = _start_processes(args)
     config = make_config(args.problem, args.method, budget=_budget(args), seed=args.seed, settings=_run_settings(args))
-    out = Path(args.out or f"runs/{args.problem}-{method_slug(args.method)}-seed{args.seed}")
+    out = _out(args.out or f"runs/{args.problem}-{method_slug(args.method)}-seed{args.seed}")
     stages = "; then ".join(
         f"{p.method}"
         + (f" for {p.steps} steps" if p.steps else "")
@@ -319,7 +330,7 @@ def cmd_compare(args, console):
     methods = split_methods(args.methods) if args.methods else None
     if args.seeds < 1:
         raise UsageError("--seeds must be at least 1")
-    out = args.out or f"studies/{args.problem}"
+    out = _out(args.out or f"studies/{args.problem}")
     settings = _run_settings(args)
     from .study import split_grid
 
@@ -407,7 +418,7 @@ def cmd_bench(args, console):
         problems = bench.choose_problems(args.problems)
         methods = bench.choose_methods(args.methods)
         budget, seeds = _budget(args), args.seeds or 1
-    out = Path(args.out or ("bench-quick" if args.quick else "bench"))
+    out = _out(args.out or ("bench-quick" if args.quick else "bench"))
     console.print(
         f"bench{' (quick profile)' if args.quick else ''}: {len(problems)} problems x {len(methods)} candidate methods, "
         f"budget {budget} per run, seeds {list(range(seeds))}, settings {settings or 'paper defaults'} -> {out}"

@@ -8,6 +8,7 @@ import hashlib
 import json
 from typing import Any
 
+from .checks import check_setting
 from .engine import UNGUARDED_SETTINGS, Budget
 from .errors import ConfigError
 from .extras import MissingExtra, require
@@ -58,6 +59,12 @@ def parse_value(name: str, text: Any, default: Any) -> Any:
     except ValueError:
         kind = {bool: "true or false", int: "an integer", float: "a number"}.get(type(default), "a string")
         raise ConfigError(f"setting {name!r} expects {kind}, got {text!r}") from None
+
+
+def setting(name: str, value: Any, default: Any) -> Any:
+    """A setting's value converted to its default's type (:func:`parse_value`) and checked
+    by range (:func:`physgrad.checks.check_setting`): one-line errors naming the valid range."""
+    return check_setting(name, parse_value(name, value, default), default)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -265,10 +272,11 @@ def make_config(
     for values in scoped.values():
         run_level.update(values)
     problem_cls = PROBLEMS[problem]
-    problem_settings = {k: parse_value(k, run_level.get(k, d), d) for k, d in problem_cls.settings().items()}
+    # Every value by type (parse_value) and range (physgrad.checks), before anything is built.
+    problem_settings = {k: setting(k, run_level.get(k, d), d) for k, d in problem_cls.settings().items()}
 
     def stage_value(name, key, default, paper):
-        return parse_value(key, scoped.get(name, {}).get(key, plain.get(key, paper.get(key, default))), default)
+        return setting(key, scoped.get(name, {}).get(key, plain.get(key, paper.get(key, default))), default)
 
     phases = []
     for name, steps in stages:
@@ -280,12 +288,10 @@ def make_config(
             raise
         except (ValueError, TypeError) as e:
             raise ConfigError(str(e)) from None
-        batch_size = stage_value(name, "batch_size", 0, paper)
-        if batch_size <= 0:
-            raise ConfigError(f"batch_size must be positive, got {batch_size}")
+        batch_size = stage_value(name, "batch_size", 0, paper)  # a positive integer (physgrad.checks.SHARED)
         phases.append(Phase(name, hyper, batch_size, steps))
     defaults = train_settings(problem)
-    train = {k: parse_value(k, run_level.get(k, d), d) for k, d in defaults.items() if k != "batch_size"}
+    train = {k: setting(k, run_level.get(k, d), d) for k, d in defaults.items() if k != "batch_size"}
     return RunConfig(
         problem=problem,
         method=method,

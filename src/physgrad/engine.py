@@ -50,7 +50,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import distributed, memory, programs, rundir
+from . import checks, distributed, memory, programs, rundir
 from . import prdp as prdp_control
 from .errors import ConfigError
 from .methods import AbstractMethod, Objective
@@ -81,10 +81,11 @@ class Budget:
         if len(given) != 1:
             raise ConfigError("give exactly one budget: Budget(steps=N), Budget(epochs=E) or Budget(seconds=S)",
                               flags="give exactly one budget: --steps N, --epochs E or --seconds S")  # fmt: skip
-        if getattr(self, given[0]) <= 0:
-            raise ConfigError(
-                f"the budget {given[0]} must be positive", flags=f"the budget --{given[0]} must be positive"
-            )
+        kind, amount = given[0], getattr(self, given[0])
+        check = checks.POSITIVE if kind == "seconds" else checks.POSITIVE_INT
+        if not check.valid(amount):  # a NaN or infinite budget would never be met
+            raise ConfigError(f"Budget({kind}={amount!r}): {kind} must be {check.text}",
+                              flags=f"--{kind} must be {check.text}, got {amount!r}")  # fmt: skip
 
     @property
     def kind(self) -> str:
@@ -112,10 +113,21 @@ class Phase:
     batch_size: int | None = None
     name: str = ""  # how tables and summaries call it (default: the method's class name)
 
+    def __post_init__(self):
+        if not isinstance(self.method, AbstractMethod):
+            raise ConfigError(
+                f"Phase's method must be a physgrad method (e.g. physgrad.methods.Method), got {self.method!r}"
+            )
+        for field, value in (("steps", self.steps), ("batch_size", self.batch_size)):
+            if value is not None and not checks.POSITIVE_INT.valid(value):
+                raise ConfigError(f"Phase's {field} must be {checks.POSITIVE_INT.text} or None, got {value!r}")
+
 
 @dataclasses.dataclass(frozen=True)
 class TrainSettings:
-    """How a run evaluates, orders its batches, checkpoints and refines its solver."""
+    """How a run evaluates, orders its batches, checkpoints and refines its solver.
+
+    Every field is checked by type and range on construction (:mod:`physgrad.checks`)."""
 
     eval_every: int = 0  # steps between full train/test evaluations; 0 = once per epoch
     eval_seconds: float = 0.0  # if > 0: evaluate every this many training seconds instead
@@ -130,6 +142,9 @@ class TrainSettings:
     prdp_tau_step: float = 0.98
     prdp_tau_stop: float = 0.9
     memory_guard: bool = True  # refuse a step that cannot fit in memory before it runs (physgrad.memory)
+
+    def __post_init__(self):
+        checks.check_fields(self, "TrainSettings field")
 
 
 # Settings that change how a run is guarded, not what it computes: a run resumes under
@@ -204,9 +219,49 @@ def build_setup(problem: AbstractProblem, phases: Sequence[Phase], seed: int) ->
         data = problem.make_data(jax.random.fold_in(key, 0))
     except ValueError as e:
         raise ConfigError(f"{problem.name}: {e}") from None
-    params, static = eqx.partition(initial_network(problem, jax.random.fold_in(key, 1), data), eqx.is_inexact_array)
+    _check_data(problem, data)
+    try:
+        network = initial_network(problem, jax.random.fold_in(key, 1), data)
+    except (ValueError, TypeError) as e:  # e.g. an activation the network does not know
+        if isinstance(e, _NOT_TRACEABLE):
+            raise
+        raise ConfigError(f"{problem.name}: {' '.join(str(e).split())}") from None
+    params, static = eqx.partition(network, eqx.is_inexact_array)
     objective = problem.objective(static)
     return Setup(problem, data, params, static, objective, _stages(problem, phases, objective, data))
+
+
+def _check_data(problem: AbstractProblem, data: Any) -> None:
+    """``make_data``'s result: a dict with ``train`` and ``test`` splits (``val`` optional),
+    each with at least one sample and one leading (sample) axis shared by its arrays."""
+    if not isinstance(data, dict) or not {"train", "test"} <= set(data):
+        got = f"a dict with keys {sorted(data)}" if isinstance(data, dict) else type(data).__name__
+        raise ConfigError(f"{problem.name}: make_data must return {{'train': samples, 'test': samples}}, got {got}")
+    for split, samples in data.items():
+        if samples is None and split not in ("train", "test"):
+            continue
+        lengths = {np.shape(x)[0] if np.ndim(x) else None for x in jax.tree.leaves(samples)}
+        if not lengths or lengths == {0}:
+            raise ConfigError(f"{problem.name}: make_data's {split!r} split is empty (0 samples); every split needs "
+                              "at least one sample")  # fmt: skip
+        if len(lengths) > 1 or None in lengths:
+            raise ConfigError(f"{problem.name}: the arrays of make_data's {split!r} split must share their leading "
+                              f"(sample) axis, got lengths {sorted(lengths, key=str)}")  # fmt: skip
+
+
+def scalar_loss(loss: Callable[[Any, Any], Any]) -> Callable[[Any, Any], Any]:
+    """``loss`` checked to return one number per sample (checked while tracing: free). A
+    loss returning a vector would otherwise be averaged with the batch, silently scaling
+    every direction by 1/its size."""
+
+    def checked(y, sample):
+        value = loss(y, sample)
+        if jnp.shape(value) != ():
+            raise ConfigError(f"the problem's loss(y, sample) must return a scalar for one sample, got shape "
+                              f"{tuple(jnp.shape(value))}; reduce it inside loss (e.g. jnp.sum)")  # fmt: skip
+        return value
+
+    return checked
 
 
 @eqx.filter_jit
@@ -335,7 +390,10 @@ def make_step(setup: Setup, batch_size: int, method: AbstractMethod | None = Non
     def step(params, state, data, order, index):
         rows = jax.lax.dynamic_slice_in_dim(order, index * batch_size, batch_size)
         batch = distributed.shard_batch(jax.tree.map(lambda a: a[rows], data))
-        params, state, stats = method.step(setup.objective, params, state, batch)
+        objective = setup.objective
+        if objective.loss is not None:
+            objective = objective._replace(loss=scalar_loss(objective.loss))
+        params, state, stats = method.step(objective, params, state, batch)
         return distributed.replicated(params), distributed.replicated(state), stats
 
     return jax.jit(step)
@@ -358,7 +416,7 @@ def _make_evaluate(setup: Setup, chunk: int, per_sample: bool):
     def one(params, sample):
         x = problem.network_output(setup.network(params), sample)
         y = problem.simulate(x, sample)
-        return {"loss": problem.loss(y, sample), **problem.metrics(x, y, sample)}
+        return {"loss": scalar_loss(problem.loss)(y, sample), **problem.metrics(x, y, sample)}
 
     def split_evaluate(params, data):
         n = jax.tree.leaves(data)[0].shape[0]
@@ -850,6 +908,7 @@ def fit(
     A problem that declares ``needs_float64`` runs inside ``jax.enable_x64(True)``; the
     caller's JAX configuration is otherwise untouched.
     """
+    _check_arguments(problem, budget, seed, batch_size, settings, out)
     phases = _phases(method, batch_size)
     record = record or _describe(problem, phases, seed, budget, settings)
     same_run = same_run or (lambda old: _identity(old) == _identity(json.loads(json.dumps(record, default=str))))
@@ -859,6 +918,28 @@ def fit(
     with float64_scope(float64):
         return _run(problem, phases, seed, budget, settings, run_dir, resume, progress or NoProgressMeter(),
                     Placement(devices), record, same_run, label or run_dir.name, identity)  # fmt: skip
+
+
+def _check_arguments(problem, budget, seed, batch_size, settings, out) -> None:
+    """:func:`fit`'s arguments by type and range, each refused in one line in the library's
+    words before any work (the method is checked by :func:`_phases`)."""
+    if not isinstance(problem, AbstractProblem):
+        raise ConfigError(f"problem must be a physgrad problem (an AbstractProblem instance), got {problem!r}")
+    if not isinstance(budget, Budget):
+        raise ConfigError(f"budget must be a physgrad.Budget, e.g. Budget(steps={budget!r}), got {budget!r}")
+    if not checks.NON_NEGATIVE_INT.valid(seed):
+        raise ConfigError(f"seed must be {checks.NON_NEGATIVE_INT.text}, got {seed!r}")
+    if batch_size is not None and not checks.POSITIVE_INT.valid(batch_size):
+        raise ConfigError(f"batch_size must be {checks.POSITIVE_INT.text} or None (the problem's default), "
+                          f"got {batch_size!r}")  # fmt: skip
+    if not isinstance(settings, TrainSettings):
+        raise ConfigError(f"settings must be a physgrad.TrainSettings, got {settings!r}")
+    try:
+        checks.check_directory(out, "out")
+    except ConfigError as e:
+        raise ConfigError(
+            str(e), flags=str(e).replace("out '", "--out '").replace("another out", "another --out")
+        ) from None
 
 
 def _identity(record: dict[str, Any]) -> dict[str, Any]:
