@@ -1053,7 +1053,7 @@ def _run_locked(
                                          setup.epochs, run_dir)  # fmt: skip
     if met:  # a kill came after the final checkpoint: nothing to train, maybe the summary to write
         summary = read_summary(run_dir)
-        if summary and summary.get("status") in FINAL_STATUSES and summary.get("steps") == state.step:
+        if summary and _complete(summary) and summary.get("steps") == state.step:
             return summary
     setup = fidelity.problem_at(setup, state)
     state = state._replace(params=placement.put(state.params), opt_state=placement.put(state.opt_state))
@@ -1062,6 +1062,7 @@ def _run_locked(
         steps = Steps(setup, placement, settings, seed)
         compiled, state = steps.compile(state, setup)  # a step the memory guard refuses leaves no files behind
     if placement.writer:
+        run_dir.mkdir(parents=True, exist_ok=True)  # made by the lock already, unless the caller holds none
         write_json(config_path, record)
         write_json(run_dir / "env.json", {**environment(), "mesh_devices": distributed.mesh_size(placement.mesh)})
     # a checkpoint at step 0 precedes the first evaluation, which the resumed loop makes again
@@ -1105,11 +1106,11 @@ def _done_already(run_dir: Path, budget: Budget) -> dict[str, Any] | None:
     ``summary.json`` without its final losses, as an older physgrad wrote after a resume,
     is finished again from the checkpoint)."""
     summary = read_summary(run_dir)
-    if summary is None or summary.get("status") not in FINAL_STATUSES:
+    if summary is None or not _complete(summary):
         return None
     if summary["status"] == "diverged":
         return summary
-    if summary.get("final_test_loss") is None or not isinstance(summary.get("steps"), int):
+    if not isinstance(summary.get("steps"), int):
         return None
     met = _budget_met(budget, summary.get("budget"), summary["steps"], summary.get("train_seconds", 0.0), None, run_dir)
     return summary if met else None
@@ -1298,6 +1299,11 @@ def is_complete(run_dir: str | Path) -> bool:
     without its final test loss (as an older physgrad wrote after resuming a finished run)
     is not complete: resuming finishes it again from its checkpoint."""
     summary = read_summary(run_dir)
-    if summary is None or summary.get("status") not in FINAL_STATUSES:
+    return summary is not None and _complete(summary)
+
+
+def _complete(summary: dict[str, Any]) -> bool:
+    """A final summary: diverged, or finished with its final losses."""
+    if summary.get("status") not in FINAL_STATUSES:
         return False
     return summary["status"] == "diverged" or summary.get("final_test_loss") is not None
