@@ -82,16 +82,6 @@ def _series(results: list[dict[str, Any]], method: str, split: str, metric: str)
     return [tuple(np.array(sorted(points, key=lambda p: p[0])).T) for points in by_seed.values() if points]
 
 
-def _curves(results: list[dict[str, Any]], method: str, split: str, metric: str):
-    """Per seed: (wall_time, value) arrays of one method's metric, sorted by time, with
-    only the values a log axis shows (finite and positive)."""
-    out = []
-    for t, v in _series(results, method, split, metric):
-        keep = np.isfinite(v) & (v > 0)
-        out.append((t[keep], v[keep]))
-    return [c for c in out if c[0].size]
-
-
 def _mark_legend(ax) -> None:
     from matplotlib.lines import Line2D
 
