@@ -162,7 +162,8 @@ def test_lighter_routes_and_more_devices_are_suggested(monkeypatch):
     with pytest.raises(physgrad.ConfigError) as refused:
         memory.check_step_fits(setup.method, setup.objective, setup.params, batch, devices=[FakeGPU(free)], label="hig")
     message = str(refused.value)
-    assert "--devices 4" in message and "the device has" in message and f"~{memory._size(whole)}" in message
+    assert "devices=4" in message and "the device has" in message and f"~{memory._size(whole)}" in message
+    assert "--devices 4" in refused.value.flags  # the command line's words
     assert "route=blockgram blocks=" in message or "route=lanczos" in message
     # the largest batch that fits on one device, checked
     b = suggested_batch(message)

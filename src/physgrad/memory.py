@@ -208,7 +208,7 @@ def check_step_fits(
     if mine[0].platform != "cpu":  # more accelerators add memory; more CPU devices do not
         for more in range(n + 1, jax.device_count() + 1):
             if b % more == 0 and fits(max(method.footprint(objective, params, batch, more), (step or 0) * n / more)):
-                suggestions.append(f"--devices {more}")
+                suggestions.append(f"devices={more}")
                 break
     note = method.footprint_note(objective, params, batch)
     if step is not None and step > footprint:
@@ -220,10 +220,12 @@ def check_step_fits(
         else "found no batch size, variant or device count that fits"
     )
     held = f", {_size(resident * shared)} of it for the data and parameters" if resident else ""
-    raise ConfigError(
+    message = (
         f"{label or 'the'} step needs ~{_size(need * shared)}" + (f" ({note})" if note else "")
         + f" but {where} has {_size(min(free))} available{held}; {fit} (memory_guard=false skips this check)"
     )  # fmt: skip
+    # the library's words (devices=N, as fit takes it); the command line's flag is --devices N
+    raise ConfigError(message, flags=message.replace(" devices=", " --devices "))
 
 
 def tree_bytes(tree: Any) -> int:
