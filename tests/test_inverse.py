@@ -1,5 +1,6 @@
 """Each local inverse solver against an independent reference (NumPy, SciPy, closed forms)."""
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -195,3 +196,43 @@ def test_linear_solve_with_a_float64_simulator_on_float32_predictions():
     result = LinearSolve("gmres", rtol=1e-6, atol=1e-8)(sim, x, sim(x, None), jnp.asarray(yt), None)
     assert result.x.dtype == jnp.float32 and bool(result.converged)
     np.testing.assert_allclose(result.x, np.linalg.solve(M, yt), rtol=1e-4, atol=1e-5)
+
+
+def spd(condition, n=32, seed=0):
+    """A symmetric positive definite matrix with eigenvalues log-spaced in [1, condition]."""
+    q, _ = np.linalg.qr(np.random.default_rng(seed).normal(size=(n, n)))
+    return (q * np.logspace(0, np.log10(condition), n)) @ q.T
+
+
+def test_linear_solve_cg_default_tolerance_converges_in_float32():
+    """Issue 33: at the old default (rtol 1e-6, atol 1e-10 on the unscaled system) CG failed
+    on every sample of a condition-170 SPD operator in float32."""
+    M = spd(170.0)
+    matrix = jnp.asarray(M, jnp.float32)
+    sim = lambda x, s: matrix @ x  # noqa: E731
+    rng = np.random.default_rng(1)
+    x, y_target = rng.normal(size=(64, 32)), rng.normal(size=(64, 32))
+    solve = jax.jit(jax.vmap(lambda x, yt: LinearSolve("cg")(sim, x, sim(x, None), yt, None)))
+    result = solve(jnp.asarray(x, jnp.float32), jnp.asarray(y_target, jnp.float32))
+    assert result.x.dtype == jnp.float32 and bool(jnp.all(result.converged))
+    want = np.linalg.solve(M, y_target.T).T
+    # error ≲ condition × tolerance (ε^{3/4} ≈ 6e-6)
+    np.testing.assert_allclose(result.x, want, atol=2e-3 * np.abs(want).max())
+    assert LinearSolve("cg").tolerances(jnp.float32) == (np.finfo(np.float32).eps ** 0.75,) * 2
+    assert LinearSolve("cg", rtol=1e-3).tolerances(jnp.float64) == (1e-3, np.finfo(np.float64).eps ** 0.75)
+
+
+def test_linear_solve_tolerance_is_relative_to_the_residual_scale():
+    """The same solve at residuals 1e-6 and 1e6 times as large: the same verdict and x̃ − x
+    scaled by the same factor (atol is relative to ‖y_t − y‖_∞)."""
+    M = spd(50.0, n=8)
+    sim = lambda x, s: jnp.asarray(M) @ x  # noqa: E731
+    r = np.random.default_rng(2).normal(size=8)
+    solve = jax.jit(lambda yt: LinearSolve("cg")(sim, jnp.zeros(8), jnp.zeros(8), yt, None))
+    steps = []
+    for scale in (1e-6, 1.0, 1e6):
+        result = solve(jnp.asarray(scale * r))
+        assert bool(result.converged)
+        steps.append(np.asarray(result.x) / scale)
+    np.testing.assert_allclose(steps[0], steps[1], rtol=1e-9)
+    np.testing.assert_allclose(steps[2], steps[1], rtol=1e-9)

@@ -227,3 +227,93 @@ def test_newton_method_equals_numpy_newton_on_the_toy():
     new, _, _ = jit_step(stage.method, setup.objective, setup.params, batch)
     x = np.array([3.0, 3.0])
     np.testing.assert_allclose(new.x, x - np.array([2 * x[0], 4 * x[1] ** 3]) / np.array([2.0, 12 * x[1] ** 2]))
+
+
+# --- LinearSolve inside the user's own jit, x64 off (issue 33) ----------------------------
+UNDER_JIT = """
+import json, warnings
+import jax, jax.numpy as jnp, numpy as np
+import physgrad
+from physgrad.inverse import LinearSolve
+
+n, b = 32, 8
+rng = np.random.default_rng(0)
+k = np.fft.rfftfreq(n) * n
+decay = np.exp(-0.018 * k**2)                  # heat kernel exp(-κ t k²): eigenvalues in [0.01, 1]
+q, _ = np.linalg.qr(rng.normal(size=(n, n)))
+matrix = (q * np.logspace(0, np.log10(170.0), n)) @ q.T   # SPD, condition 170
+
+def heat(x, sample):                           # FFT heat diffusion (SPD circulant operator)
+    return jnp.fft.irfft(jnp.fft.rfft(x) * jnp.asarray(decay, jnp.float32), n)
+
+def dense(x, sample):
+    return jnp.asarray(matrix, jnp.float32) @ x
+
+inverses = {"heat": lambda y: np.fft.irfft(np.fft.rfft(y) / decay, n),
+            "dense": lambda y: np.linalg.solve(matrix, y.T).T}
+network = lambda params, sample: params["w"] @ sample["y"]
+params = {"w": jnp.asarray(0.5 * np.eye(n) + 0.01 * rng.normal(size=(n, n)), jnp.float32)}
+y_star = rng.normal(size=(b, n))
+batch = {"y": jnp.asarray(y_star, jnp.float32)}
+out = {"x64": bool(jax.config.jax_enable_x64)}
+with warnings.catch_warnings(record=True) as caught:
+    warnings.simplefilter("always")
+    for name, simulate in (("heat", heat), ("dense", dense)):
+        # the reference: x̃ = P⁻¹(y*) in NumPy float64; d = (1/b) Σ_i (x_i − x̃_i) y*_iᵀ
+        x = y_star @ np.asarray(params["w"], np.float64).T
+        want = (x - inverses[name](y_star)).T @ y_star / b
+        for precision in ("float32", "float64"):
+            estimate = physgrad.sip(network, simulate, lambda s: s["y"], solver=LinearSolve("cg"), precision=precision)
+            direction, stats = jax.jit(estimate)(params, batch)
+            d = np.asarray(direction["w"], np.float64)
+            out[f"{name}_{precision}"] = {"dtype": str(direction["w"].dtype), "failures": int(stats["inverse_failures"]),
+                                          "error": float(np.abs(d - want).max() / np.abs(want).max())}
+out["warnings"] = [str(w.message)[:200] for w in caught]
+print(json.dumps(out))
+"""
+
+
+def test_linear_solve_sip_in_float32_and_float64_inside_a_users_jit_with_x64_off(tmp_path):
+    """Issue 33: with ``precision="float64"`` lineax's solve used to be lowered after the
+    float64 scope closed (dtype errors under jit). Both simulators, both precisions, against
+    the NumPy float64 inverse, in a fresh interpreter with JAX's defaults."""
+    from test_side_effects import run_fresh
+
+    out = run_fresh(UNDER_JIT, tmp_path)
+    assert out["x64"] is False and out["warnings"] == []
+    for name in ("heat", "dense"):
+        for precision, tolerance in (("float32", 1e-3), ("float64", 1e-5)):
+            case = out[f"{name}_{precision}"]
+            assert case["dtype"] == "float32" and case["failures"] == 0, (name, precision, case)
+            assert case["error"] < tolerance, (name, precision, case)
+
+
+def test_most_solves_failing_warns_once_and_is_counted():
+    """A solve that cannot converge (2 CG steps on a condition-1e6 operator): the count is in
+    the stats and one InverseFailureWarning is shown over three jitted steps."""
+    import warnings
+
+    import physgrad
+    from physgrad.inverse import InverseFailureWarning, LinearSolve
+
+    matrix = jnp.asarray(np.diag(np.logspace(0, 6, 8)), jnp.float32)
+    estimate = physgrad.sip(lambda p, s: p @ s, lambda x, s: matrix @ x, lambda s: 2 * s,
+                            solver=LinearSolve("cg", max_steps=2))  # fmt: skip
+    step = jax.jit(estimate)
+    params, batch = jnp.eye(8, dtype=jnp.float32), jnp.ones((4, 8), jnp.float32)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("default")
+        for _ in range(3):
+            _, stats = step(params, batch)
+            jax.block_until_ready(stats)
+        jax.effects_barrier()
+    assert int(stats["inverse_failures"]) == 4
+    assert [w.category for w in caught] == [InverseFailureWarning]
+    assert "inverse_failures" in str(caught[0].message)
+    quiet = physgrad.sip(lambda p, s: p @ s, lambda x, s: matrix @ x, lambda s: 2 * s,
+                         solver=LinearSolve("cg", max_steps=2), warn_failures=None)  # fmt: skip
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        jax.block_until_ready(jax.jit(quiet)(params, batch))
+        jax.effects_barrier()
+    assert caught == []

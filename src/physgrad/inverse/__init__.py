@@ -7,7 +7,7 @@ problem's own inverse. The command line builds them by name (:mod:`physgrad.regi
 """
 
 from .analytic import Analytic
-from .base import AbstractInverseSolver, InverseResult
+from .base import AbstractInverseSolver, InverseFailureWarning, InverseResult
 from .gauss_newton import GaussNewton
 from .lbfgs import LBFGS
 from .linear_solve import KRYLOV, LinearSolve
@@ -19,6 +19,7 @@ __all__ = [
     "AbstractInverseSolver",
     "Analytic",
     "GaussNewton",
+    "InverseFailureWarning",
     "InverseResult",
     "LinearSolve",
     "SaddleFreeNewton",

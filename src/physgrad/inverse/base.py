@@ -26,6 +26,11 @@ import jax.numpy as jnp
 from jaxtyping import Array, Bool, PyTree
 
 
+class InverseFailureWarning(RuntimeWarning):
+    """Most of a batch's local inverse solves failed in a training step (those samples
+    got no update): issued by :func:`physgrad.sip` from inside the jitted step."""
+
+
 class InverseResult(NamedTuple):
     """``x``: the local inverse x̃ (same shape as the prediction); ``converged``: bool scalar."""
 

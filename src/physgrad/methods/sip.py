@@ -23,12 +23,14 @@ the batch; physgrad averages (Adam is invariant to the factor; SGD's lr absorbs 
 
 from __future__ import annotations
 
+import warnings
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from ..inverse import AbstractInverseSolver, Analytic, GaussNewton
-from ..precision import float64_scope, to_float64
+from ..inverse import AbstractInverseSolver, Analytic, GaussNewton, InverseFailureWarning
+from ..precision import float64_call, to_float64
 from .base import AbstractRule, Estimator, Objective, required
 
 PROXIES = ("l2", "l1")
@@ -40,12 +42,20 @@ class ScaleInvariantPhysics(AbstractRule):
 
     ``solver=None`` picks the problem's analytic inverse when it has one, else
     :class:`~physgrad.inverse.GaussNewton`; ``Analytic()`` without a function uses the
-    problem's inverse."""
+    problem's inverse.
+
+    ``warn_failures``: when more than this fraction of a batch's local solves fail, a
+    :class:`~physgrad.inverse.InverseFailureWarning` is issued from inside the step (a
+    ``jax.debug.callback`` that runs only then; Python shows it once per process by its
+    default filter, ``warnings.simplefilter("error", InverseFailureWarning)`` makes it
+    an exception); None: never. The count is ``stats["inverse_failures"]`` either way.
+    """
 
     solver: AbstractInverseSolver | None = eqx.field(static=True, default=None)
     eta: float = eqx.field(static=True, default=1.0)
     proxy: str = eqx.field(static=True, default="l2")
     precision: str = eqx.field(static=True, default="float32")
+    warn_failures: float | None = eqx.field(static=True, default=0.5)
 
     def __check_init__(self):
         if self.proxy not in PROXIES:
@@ -56,6 +66,8 @@ class ScaleInvariantPhysics(AbstractRule):
             raise ValueError(f"unknown precision {self.precision!r}; valid choices: {', '.join(PRECISIONS)}")
         if self.solver is not None and not isinstance(self.solver, AbstractInverseSolver):
             raise ValueError(f"solver must be a physgrad.inverse solver object, got {self.solver!r}")
+        if self.warn_failures is not None and not 0 <= self.warn_failures < 1:
+            raise ValueError(f"warn_failures must be in [0, 1) or None, got {self.warn_failures}")
 
     def resolve_solver(self, objective) -> AbstractInverseSolver:
         """The solver with the problem's analytic inverse bound where it stands for it."""
@@ -95,22 +107,55 @@ class ScaleInvariantPhysics(AbstractRule):
             proxy, cotangent = jnp.sum(jnp.abs(diff)) / b, jnp.sign(diff) / b
         (grads,) = pullback(cotangent.astype(x.dtype))
         stats.setdefault("loss", proxy)
-        return grads, {**stats, "proxy": proxy, "inverse_failures": jnp.sum(~ok)}
+        failures = jnp.sum(~ok)
+        self.warn_if_failing(failures, b, self.resolve_solver(objective))
+        return grads, {**stats, "proxy": proxy, "inverse_failures": failures}
+
+    def warn_if_failing(self, failures, batch_size: int, solver: AbstractInverseSolver) -> None:
+        """Issue :class:`~physgrad.inverse.InverseFailureWarning` from the running step when
+        more than ``warn_failures`` of the batch failed. The host callback sits in a
+        ``lax.cond`` branch, so a step whose solves succeed pays no host round trip. The
+        message is the same at every step (the count is in the stats), so Python's
+        default filter shows it once."""
+        fraction = self.warn_failures
+        if fraction is None:
+            return
+
+        def warn():  # no count in the message: one that varied would be shown at every step
+            warnings.warn(
+                f"SIP: more than {fraction:.0%} of a batch's local inverse solves ({type(solver).__name__}) failed "
+                "and gave those samples no update (stats['inverse_failures'] counts them); loosen the solver's "
+                "tolerance, raise max_steps, or use precision='float64'",
+                InverseFailureWarning,
+                stacklevel=2,
+            )
+
+        jax.lax.cond(failures > fraction * batch_size, lambda: jax.debug.callback(warn), lambda: None)
 
     def local_inverse(self, objective, x, y, batch):
-        """(x̃, converged) per sample; failed samples get x̃ = x."""
+        """(x̃, converged) per sample; failed samples get x̃ = x.
+
+        With ``precision="float64"`` the solve is one :func:`physgrad.precision.float64_call`
+        (traced, batched and lowered with 64-bit types on, also inside a user's ``jax.jit``
+        with x64 off) and x̃ comes back in x's dtype."""
         solver = self.resolve_solver(objective)
-        float64 = self.precision == "float64"
-        with float64_scope(float64):
-            cast = to_float64 if float64 else (lambda a: a)
-            y_, y_star = cast(y), cast(jax.vmap(objective.target)(batch))
+
+        def solve(x, y, batch):
             # (1 − η) y + η y*, not y + η (y* − y): exactly y* at η = 1 even when y* ≪ y.
-            y_target = (1 - self.eta) * y_ + self.eta * y_star
-            result = jax.vmap(lambda *a: solver(objective.simulate, *a))(
-                cast(x), y_, y_target, jax.tree.map(cast, batch)
-            )
+            y_target = (1 - self.eta) * y + self.eta * jax.vmap(objective.target)(batch)
+            result = jax.vmap(lambda *a: solver(objective.simulate, *a))(x, y, y_target, batch)
             ok = result.converged & jnp.all(jnp.isfinite(result.x.reshape(x.shape[0], -1)), axis=1)
-            x_new = result.x.astype(x.dtype)
+            return result.x, ok
+
+        def solve_float64(x_, y_, batch_):  # casts inside the region: no float64 leaves it
+            x_new, ok = solve(*to_float64((x_, y_, batch_)))
+            return x_new.astype(x.dtype), ok
+
+        if self.precision == "float64":
+            x_new, ok = float64_call(solve_float64, x, y, batch)
+        else:
+            x_new, ok = solve(x, y, batch)
+        x_new = x_new.astype(x.dtype)
         mask = ok.reshape((-1,) + (1,) * (x.ndim - 1))
         return jnp.where(mask, x_new, x), ok
 
@@ -126,6 +171,7 @@ def sip(
     eta: float = 1.0,
     proxy: str = "l2",
     precision: str = "float32",
+    warn_failures: float | None = 0.5,
 ) -> Estimator:
     """Scale-invariant physics: ``(params, batch) -> (∇_θ L_proxy, stats)``.
 
@@ -144,7 +190,10 @@ def sip(
         loss: ``loss(y, sample) -> L_i``, for reporting only.
         eta: η, the fraction of the y-space Newton step (1: all the way to y*).
         proxy: ``"l2"`` (½‖x − x̃‖²) or ``"l1"``.
-        precision: ``"float64"`` runs the inverse solve in double precision.
+        precision: ``"float64"`` runs the inverse solve in double precision (also inside
+            your own ``jax.jit`` with x64 off: :func:`physgrad.precision.float64_call`).
+        warn_failures: warn (:class:`physgrad.inverse.InverseFailureWarning`, once) when
+            more than this fraction of a batch's solves fail; None: never.
     """
     objective = Objective(loss=loss, network_output=network_output, simulate=simulate, target=target, inverse=inverse)
-    return Estimator(ScaleInvariantPhysics(solver, eta, proxy, precision), objective)
+    return Estimator(ScaleInvariantPhysics(solver, eta, proxy, precision, warn_failures), objective)
