@@ -163,6 +163,7 @@ SHARED: dict[str, Check] = {
     **dict.fromkeys(("prdp_tau_step", "prdp_tau_stop", "dataset_fraction"), UNIT),
     "dtype": OneOf(("float32", "float64")),
     "shuffle": FLAG,  # TrainSettings: None stands for the problem's default
+    "fresh_samples": FLAG,  # TrainSettings: None stands for the problem's default
 }
 # fmt: on
 

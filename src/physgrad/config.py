@@ -9,7 +9,7 @@ import json
 from typing import Any
 
 from .checks import check_setting
-from .engine import UNGUARDED_SETTINGS, Budget
+from .engine import ADDED_SETTINGS, UNGUARDED_SETTINGS, Budget
 from .errors import ConfigError
 from .extras import MissingExtra, require
 from .registry import METHODS, PROBLEMS, hyperparameters, is_optax_name, optax_method, paper_defaults
@@ -22,6 +22,9 @@ TRAIN_SETTINGS: dict[str, Any] = {
     # each problem's default_shuffle replaces this one: False (a fixed batch order, as the
     # HIG, SIP and StableBPTT papers) or True (a fresh permutation every epoch: the time-steppers)
     "shuffle": False,
+    # each problem's default_fresh_samples replaces this one: False (one training set, every
+    # epoch) or True (every epoch after the first a new train split: the SIP paper's stream)
+    "fresh_samples": False,
     "checkpoint_seconds": 60.0,  # wall-clock seconds between checkpoints; also at every evaluation and the end
     "eval_samples": 0,  # evaluate the train split on its first N samples only; 0 = all
     "no_network": False,  # optimise x itself for each test sample instead of training a network
@@ -176,6 +179,7 @@ class RunConfig:
     eval_every: int = 0
     eval_seconds: float = 0.0
     shuffle: bool = False
+    fresh_samples: bool = False
     checkpoint_seconds: float = 60.0
     eval_samples: int = 0
     no_network: bool = False
@@ -203,7 +207,8 @@ class RunConfig:
     def canonical_dict(self) -> dict[str, Any]:
         """``to_dict`` without the settings of ``ADDED_LATER`` that hold their default and
         without those that only guard a run (``UNGUARDED_SETTINGS``: the same run either way)."""
-        out = {k: v for k, v in self.to_dict().items() if k not in UNGUARDED_SETTINGS}
+        out = {k: v for k, v in self.to_dict().items()
+               if k not in UNGUARDED_SETTINGS and ADDED_SETTINGS.get(k, _ABSENT) != v}  # fmt: skip
         later = ADDED_LATER["problems"].get(self.problem, {})
         out["problem_settings"] = {k: v for k, v in out["problem_settings"].items() if later.get(k, _ABSENT) != v}
         for phase in out["phases"]:
@@ -226,8 +231,10 @@ def valid_settings(problem: str, method: str) -> dict[str, Any]:
 
 
 def train_settings(problem: str) -> dict[str, Any]:
-    """The training settings and their defaults for ``problem`` (``shuffle``: the problem's)."""
-    return {**TRAIN_SETTINGS, "shuffle": PROBLEMS[problem].default_shuffle}
+    """The training settings and their defaults for ``problem`` (``shuffle`` and
+    ``fresh_samples``: the problem's)."""
+    cls = PROBLEMS[problem]
+    return {**TRAIN_SETTINGS, "shuffle": cls.default_shuffle, "fresh_samples": cls.default_fresh_samples}
 
 
 def make_config(

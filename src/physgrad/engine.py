@@ -135,6 +135,10 @@ class TrainSettings:
     # None: the problem's ``default_shuffle`` (the papers' fixed order; a fresh permutation
     # every epoch for the time-steppers); True/False: shuffled or fixed for any problem
     shuffle: bool | None = None
+    # None: the problem's ``default_fresh_samples``; True: every epoch after the first trains
+    # on a new train split drawn by ``make_data`` (a stream, as the SIP paper), False: the
+    # same training set every epoch
+    fresh_samples: bool | None = None
     checkpoint_seconds: float = 60.0  # wall-clock seconds between checkpoints; also at every evaluation and the end
     prdp: bool = False  # refine the solver's iteration count on validation plateaus (physgrad.prdp)
     prdp_start: int = 1
@@ -150,6 +154,10 @@ class TrainSettings:
 # Settings that change how a run is guarded, not what it computes: a run resumes under
 # either value (they are not part of a run's identity).
 UNGUARDED_SETTINGS = ("memory_guard",)
+# Settings added after runs were recorded without them, with the value those runs had: a
+# recorded run resumes when the setting holds that value.
+ADDED_SETTINGS = {"fresh_samples": False}
+_ABSENT = object()
 
 
 # --- built before the first step -------------------------------------------------------------
@@ -557,9 +565,30 @@ class Steps:
         self.data = placement.put(setup.data["train"])
         self.shuffle_key = jax.random.fold_in(jax.random.key(seed), 2)
         self.shuffle = setup.problem.default_shuffle if settings.shuffle is None else settings.shuffle
+        fresh = settings.fresh_samples
+        self.fresh = setup.problem.default_fresh_samples if fresh is None else fresh
+        self.fresh_key = jax.random.fold_in(jax.random.key(seed), 3)
+        self.first = self.data
         groups = setup.problem.batch_groups(setup.data["train"]) if self.shuffle else None
         self.groups = None if groups is None else np.asarray(groups)
         self.batch_sizes = [stage.batch_size for stage in setup.stages]
+
+    def draw(self, setup: Setup, stage: int, epoch: int) -> None:
+        """The training data of a stage's epoch in ``self.data``: the first epoch of the first
+        stage trains on ``setup.data``; with ``fresh_samples`` every later epoch on a new
+        train split from ``make_data`` with a key of the seed, stage and epoch (so a resumed
+        run draws the same samples), of the same shapes, so the compiled step is reused."""
+        if not self.fresh:
+            return
+        if stage == 0 and epoch == 0:
+            self.data = self.first
+            return
+        key = jax.random.fold_in(jax.random.fold_in(self.fresh_key, stage), epoch)
+        try:
+            train = setup.problem.make_data(key)["train"]
+        except ValueError as e:
+            raise ConfigError(f"{setup.problem.name}: fresh_samples: {e}") from None
+        self.data = self.placement.put(train)
 
     def order(self, stage: int, epoch: int):
         """The sample order of a stage's epoch: fixed, or with ``shuffle`` a permutation
@@ -945,7 +974,8 @@ def _check_arguments(problem, budget, seed, batch_size, settings, out) -> None:
 def _identity(record: dict[str, Any]) -> dict[str, Any]:
     """What must match for a run to resume: the record without its budget and without the
     settings that change only how the run is guarded."""
-    settings = {k: v for k, v in record.get("settings", {}).items() if k not in UNGUARDED_SETTINGS}
+    settings = {k: v for k, v in record.get("settings", {}).items()
+                if k not in UNGUARDED_SETTINGS and ADDED_SETTINGS.get(k, _ABSENT) != v}  # fmt: skip
     return {**record, "budget": None, "settings": settings}
 
 
@@ -973,9 +1003,11 @@ def _describe(problem, phases, seed, budget, settings) -> dict[str, Any]:
 
 
 def _resolved(settings: TrainSettings, problem: AbstractProblem) -> dict[str, Any]:
-    """The settings as recorded: ``shuffle`` None stands for the problem's default."""
+    """The settings as recorded: ``shuffle`` and ``fresh_samples`` None stand for the
+    problem's defaults."""
     out = dataclasses.asdict(settings)
     out["shuffle"] = problem.default_shuffle if settings.shuffle is None else settings.shuffle
+    out["fresh_samples"] = problem.default_fresh_samples if settings.fresh_samples is None else settings.fresh_samples
     return out
 
 
@@ -1153,6 +1185,7 @@ def _loop(state, setup, steps, compiled, stop, schedule, placement, fidelity, re
             stage = setup.stages[index]
             epoch, batch = divmod(state.step - stage.start, stage.steps_per_epoch)
             if (index, epoch) != order_key:
+                steps.draw(setup, index, epoch)
                 order, order_key = steps.order(index, epoch), (index, epoch)
             t_start = time.perf_counter()
             params, opt_state, stats = compiled(state.params, state.opt_state, steps.data, order, np.int32(batch))

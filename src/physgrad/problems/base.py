@@ -46,7 +46,9 @@ class AbstractProblem(eqx.Module):
     - ``default_shuffle``: the paper's batch order, fixed (False, the default) or a fresh
       permutation of the training samples every epoch (True); optionally
       ``batch_groups(train) -> labels``: when shuffled, every batch holds samples of one
-      label, the labels' batches interleaved at random (KS: one domain size per batch).
+      label, the labels' batches interleaved at random (KS: one domain size per batch);
+    - ``default_fresh_samples``: whether the paper trains on a stream of fresh samples
+      (True: every epoch after the first draws a new train split from ``make_data``).
 
     All per-sample functions must be pure and traceable (vmap, jit, jacrev).
     """
@@ -130,6 +132,12 @@ class AbstractProblem(eqx.Module):
     # The paper's batch order, the default of the ``shuffle`` training setting: fixed (every
     # epoch takes the same batches in the same order) or a fresh permutation every epoch.
     default_shuffle: ClassVar[bool] = False
+    # Whether the paper draws fresh training samples as it trains (an endless stream; the SIP
+    # paper's experiments generate every batch on the fly) rather than cycling over a fixed
+    # set: the default of the ``fresh_samples`` training setting. With it, every epoch after
+    # the first trains on a new ``make_data`` train split (same size, new key), so no sample
+    # is seen twice; ``make_data`` must then be cheap next to an epoch of training.
+    default_fresh_samples: ClassVar[bool] = False
 
     def batch_groups(self, train: Sample) -> np.ndarray | None:
         """One label per training sample (``train`` is the data's train split), or None: when

@@ -37,6 +37,8 @@ class ExpInverse(AbstractProblem):
     n_test: int = eqx.field(static=True, default=1024)
 
     name: ClassVar[str] = "exp_inverse"
+    # the authors generate every batch on the fly: every epoch a new training set
+    default_fresh_samples: ClassVar[bool] = True
     description: ClassVar[str] = "SIP paper Fig. 2: learn x from y = exp(x), x* ~ U[-12, 0], sigmoid 16-64-16 network"
     source: ClassVar[str] = "Holl et al., NeurIPS 2022, Fig. 2"
     default_batch_size: ClassVar[int] = 100

@@ -115,6 +115,8 @@ class Heat(AbstractProblem):
     n_test: int = eqx.field(static=True, default=128)
 
     name: ClassVar[str] = "heat"
+    # the authors draw a fresh batch of boxes every step: every epoch a new training set
+    default_fresh_samples: ClassVar[bool] = True
     description: ClassVar[str] = (
         "SIP paper: recover box-shaped heat from its 64x64 periodic diffusion (nu t = 8), U-Net"
     )

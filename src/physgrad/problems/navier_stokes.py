@@ -149,6 +149,9 @@ class NavierStokes(AbstractProblem):
     n_test: int = eqx.field(static=True, default=64)
 
     name: ClassVar[str] = "navier_stokes"
+    # The authors simulate fresh examples every step; here each split is simulated once and
+    # cached on disk (a 4,096-example training set takes minutes to simulate), so training
+    # cycles over it: fresh_samples=true draws a new set every epoch at that cost.
     description: ClassVar[str] = (
         "SIP paper: initial velocity of a 64x64 periodic incompressible flow from a marker's start and end, U-Net"
     )

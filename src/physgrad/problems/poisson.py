@@ -74,6 +74,8 @@ class Poisson(AbstractProblem):
     dtype: str = eqx.field(static=True, default="float32")
 
     name: ClassVar[str] = "poisson"
+    # the authors draw fresh noise every step: every epoch a new training set
+    default_fresh_samples: ClassVar[bool] = True
     description: ClassVar[str] = (
         "SIP paper: recover x from the solution of laplace(y) = x on 64x64 (zero padding), U-Net"
     )

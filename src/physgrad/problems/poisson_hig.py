@@ -76,6 +76,8 @@ class PoissonHig(AbstractProblem):
     dtype: str = eqx.field(static=True, default="float32")
 
     name: ClassVar[str] = "poisson_hig"
+    # the authors draw a fresh Noise batch every iteration: every epoch a new training set
+    default_fresh_samples: ClassVar[bool] = True
     description: ClassVar[str] = "HIG paper: invert the 8x8 zero-boundary Laplacian, tanh 64-128-64 network"
     source: ClassVar[str] = "Schnell, Holl, Thuerey, ICLR 2022, Poisson problem"
     default_batch_size: ClassVar[int] = 64

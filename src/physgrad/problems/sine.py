@@ -41,6 +41,8 @@ class Sine(AbstractProblem):
     n_test: int = eqx.field(static=True, default=1024)
 
     name: ClassVar[str] = "sine"
+    # the authors generate every batch on the fly: every epoch a new training set
+    default_fresh_samples: ClassVar[bool] = True
     description: ClassVar[str] = (
         "SIP paper Fig. 5: invert the rotated ill-conditioned sine (settings xi, phi), relu 32-64-32"
     )
