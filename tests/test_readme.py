@@ -9,16 +9,24 @@ import physgrad
 
 
 def run_example(heading: str, factor: float):
-    """Execute the first Python block after ``heading`` and check the loss dropped ``factor``×."""
+    """Execute the first Python block after ``heading`` (a loop that trains ``net``, a whole
+    Equinox module) and check the loss dropped ``factor``×."""
     text = (Path(__file__).parents[1] / "README.md").read_text()
     code = re.search(rf"## {heading}.*?```python\n(.*?)```", text, re.S).group(1)
+    setup, loop = code.split("\nfor _ in range")
     namespace = {}
-    exec(compile(code, "README.md", "exec"), namespace)
-    params, batch = namespace["params"], namespace["batch"]
+    exec(compile(setup, "README.md", "exec"), namespace)
+    batch = namespace["batch"]
     predict = namespace.get("predict") or (lambda p, s: namespace["simulate"](namespace["output"](p, s), s))
     objective = physgrad.Objective(predict, namespace["loss"])
-    initial = float(objective.batch_loss(eqx.partition(namespace["net"], eqx.is_inexact_array)[0], batch))
-    final = float(objective.batch_loss(params, batch))
+
+    def batch_loss(net):  # the net as it is: its activation functions are not arrays
+        arrays, static = eqx.partition(net, eqx.is_inexact_array)
+        return float(objective.bind_static(static).batch_loss(arrays, batch))
+
+    initial = batch_loss(namespace["net"])
+    exec(compile("for _ in range" + loop, "README.md", "exec"), namespace)
+    final = batch_loss(namespace["net"])
     assert final < initial / factor, (initial, final)
 
 

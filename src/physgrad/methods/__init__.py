@@ -18,7 +18,7 @@ entry point            rule                             direction
 The registry of names for the command line is :mod:`physgrad.registry`.
 """
 
-from .base import AbstractMethod, AbstractRule, Estimator, Method, Objective
+from .base import AbstractMethod, AbstractRule, Estimator, Method, Objective, trainable
 from .dp import Gradient, LossAwareDP, dp
 from .hig import JacobianPower, gauss_newton, hig
 from .lm import LevenbergMarquardt, adapt_damping, predicted_decrease
@@ -52,5 +52,6 @@ __all__ = [
     "schedule",
     "sip",
     "stabilised_bptt",
+    "trainable",
     "unrolled",
 ]

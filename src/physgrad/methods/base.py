@@ -25,6 +25,22 @@ Three layers of objects:
 - :class:`AbstractMethod`: what the training engine runs: a rule and an optax
   transformation, ``init`` and one pure ``step``; :class:`Method` is the plain pairing.
 
+Parameters may be a whole Equinox module (an ``eqx.nn.MLP`` with its activation
+functions, a convolution with its settings): estimators and methods differentiate its
+inexact-array leaves only and leave every other leaf as it is, as ``eqx.filter_grad``
+does. The direction then holds None at the other leaves, the structure
+``eqx.apply_updates`` and an optax state from ``opt.init(eqx.filter(model,
+eqx.is_inexact_array))`` expect::
+
+    opt_state = optimizer.init(eqx.filter(model, eqx.is_inexact_array))
+    d, stats = estimate(model, batch)
+    updates, opt_state = optimizer.update(d, opt_state, eqx.filter(model, eqx.is_inexact_array))
+    model = eqx.apply_updates(model, updates)
+
+Rules themselves (:class:`AbstractRule`) see the array leaves alone: :func:`trainable`
+splits the parameters and :meth:`Objective.bind_static` puts the rest back inside the
+user's functions.
+
 Rules and methods may also estimate the memory of their own large arrays
 (``footprint``, from shapes alone) and name lighter variants of themselves (``lighter``):
 the engine's memory guard (:mod:`physgrad.memory`) checks a step against the device
@@ -46,6 +62,14 @@ from jaxtyping import Array, PyTree
 
 Stats = dict[str, Array]
 _T = TypeVar("_T")
+
+
+def trainable(params: PyTree) -> tuple[PyTree, PyTree]:
+    """``(arrays, static)``: the inexact-array leaves of ``params`` (floating or complex,
+    what the rules differentiate) and everything else (functions, integers, Python
+    scalars), each with None in the other's places, as ``eqx.partition(params,
+    eqx.is_inexact_array)``; ``eqx.combine(arrays, static)`` is ``params`` again."""
+    return eqx.partition(params, eqx.is_inexact_array)
 
 
 def required(piece: _T | None, name: str) -> _T:
@@ -93,6 +117,32 @@ class Objective(NamedTuple):
             raise ValueError(
                 "this method differentiates through the solver, which is not differentiable; use nog or one"
             )
+
+    def bind_static(self, static: PyTree) -> Objective:
+        """This objective as a function of the inexact-array leaves of the parameters
+        alone: each piece that takes the parameters (``predict``, ``network_output``, the
+        rollout's transition) gets ``eqx.combine(arrays, static)``. Itself when ``static``
+        holds nothing (parameters that are arrays throughout)."""
+        if not jax.tree.leaves(static):
+            return self
+
+        def bound(fn):
+            if fn is None:
+                return None
+            return lambda arrays, *args: fn(eqx.combine(arrays, static), *args)
+
+        def bound_system(system):
+            return None if system is None else system._replace(transition=bound(system.transition))
+
+        unrolled = self.unrolled
+        return self._replace(
+            predict=bound(self.predict),
+            network_output=bound(self.network_output),
+            rollout=bound_system(self.rollout),
+            unrolled=None
+            if unrolled is None
+            else (lambda m, teacher_forcing: bound_system(unrolled(m, teacher_forcing))),
+        )
 
     def sample_losses(self, params: PyTree, batch: PyTree) -> Array:
         predict, loss = required(self.predict, "predict"), required(self.loss, "loss")
@@ -142,6 +192,8 @@ class Estimator(eqx.Module):
 
     Returned by the public entry points (:func:`physgrad.hig`, :func:`physgrad.sip`, …);
     pure and traceable, so it goes inside the user's ``jax.jit`` with their optax update.
+    ``params`` may be a whole Equinox module: the rule sees its inexact-array leaves and
+    the direction holds None elsewhere (:func:`trainable`, as ``eqx.filter_grad``).
     """
 
     rule: AbstractRule
@@ -151,7 +203,8 @@ class Estimator(eqx.Module):
         self.rule.check(self.objective)
 
     def __call__(self, params: PyTree, batch: PyTree) -> tuple[PyTree, Stats]:
-        return self.rule(self.objective, params, batch)
+        arrays, static = trainable(params)
+        return self.rule(self.objective.bind_static(static), arrays, batch)
 
 
 def with_extra_args(optimizer: optax.GradientTransformation) -> optax.GradientTransformationExtraArgs:
@@ -209,13 +262,15 @@ class Method(AbstractMethod):
     """A rule applied by an optax transformation: ``θ ← θ + optimizer(d)``, d = rule(θ).
 
     The optimizer receives the batch loss as ``value=`` (ignored unless the chain uses it).
+    ``params`` may be a whole Equinox module: the optimizer's state and updates cover its
+    inexact-array leaves (:func:`trainable`); the other leaves come back unchanged.
     """
 
     rule: AbstractRule
     optimizer: optax.GradientTransformation = eqx.field(static=True)
 
     def init(self, params):
-        return self.optimizer.init(params)
+        return self.optimizer.init(trainable(params)[0])
 
     def check(self, objective):
         self.rule.check(objective)
@@ -226,15 +281,18 @@ class Method(AbstractMethod):
     # The optimizer's state is a few copies of the parameters, small next to what the
     # rules that estimate memory hold (Jacobians): the rule's footprint is the method's.
     def footprint(self, objective, params, batch, devices=1):
-        return self.rule.footprint(objective, params, batch, devices)
+        arrays, static = trainable(params)
+        return self.rule.footprint(objective.bind_static(static), arrays, batch, devices)
 
     def footprint_note(self, objective, params, batch):
-        return self.rule.footprint_note(objective, params, batch)
+        arrays, static = trainable(params)
+        return self.rule.footprint_note(objective.bind_static(static), arrays, batch)
 
     def lighter(self, batch_size):
         return [(setting, dataclasses.replace(self, rule=rule)) for setting, rule in self.rule.lighter(batch_size)]
 
     def step(self, objective, params, state, batch):
-        direction, stats = self.rule(objective, params, batch)
-        updates, state = with_extra_args(self.optimizer).update(direction, state, params, value=stats["loss"])
-        return optax.apply_updates(params, updates), state, stats
+        arrays, static = trainable(params)
+        direction, stats = self.rule(objective.bind_static(static), arrays, batch)
+        updates, state = with_extra_args(self.optimizer).update(direction, state, arrays, value=stats["loss"])
+        return eqx.combine(optax.apply_updates(arrays, updates), static), state, stats

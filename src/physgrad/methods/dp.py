@@ -15,7 +15,7 @@ import equinox as eqx
 import jax
 import optax
 
-from .base import AbstractRule, Estimator, Method, Objective, with_extra_args
+from .base import AbstractRule, Estimator, Method, Objective, trainable, with_extra_args
 
 
 class Gradient(AbstractRule):
@@ -62,6 +62,8 @@ class LossAwareDP(Method):
             )
 
     def step(self, objective, params, state, batch):
+        params, static = trainable(params)  # the array leaves (a whole module's others come back unchanged)
+        objective = objective.bind_static(static)
         direction, stats = self.rule(objective, params, batch)
 
         def batch_loss(p):
@@ -70,4 +72,4 @@ class LossAwareDP(Method):
         available = {"value": stats["loss"], "grad": direction, "value_fn": batch_loss, "obj_fn": batch_loss}
         extras = {name: available[name] for name in self.extras}
         updates, state = with_extra_args(self.optimizer).update(direction, state, params, **extras)
-        return optax.apply_updates(params, updates), state, stats
+        return eqx.combine(optax.apply_updates(params, updates), static), state, stats

@@ -91,7 +91,7 @@ import jax
 import jax.numpy as jnp
 
 from ..nets import Dense
-from .base import AbstractMethod, required
+from .base import AbstractMethod, required, trainable
 
 BLOCKS = ("kfac", "full")
 ESTIMATIONS = ("ggn_curvature_prop", "ggn_exact")
@@ -312,12 +312,15 @@ class KFAC(AbstractMethod):
 
     # --- state ------------------------------------------------------------------------------
     def init(self, params):
+        params = trainable(params)[0]  # a whole module: its array leaves
         kparams = _default_float(_transpose_kernels(params))
         optimizer = self._optimizer(_stand_in)
         state = optimizer.init(kparams, jax.random.key(self.seed), jnp.zeros((2,)))
         return KFACState(tuple(jax.tree.leaves(state)), jax.random.key_data(jax.random.key(self.seed + 1)))
 
     def step(self, objective, params, state, batch):
+        params, static = trainable(params)  # the array leaves (a whole module's others come back unchanged)
+        objective = objective.bind_static(static)
         real = jnp.result_type(*[leaf.dtype for leaf in jax.tree.leaves(params)])
         if any(jnp.iscomplexobj(leaf) for leaf in jax.tree.leaves(params)):
             raise ValueError(
@@ -368,7 +371,7 @@ class KFAC(AbstractMethod):
         else:
             new, new_leaves, stats = run(self.adaptive_damping)
         new = jax.tree.map(lambda a, b: a.astype(b.dtype), _transpose_kernels(new), params)
-        return new, KFACState(new_leaves, jax.random.key_data(key)), stats
+        return eqx.combine(new, static), KFACState(new_leaves, jax.random.key_data(key)), stats
 
 
 def _stand_in(kparams, batch):

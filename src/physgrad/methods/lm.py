@@ -41,7 +41,7 @@ from jaxtyping import Array, PyTree
 
 from ..half_inverse import Damped
 from ..jacobian import require_forward_mode
-from .base import Method, Objective, required, with_extra_args
+from .base import Method, Objective, required, trainable, with_extra_args
 from .hig import JacobianPower
 
 
@@ -125,11 +125,14 @@ class LevenbergMarquardt(Method):
                              f"got {self.damping}")  # fmt: skip
 
     def init(self, params):
+        params = trainable(params)[0]
         dtype = jnp.result_type(*jax.tree.leaves(params)) if jax.tree.leaves(params) else jnp.float32
         real = jnp.real(jnp.zeros((), dtype)).dtype
         return LMState(self.optimizer.init(params), jnp.asarray(self.damping, real), jnp.asarray(2.0, real))
 
     def step(self, objective, params, state, batch):
+        params, static = trainable(params)  # the array leaves (a whole module's others come back unchanged)
+        objective = objective.bind_static(static)
         sample = jax.tree.map(lambda a: a[0], batch)
         require_forward_mode(objective.predict, params, sample, what="Levenberg–Marquardt's gain ratio (J Δ)",
                              alternative="use gn or hig")  # fmt: skip
@@ -148,4 +151,4 @@ class LevenbergMarquardt(Method):
         else:
             params = candidate
         stats = {**stats, "damping": state.damping, "gain_ratio": gain_ratio, "accepted": accepted.astype(loss.dtype)}
-        return params, LMState(opt_state, damping, growth), stats
+        return eqx.combine(params, static), LMState(opt_state, damping, growth), stats

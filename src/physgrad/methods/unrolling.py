@@ -39,7 +39,7 @@ import optax
 
 from ..rollout import GradientFlow, R, S, value_and_grad
 from ..transforms import norm_guard
-from .base import AbstractMethod, AbstractRule, Estimator, Objective, required, with_extra_args
+from .base import AbstractMethod, AbstractRule, Estimator, Objective, required, trainable, with_extra_args
 
 
 class UnrolledGradient(AbstractRule):
@@ -174,7 +174,7 @@ class Unrolled(AbstractMethod):
         return opt
 
     def init(self, params):
-        return self.optimizer.init(params)
+        return self.optimizer.init(trainable(params)[0])
 
     def check(self, objective):
         self.rule.check(objective)
@@ -182,7 +182,8 @@ class Unrolled(AbstractMethod):
             required(objective.unrolled, "unrolled")(m, self.rule.teacher_forcing)  # raises if m exceeds the windows
 
     def step(self, objective, params, state, batch):
-        grads, stats = self.rule(objective, params, batch)
+        params, static = trainable(params)  # the array leaves (a whole module's others come back unchanged)
+        grads, stats = self.rule(objective.bind_static(static), params, batch)
         norm, solver_ok = stats["grad_norm"], stats.pop("solver_ok")
         finite = jnp.isfinite(norm)
         within = jnp.asarray(True)
@@ -206,4 +207,4 @@ class Unrolled(AbstractMethod):
             skip_norm=(skipped & finite & ~within & self.norm_guard).astype(jnp.float32),
             skip_solver=(skipped & ~solver_ok).astype(jnp.float32),
         )
-        return new_params, new_state, stats
+        return eqx.combine(new_params, static), new_state, stats
