@@ -16,7 +16,8 @@
 # Usage (one core, niced; runs lanes in priority order until all are done):
 #   bash docs/reproductions/long/studies.sh [lane ...]      # default: oscillators dipole
 # Lanes: oscillators, dipole, poisson (HIG, core 0); navier_stokes, dipole_screen, dipole_screen_cheap,
-# quantum_control, guidance, ks_screen, ks_screen_shuffled, ks, kolmogorov_zero, kolmogorov, heat, sip_poisson (core 1: CORE=1).
+# quantum_control, guidance, ks_screen, ks_screen_shuffled, ks_screen_grouped, u1_screen_grouped,
+# kolmogorov_screen_grouped, ks, kolmogorov_zero, kolmogorov, heat, sip_poisson (core 1: CORE=1).
 # Environment: CORE (default 0), SEEDS (default 3: grow every lane to this many seeds), STUDY_COMMIT,
 # LATE_COMMIT, PY (python of an env with physgrad's deps).
 set -euo pipefail
@@ -150,6 +151,26 @@ lane_ks_screen() {
 lane_ks_screen_shuffled() {
   use_commit "$ROOT/../studycode-shuffle" "${SHUFFLE_COMMIT:-0324cdf}"
   lane_study ks_correction_2ep_shuffled ks "one@5616@2808 nog@5616@2808 wig@5616@2808" --set setup=correction --set shuffle=true
+}
+# The same screens with physgrad's batching since issue 32 (its default, the authors': a fresh
+# permutation every epoch, every KS batch from one domain size, the sizes interleaved at random);
+# ks_screen_shuffled above used a plain permutation across sizes (SHUFFLE_COMMIT). U1's
+# NOG-correction vs WIG-prediction at the same 2 epochs; Kolmogorov 16² (U2, U4) at the earlier
+# study's size, 2 epochs (594 updates), correction and prediction.
+grouped() { use_commit "$ROOT/../studycode-grouped" "${GROUPED_COMMIT:-4a90e34}"; }
+lane_ks_screen_grouped() {
+  grouped
+  lane_study ks_correction_2ep_grouped ks "one@5616@2808 nog@5616@2808 wig@5616@2808" --set setup=correction
+}
+lane_u1_screen_grouped() {
+  grouped
+  lane_study ks_prediction_2ep_grouped ks "wig@5616@2808 nog@5616@2808" --set setup=prediction
+}
+lane_kolmogorov_screen_grouped() {
+  grouped
+  local size=(--set n=16 --set forcing_mode=4 --set width=16 --set blocks=3 --set frames=400 --set m=4)
+  lane_study kolmogorov_16_2ep_correction kolmogorov "one@594@99 nog@594@99 wig@594@99" "${size[@]}" --set setup=correction
+  lane_study kolmogorov_16_2ep_prediction kolmogorov "one@594@99 nog@594@99 wig@594@99" "${size[@]}" --set setup=prediction
 }
 # Claims 5 and 6, SIP Fig. 6: heat and Poisson 64², SIP vs Adam for the paper's 10,000 steps, test
 # x-error on 128 samples every 250 steps; ≈ 1.7–2 s per SIP step on one core: ≈ 5 h per run.
