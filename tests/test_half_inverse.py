@@ -138,3 +138,79 @@ def test_every_route_takes_a_simulator_whose_outputs_are_float64_behind_a_float3
     output' when the simulator's dtype differs from the parameters'."""
     ref = gram_direction
     np.testing.assert_allclose(_direction(route), ref, rtol=0, atol=1e-4 * np.abs(ref).max())
+
+
+# --- what a step reports: the route, the rank kept, the singular-value range (issue 33) ---
+def _spectrum_case(tall: bool):
+    """An eqx.nn.MLP (float64) through a small nonlinear map; J wide (8 × 122) or tall
+    (80 × 38: a narrow net and long outputs)."""
+    import equinox as eqx
+
+    width, depth, out, b = (2, 1, 10, 8) if tall else (8, 2, 2, 4)
+    model = eqx.nn.MLP(3, out, width, depth, activation=jax.nn.tanh, dtype=jnp.float64, key=jax.random.key(0))
+    batch = {"x": jax.random.normal(jax.random.key(1), (b, 3), jnp.float64)}
+    batch["target"] = jnp.zeros((b, out), jnp.float64)
+
+    def predict(m, s):
+        u = m(s["x"])
+        return u + 0.1 * u**2
+
+    def loss(y, s):
+        return 0.5 * jnp.sum((y - s["target"]) ** 2)
+
+    return model, batch, predict, loss
+
+
+@pytest.mark.parametrize("tall", [False, True])
+@pytest.mark.parametrize("route_name", ["auto", "svd", "gram", "structured", "blockgram", "lanczos"])
+def test_stats_report_the_route_rank_and_kept_singular_values(route_name, tall):
+    """Against NumPy's SVD of the same stacked Jacobian; ``describe`` names the route
+    before the step, and the step's ``route`` code agrees."""
+    import equinox as eqx
+
+    import physgrad
+    from physgrad import routes
+    from physgrad.jacobian import stacked_jacobian
+
+    model, batch, predict, loss = _spectrum_case(tall)
+    arrays, static = eqx.partition(model, eqx.is_inexact_array)
+    jac, _ = stacked_jacobian(lambda p, s: predict(eqx.combine(p, static), s), arrays, batch)
+    s = np.linalg.svd(np.asarray(jac), compute_uv=False)
+    truncation = float(0.5 * (s[-2] + s[-3]) / s.max())  # drops the two smallest singular values
+    keep = s > truncation * s.max()
+    objects = {"auto": routes.Auto(), "svd": routes.SVD(), "gram": routes.Gram(), "structured": routes.Structured(),
+               "blockgram": routes.BlockGram(2), "lanczos": routes.Lanczos(steps=jac.shape[0])}  # fmt: skip
+    estimate = physgrad.hig(predict, loss, truncation=truncation, route=objects[route_name])
+    described = estimate.describe(model, batch)
+    _, stats = eqx.filter_jit(estimate)(model, batch)
+
+    assert described["jacobian"] == jac.shape
+    ran = routes.ROUTE_NAMES[int(stats["route"])]
+    assert ran == described["route"]
+    if route_name == "auto":
+        assert ran == ("gram" if tall else "structured")  # tall J: Gram; wide with dense layers: structured
+    elif route_name == "structured" and tall:
+        assert ran == "gram"
+    else:
+        assert ran == route_name
+    assert int(stats["rank"]) == keep.sum() == len(s) - 2
+    rtol = 1e-4 if route_name == "lanczos" else 1e-8  # Lanczos: Ritz values, exact only up to rounding at k = rows
+    np.testing.assert_allclose(float(stats["sigma_max"]), s.max(), rtol=rtol)
+    np.testing.assert_allclose(float(stats["sigma_min_kept"]), s[keep].min(), rtol=rtol)
+
+
+def test_gauss_newton_and_lm_report_the_spectrum_too():
+    import equinox as eqx
+
+    import physgrad
+    from physgrad.methods.lm import LevenbergMarquardt
+
+    model, batch, predict, loss = _spectrum_case(False)
+    _, stats = eqx.filter_jit(physgrad.gauss_newton(predict, loss))(model, batch)
+    assert {"route", "rank", "sigma_max", "sigma_min_kept"} <= set(stats)
+    lm = LevenbergMarquardt()
+    _, _, lm_stats = eqx.filter_jit(lambda m, b: lm.step(physgrad.Objective(predict, loss), m, lm.init(m), b))(
+        model, batch
+    )
+    for name in ("route", "rank", "sigma_max", "sigma_min_kept"):
+        np.testing.assert_allclose(np.asarray(lm_stats[name]), np.asarray(stats[name]), rtol=1e-8)

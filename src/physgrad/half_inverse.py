@@ -89,6 +89,40 @@ def _kept_powers(s: Array, exponent: float | Damped, truncation: float, divided:
     return jnp.where(keep, values, jnp.zeros_like(s)).astype(s.dtype)
 
 
+Spectrum = dict[str, Array]
+
+
+def spectrum_stats(s: Array, truncation: float) -> Spectrum:
+    """What the truncation kept of the singular values ``s`` (any order, ≥ 0):
+
+    - ``rank``: the number kept, ``#{σ > τ σ_max}`` (int32);
+    - ``sigma_max``: σ_max;
+    - ``sigma_min_kept``: the smallest kept σ (``inf`` when none is kept, ``s`` all 0).
+
+    With κ = −½ the kept range sets the spread of the step's scaling, σ_max^{−½} to
+    σ_min_kept^{−½}."""
+    s_max = jnp.max(s)
+    keep = s > truncation * s_max
+    return {"rank": jnp.sum(keep).astype(jnp.int32), "sigma_max": s_max,
+            "sigma_min_kept": jnp.min(jnp.where(keep, s, jnp.inf))}  # fmt: skip
+
+
+def cast_spectrum(spectrum: Spectrum, dtype) -> Spectrum:
+    """The σ's of :func:`spectrum_stats` in ``dtype`` (a float64 scope's way out)."""
+    return {k: v if k == "rank" else v.astype(dtype) for k, v in spectrum.items()}
+
+
+def gram_power_and_spectrum(
+    gram: Array, vector: Array, exponent: float | Damped, truncation: float
+) -> tuple[Array, Spectrum]:
+    """:func:`gram_power` and the :func:`spectrum_stats` of its singular values
+    σ = √(eigenvalues of the Gram matrix)."""
+    eigenvalues, vectors = jnp.linalg.eigh(gram)
+    s = jnp.sqrt(jnp.clip(eigenvalues, 0.0, None))
+    powers = _kept_powers(s, exponent, truncation, divided=True)
+    return vectors @ (powers * (vectors.T @ vector)), spectrum_stats(s, truncation)
+
+
 def gram_power(gram: Array, vector: Array, exponent: float | Damped, truncation: float) -> Array:
     """``U Σ^{κ−1} Uᵀ v`` for a Gram matrix ``U Σ² Uᵀ`` (``J Jᵀ`` or ``Jᵀ J``), singular
     values ``σ ≤ τ σ_max`` dropped. The one extra Σ⁻¹ turns the Gram eigenvectors into the
@@ -96,14 +130,12 @@ def gram_power(gram: Array, vector: Array, exponent: float | Damped, truncation:
     With a :class:`Damped` filter: ``U (Σ² + λ)⁻¹ Uᵀ v``.
 
     Computes in the inputs' dtype; the Gram routes call it on float64 inside their scope."""
-    eigenvalues, vectors = jnp.linalg.eigh(gram)
-    powers = _kept_powers(jnp.sqrt(jnp.clip(eigenvalues, 0.0, None)), exponent, truncation, divided=True)
-    return vectors @ (powers * (vectors.T @ vector))
+    return gram_power_and_spectrum(gram, vector, exponent, truncation)[0]
 
 
 def _svd_route(jacobian, grad, exponent, truncation):
     u, s, vt = jnp.linalg.svd(jacobian, full_matrices=False)
-    return vt.T @ (_kept_powers(s, exponent, truncation) * (u.T @ grad))
+    return vt.T @ (_kept_powers(s, exponent, truncation) * (u.T @ grad)), spectrum_stats(s, truncation)
 
 
 def _gram_route(jacobian, grad, exponent, truncation):
@@ -113,11 +145,12 @@ def _gram_route(jacobian, grad, exponent, truncation):
         j, g = to_float64(inputs)
         m, p = j.shape
         if m <= p:  # wide: Jᵀ U Σ^{κ−1} Uᵀ g
-            direction = j.T @ gram_power(j @ j.T, g, exponent, truncation)
+            w, spectrum = gram_power_and_spectrum(j @ j.T, g, exponent, truncation)
+            direction = j.T @ w
         else:  # tall: V Σ^{κ−1} Vᵀ Jᵀ g
-            direction = gram_power(j.T @ j, j.T @ g, exponent, truncation)
+            direction, spectrum = gram_power_and_spectrum(j.T @ j, j.T @ g, exponent, truncation)
         # Back to the Jacobian's dtype inside the scope: no float64 array leaves it.
-        return direction.astype(jacobian.dtype)
+        return direction.astype(jacobian.dtype), cast_spectrum(spectrum, jacobian.dtype)
 
 
 def half_inverse(
@@ -144,6 +177,20 @@ def half_inverse(
         The update direction, shape (P,), in the dtype of ``jacobian``. The caller takes
         the step ``θ ← θ − η · half_inverse(J, g)``.
     """
+    return half_inverse_and_spectrum(jacobian, grad, exponent=exponent, truncation=truncation, route=route)[0]
+
+
+def half_inverse_and_spectrum(
+    jacobian: Float[Array, "m p"],
+    grad: Float[Array, " m"],
+    *,
+    exponent: float | Damped = -0.5,
+    truncation: float = 1e-6,
+    route: Route = "auto",
+) -> tuple[Float[Array, " p"], Spectrum]:
+    """:func:`half_inverse` and what its truncation kept of J's singular values
+    (:func:`spectrum_stats`: ``rank``, ``sigma_max``, ``sigma_min_kept``, the σ's in the
+    Jacobian's dtype)."""
     if jacobian.ndim != 2 or grad.shape != jacobian.shape[:1]:
         raise ValueError(f"half_inverse needs jacobian (m, P) and grad (m,); got {jacobian.shape} and {grad.shape}")
     if route not in ROUTES:
@@ -152,7 +199,8 @@ def half_inverse(
         rows, size = jacobian.shape
         route = choose_route((rows, size))
     solve = _svd_route if route == "svd" else _gram_route
-    return solve(jacobian, grad, exponent, truncation).astype(jacobian.dtype)
+    direction, spectrum = solve(jacobian, grad, exponent, truncation)
+    return direction.astype(jacobian.dtype), cast_spectrum(spectrum, jacobian.dtype)
 
 
 def sharded_gram_route(
@@ -185,9 +233,24 @@ def sharded_gram_route(
     floating-point sums. Float64 is scoped as in :func:`half_inverse`, whose Gram route
     this is (inputs are constants for differentiation).
     """
+    return sharded_gram_route_and_spectrum(jacobian, grad, axis, devices, exponent=exponent, truncation=truncation)[0]
+
+
+def sharded_gram_route_and_spectrum(
+    jacobian: Float[Array, "r p"],
+    grad: Float[Array, " r"],
+    axis: str,
+    devices: int,
+    *,
+    exponent: float = -0.5,
+    truncation: float = 1e-6,
+) -> tuple[Float[Array, " p"], Spectrum]:
+    """:func:`sharded_gram_route` and the :func:`spectrum_stats` of the whole J
+    (replicated, the σ's in the Jacobian's dtype)."""
     inputs = jax.lax.stop_gradient((jacobian, grad))
     with float64_scope():
-        return _sharded_gram_route(*inputs, axis, devices, exponent, truncation)
+        direction, spectrum = _sharded_gram_route(*inputs, axis, devices, exponent, truncation)
+        return direction, cast_spectrum(spectrum, jacobian.dtype)
 
 
 def on_device_0(fn, *args, axis: str):
@@ -197,13 +260,16 @@ def on_device_0(fn, *args, axis: str):
     devices, several processes on one machine). Call in a float64 scope."""
     me = jax.lax.axis_index(axis)
     # Both branches must be typed as varying over the devices: adding a device-varying
-    # zero makes them so whether fn's result already is or not.
+    # zero makes them so whether fn's result already is or not. fn may return a pytree.
     vary = jax.lax.pcast(jnp.zeros((), jnp.float64), axis, to="varying")
 
-    def zeros(*a):
-        return jnp.zeros(jax.eval_shape(fn, *a).shape, jnp.float64) + vary
+    def varying(x):
+        return x + vary.astype(x.dtype)
 
-    return jax.lax.psum(jax.lax.cond(me == 0, lambda *a: fn(*a) + vary, zeros, *args), axis)
+    def zeros(*a):
+        return jax.tree.map(lambda s: varying(jnp.zeros(s.shape, s.dtype)), jax.eval_shape(fn, *a))
+
+    return jax.lax.psum(jax.lax.cond(me == 0, lambda *a: jax.tree.map(varying, fn(*a)), zeros, *args), axis)
 
 
 def ring_gram(block, cross, rows: int, axis: str, devices: int) -> Array:
@@ -230,15 +296,16 @@ def _sharded_gram_route(jacobian, grad, axis, devices, exponent, truncation):
     r, p = j.shape
     me = jax.lax.axis_index(axis)
 
-    def direction(gram, vector):  # U Σ^{κ−1} Uᵀ v
-        return gram_power(gram, vector, exponent, truncation)
+    def direction(gram, vector):  # U Σ^{κ−1} Uᵀ v and the spectrum
+        return gram_power_and_spectrum(gram, vector, exponent, truncation)
 
     if r * devices > p:  # tall: the P × P Gram matrix is a sum over devices; V Σ^{κ−1} Vᵀ Jᵀ g
         gram, jtg = jax.lax.psum(j.T @ j, axis), jax.lax.psum(j.T @ g, axis)
-        return on_device_0(direction, gram, jtg, axis=axis).astype(jacobian.dtype)
+        d, spectrum = on_device_0(direction, gram, jtg, axis=axis)
+        return d.astype(jacobian.dtype), spectrum
     # The visiting blocks travel in their own dtype (half the bytes of float64 for float32 nets).
     gram = ring_gram(jacobian, lambda _, visiting: j @ visiting.astype(jnp.float64).T, r, axis, devices)
     g_all = jax.lax.all_gather(g, axis, tiled=True)
-    w = on_device_0(direction, gram, g_all, axis=axis)  # w = U Λ^{(κ−1)/2} Uᵀ g
+    w, spectrum = on_device_0(direction, gram, g_all, axis=axis)  # w = U Λ^{(κ−1)/2} Uᵀ g
     own = jax.lax.dynamic_slice_in_dim(w, me * r, r)
-    return jax.lax.psum(j.T @ own, axis).astype(jacobian.dtype)
+    return jax.lax.psum(j.T @ own, axis).astype(jacobian.dtype), spectrum

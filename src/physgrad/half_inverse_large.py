@@ -58,7 +58,7 @@ import jax.numpy as jnp
 from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, Float, PyTree
 
-from .half_inverse import gram_power
+from .half_inverse import Spectrum, cast_spectrum, gram_power_and_spectrum
 from .jacobian import flat_output, stacked_jacobian
 from .precision import float64_scope
 
@@ -95,6 +95,23 @@ def blockgram_half_inverse(
         The direction (P,) in the parameters' dtype; equal to
         ``half_inverse(stacked_jacobian(...), g, route="gram")`` up to rounding.
     """
+    return blockgram_half_inverse_and_spectrum(
+        predict, params, batch, grad, blocks=blocks, exponent=exponent, truncation=truncation
+    )[0]
+
+
+def blockgram_half_inverse_and_spectrum(
+    predict: Callable[[PyTree, PyTree], Array],
+    params: PyTree,
+    batch: PyTree,
+    grad: Float[Array, " m"],
+    *,
+    blocks: int,
+    exponent: float = -0.5,
+    truncation: float = 1e-6,
+) -> tuple[Float[Array, " p"], Spectrum]:
+    """:func:`blockgram_half_inverse` and the
+    :func:`~physgrad.half_inverse.spectrum_stats` of J (σ's in the parameters' dtype)."""
     # Constants for differentiation: the float64 scope below cannot be transposed outside it.
     params, batch, grad = jax.lax.stop_gradient((params, batch, grad))
     flat, _ = ravel_pytree(params)
@@ -126,13 +143,14 @@ def blockgram_half_inverse(
 
         m = rows * blocks
         gram = jax.lax.fori_loop(0, blocks, row_block, jnp.zeros((m, m), jnp.float64))
-        w = gram_power(gram, grad.astype(jnp.float64), exponent, truncation).reshape(blocks, rows)
+        w, spectrum = gram_power_and_spectrum(gram, grad.astype(jnp.float64), exponent, truncation)
+        w = w.reshape(blocks, rows)
 
         def apply(a, direction):  # Jᵀ w = Σ_A J_Aᵀ w_A, in float64 as the Gram route
             return direction + jac(a).T @ w[a]
 
         direction = jax.lax.fori_loop(0, blocks, apply, jnp.zeros(flat.size, jnp.float64))
-        return direction.astype(flat.dtype)
+        return direction.astype(flat.dtype), cast_spectrum(spectrum, flat.dtype)
 
 
 def batch_output_map(predict: Callable[[PyTree, PyTree], Array], params: PyTree, batch: PyTree):
@@ -164,6 +182,26 @@ def lanczos_half_inverse(
     Returns:
         ``(direction, estimate)``: the direction (P,) and ``‖x_k − x_{k−1}‖ / ‖x_k‖``.
     """
+    direction, estimate, _ = lanczos_half_inverse_and_spectrum(
+        predict, params, batch, grad, steps=steps, exponent=exponent, truncation=truncation
+    )
+    return direction, estimate
+
+
+def lanczos_half_inverse_and_spectrum(
+    predict: Callable[[PyTree, PyTree], Array],
+    params: PyTree,
+    batch: PyTree,
+    grad: Float[Array, " m"],
+    *,
+    steps: int,
+    exponent: float = -0.5,
+    truncation: float = 1e-6,
+) -> tuple[Float[Array, " p"], Float[Array, ""], Spectrum]:
+    """:func:`lanczos_half_inverse` and the :func:`~physgrad.half_inverse.spectrum_stats`
+    of the Ritz values (√ of the eigenvalues of the k × k Lanczos matrix T_k: σ_max is
+    approximated from below first, the kept count and σ_min_kept only as far as k steps
+    resolve the spectrum); σ's in the caller's default float, as the estimate."""
     # Constants for differentiation: the float64 scope below cannot be transposed outside it.
     params, batch, grad = jax.lax.stop_gradient((params, batch, grad))
     outputs, flat = batch_output_map(predict, params, batch)
@@ -175,8 +213,8 @@ def lanczos_half_inverse(
     # as before; float32 otherwise): no float64 array escapes into an x64-off trace.
     outer_float = jax.dtypes.canonicalize_dtype(jnp.float64)
     with float64_scope():
-        direction, estimate = _lanczos(jvp, vjp, y.dtype, grad, steps, exponent, truncation)
-        return direction.astype(flat.dtype), estimate.astype(outer_float)
+        direction, estimate, spectrum = _lanczos(jvp, vjp, y.dtype, grad, steps, exponent, truncation)
+        return direction.astype(flat.dtype), estimate.astype(outer_float), cast_spectrum(spectrum, outer_float)
 
 
 def _lanczos(jvp, vjp, dtype, grad, steps, exponent, truncation):
@@ -219,10 +257,11 @@ def _lanczos(jvp, vjp, dtype, grad, steps, exponent, truncation):
     def coefficients(n):  # ‖g‖ f(T_n) e₁ padded to k (f on the Ritz values θ = eig T_n)
         t = jnp.diag(alpha[:n]) + jnp.diag(beta[: n - 1], 1) + jnp.diag(beta[: n - 1], -1)
         e1 = jnp.zeros(n, jnp.float64).at[0].set(1.0)
-        return jnp.zeros(k, jnp.float64).at[:n].set(norm_g * gram_power(t, e1, exponent, truncation))
+        w, spectrum = gram_power_and_spectrum(t, e1, exponent, truncation)
+        return jnp.zeros(k, jnp.float64).at[:n].set(norm_g * w), spectrum
 
-    c = coefficients(k)
-    change = jnp.linalg.norm(c - coefficients(k - 1)) if k > 1 else jnp.array(jnp.inf, jnp.float64)
+    c, spectrum = coefficients(k)
+    change = jnp.linalg.norm(c - coefficients(k - 1)[0]) if k > 1 else jnp.array(jnp.inf, jnp.float64)
     estimate = change / jnp.maximum(jnp.linalg.norm(c), 1e-300)
     (direction,) = vjp((basis.T @ c).astype(dtype))
-    return direction, estimate
+    return direction, estimate, spectrum

@@ -24,7 +24,15 @@ Every route also estimates the memory of its own large arrays (``footprint``), w
 training engine checks against the device before the first step.
 
 Every route returns ``(direction, loss, stats)``: the flat direction (P,), the batch-mean
-loss and extra statistics (Lanczos logs ``lanczos_change``).
+loss and statistics of the step, numbers the training engine averages into
+``metrics.csv`` (``step_<name>``):
+
+- ``route``: the route that ran, as its index in :data:`ROUTE_NAMES` (``Auto()`` decides
+  at trace time from shapes; :meth:`Auto.choose` names it without computing anything);
+- ``rank``: the number of singular values kept, ``#{σ > τ σ_max}``;
+- ``sigma_max`` and ``sigma_min_kept``: the largest and the smallest kept singular value of
+  J (Lanczos: of its Ritz approximation, which resolves the top of the spectrum first);
+- Lanczos also logs ``lanczos_change``.
 """
 
 from __future__ import annotations
@@ -40,12 +48,31 @@ from jaxtyping import Array
 
 from . import structured
 from .distributed import AXIS, data_axis_size
-from .half_inverse import choose_route, gram_power, half_inverse, on_device_0, ring_gram, sharded_gram_route
-from .half_inverse_large import batch_output_map, blockgram_half_inverse, lanczos_half_inverse
+from .half_inverse import (
+    cast_spectrum,
+    choose_route,
+    gram_power_and_spectrum,
+    half_inverse_and_spectrum,
+    on_device_0,
+    ring_gram,
+    sharded_gram_route_and_spectrum,
+)
+from .half_inverse_large import (
+    batch_output_map,
+    blockgram_half_inverse_and_spectrum,
+    lanczos_half_inverse_and_spectrum,
+)
 from .jacobian import flat_output, stacked_jacobian
 from .precision import float64_scope, to_float64
 
 _F64 = 8  # bytes of a float64
+
+ROUTE_NAMES = ("svd", "gram", "structured", "blockgram", "lanczos")
+"""The routes by the code a step's ``stats["route"]`` holds: ``ROUTE_NAMES[code]``."""
+
+
+def _with_route(name: str, stats: dict) -> dict:
+    return {"route": jnp.asarray(ROUTE_NAMES.index(name), jnp.int32), **stats}
 
 
 class AbstractRoute(eqx.Module):
@@ -79,7 +106,8 @@ class SVD(AbstractRoute):
 
     def __call__(self, objective, params, batch, exponent, truncation):
         jac, g, loss = jacobian_and_gradient(objective, params, batch)
-        return half_inverse(jac, g, exponent=exponent, truncation=truncation, route="svd"), loss, {}
+        direction, spectrum = half_inverse_and_spectrum(jac, g, exponent=exponent, truncation=truncation, route="svd")
+        return direction, loss, _with_route("svd", spectrum)
 
 
 class Gram(AbstractRoute):
@@ -89,10 +117,16 @@ class Gram(AbstractRoute):
         devices = data_axis_size()
         if devices == 1:
             jac, g, loss = jacobian_and_gradient(objective, params, batch)
-            return half_inverse(jac, g, exponent=exponent, truncation=truncation, route="gram"), loss, {}
+            direction, spectrum = half_inverse_and_spectrum(
+                jac, g, exponent=exponent, truncation=truncation, route="gram"
+            )
+            return direction, loss, _with_route("gram", spectrum)
         # Data parallel: each device forms the Jacobian rows of its own samples and the
         # Gram matrix is assembled by collectives (half_inverse.sharded_gram_route).
-        return _over_devices(_sharded_direction, objective, params, batch, devices, exponent, truncation)
+        direction, loss, spectrum = _over_devices(
+            _sharded_direction, objective, params, batch, devices, exponent, truncation
+        )
+        return direction, loss, _with_route("gram", spectrum)
 
     def footprint(self, objective, params, batch, devices=1):
         rows, size = jacobian_shape(objective, params, batch)
@@ -120,8 +154,11 @@ class Structured(AbstractRoute):
             return Gram()(objective, params, batch, exponent, truncation)
         devices = data_axis_size()
         if devices == 1:
-            return _structured_direction(objective, params, batch, self.chunk_elements, exponent, truncation) + ({},)
-        return _over_devices(_sharded_structured, objective, params, batch, devices, exponent, truncation)
+            out = _structured_direction(objective, params, batch, self.chunk_elements, exponent, truncation)
+        else:
+            out = _over_devices(_sharded_structured, objective, params, batch, devices, exponent, truncation)
+        direction, loss, spectrum = out
+        return direction, loss, _with_route("structured", spectrum)
 
     def footprint(self, objective, params, batch, devices=1):
         rows, size = jacobian_shape(objective, params, batch)
@@ -176,10 +213,10 @@ class BlockGram(AbstractRoute):
     def __call__(self, objective, params, batch, exponent, truncation):
         self.check_batch_size(jax.tree.leaves(batch)[0].shape[0])
         g, loss = output_gradient(objective, params, batch)
-        direction = blockgram_half_inverse(
+        direction, spectrum = blockgram_half_inverse_and_spectrum(
             objective.predict, params, batch, g, blocks=self.blocks, exponent=exponent, truncation=truncation
         )
-        return direction, loss, {}
+        return direction, loss, _with_route("blockgram", spectrum)
 
     def footprint(self, objective, params, batch, devices=1):
         rows, size = jacobian_shape(objective, params, batch)
@@ -199,10 +236,10 @@ class Lanczos(AbstractRoute):
 
     def __call__(self, objective, params, batch, exponent, truncation):
         g, loss = output_gradient(objective, params, batch)
-        direction, change = lanczos_half_inverse(
+        direction, change, spectrum = lanczos_half_inverse_and_spectrum(
             objective.predict, params, batch, g, steps=self.steps, exponent=exponent, truncation=truncation
         )
-        return direction, loss, {"lanczos_change": change}
+        return direction, loss, _with_route("lanczos", {**spectrum, "lanczos_change": change})
 
     def footprint(self, objective, params, batch, devices=1):
         rows, size = jacobian_shape(objective, params, batch)
@@ -212,11 +249,10 @@ class Lanczos(AbstractRoute):
 def _over_devices(local, objective, params, batch, devices, exponent, truncation):
     """``local(objective, params, batch, devices=, exponent=, truncation=)`` run by every
     device on its share of the batch (``shard_map``), parameters replicated; returns the
-    replicated ``(direction, loss, {})``."""
+    replicated ``(direction, loss, spectrum)``."""
     spec = PartitionSpec(AXIS)
     body = functools.partial(local, objective, devices=devices, exponent=exponent, truncation=truncation)
-    direction, loss = jax.shard_map(body, in_specs=(PartitionSpec(), spec), out_specs=PartitionSpec())(params, batch)
-    return direction, loss, {}
+    return jax.shard_map(body, in_specs=(PartitionSpec(), spec), out_specs=PartitionSpec())(params, batch)
 
 
 def _itemsize(params) -> int:
@@ -270,15 +306,16 @@ def _structured_direction(objective, params, batch, chunk_elements, exponent, tr
             rows = to_float64(rows)
             gram = gram + rows @ rows.T
     with float64_scope():
-        w = gram_power(gram, to_float64(g), exponent, truncation)
+        w, spectrum = gram_power_and_spectrum(gram, to_float64(g), exponent, truncation)
         pieces = structured.transpose_product(plan, block, w, plan.groups[0] if whole and plan.groups else ())
         leaves = jax.tree.leaves(params)
         pieces = {k: v.astype(leaves[k].dtype) for k, v in pieces.items()}
         w = w.astype(y.dtype)
+        spectrum = cast_spectrum(spectrum, y.dtype)
     if not whole:
         rest = tuple(k for group in plan.groups for k in group)
         pieces.update(structured.vjp_leaves(objective.predict, plan, jax.lax.stop_gradient(params), batch, w, rest))
-    return _assemble(params, pieces), loss
+    return _assemble(params, pieces), loss, spectrum
 
 
 def _sharded_structured(objective, params, batch, *, devices, exponent, truncation):
@@ -296,12 +333,15 @@ def _sharded_structured(objective, params, batch, *, devices, exponent, truncati
     with float64_scope():
         gram = ring_gram(block, functools.partial(structured.cross_gram, plan), r, AXIS, devices)
         g_all = jax.lax.all_gather(to_float64(g), AXIS, tiled=True)
-        w = on_device_0(lambda G, v: gram_power(G, v, exponent, truncation), gram, g_all, axis=AXIS)
+        w, spectrum = on_device_0(
+            lambda G, v: gram_power_and_spectrum(G, v, exponent, truncation), gram, g_all, axis=AXIS
+        )
         own = jax.lax.dynamic_slice_in_dim(w, me * r, r)
         pieces = structured.transpose_product(plan, block, own, explicit)
         direction = jax.lax.psum(_assemble(params, pieces, cast=False), AXIS)
         direction = direction.astype(jax.tree.leaves(params)[0].dtype)
-    return direction, jax.lax.psum(loss, AXIS)
+        spectrum = cast_spectrum(spectrum, direction.dtype)
+    return direction, jax.lax.psum(loss, AXIS), spectrum
 
 
 def output_gradient(objective, params, batch):
@@ -325,8 +365,10 @@ def _sharded_direction(objective, params, batch, *, devices, exponent, truncatio
     # transpose of the implicit broadcast), and each device must keep its own rows.
     params = jax.lax.pcast(params, AXIS, to="varying")
     jac, g, loss = jacobian_and_gradient(objective, params, batch, devices)
-    direction = sharded_gram_route(jac, g, AXIS, devices, exponent=exponent, truncation=truncation)
-    return direction, jax.lax.psum(loss, AXIS)
+    direction, spectrum = sharded_gram_route_and_spectrum(
+        jac, g, AXIS, devices, exponent=exponent, truncation=truncation
+    )
+    return direction, jax.lax.psum(loss, AXIS), spectrum
 
 
 def loss_and_output_gradient(objective, params, batch, y, devices: int = 1):

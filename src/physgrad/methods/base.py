@@ -186,6 +186,11 @@ class AbstractRule(eqx.Module):
         setting that selects it (``route=lanczos``), the most faithful first; none by default."""
         return []
 
+    def describe(self, objective: Objective, params: PyTree, batch: PyTree) -> dict[str, Any]:
+        """What the rule decides from shapes alone for this batch, as Python values (e.g.
+        the half-inverse route ``Auto()`` takes); nothing is computed. Empty by default."""
+        return {}
+
 
 class Estimator(eqx.Module):
     """A rule bound to a user's functions: ``estimate(params, batch) -> (direction, stats)``.
@@ -205,6 +210,12 @@ class Estimator(eqx.Module):
     def __call__(self, params: PyTree, batch: PyTree) -> tuple[PyTree, Stats]:
         arrays, static = trainable(params)
         return self.rule(self.objective.bind_static(static), arrays, batch)
+
+    def describe(self, params: PyTree, batch: PyTree) -> dict[str, Any]:
+        """The rule's choices for these shapes, without computing (:meth:`AbstractRule.describe`;
+        for :func:`physgrad.hig`: ``{"route": "structured", "jacobian": (rows, P)}``)."""
+        arrays, static = trainable(params)
+        return self.rule.describe(self.objective.bind_static(static), arrays, batch)
 
 
 def with_extra_args(optimizer: optax.GradientTransformation) -> optax.GradientTransformationExtraArgs:

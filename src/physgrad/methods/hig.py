@@ -56,6 +56,14 @@ class JacobianPower(AbstractRule):
             name += f" ({self.route.choose(objective, params, batch).name()})"
         return f"route {name}: {rows} × {size} Jacobian"
 
+    def describe(self, objective, params, batch):
+        """``{"route": name, "jacobian": (rows, P)}``: the route that runs on this batch
+        (``Auto()`` resolved; a tall J sends ``Structured()`` to ``gram``) and J's shape."""
+        rows, size = jacobian_shape(objective, params, batch)
+        route = self.route.choose(objective, params, batch) if isinstance(self.route, Auto) else self.route
+        name = "gram" if isinstance(route, Structured) and rows > size else route.name()
+        return {"route": name, "jacobian": (rows, size)}
+
     def lighter(self, batch_size):
         """The other routes: the exact ones by speed (structured, gram, svd, then blockgram
         with ever more sample groups), then lanczos (approximate). Settings as the command
@@ -72,7 +80,11 @@ class JacobianPower(AbstractRule):
 
     def filtered(self, objective, params, batch, spectrum):
         """``V f(Σ) Uᵀ g`` by this rule's route and truncation for another spectral filter
-        ``f`` (a number κ or :class:`physgrad.half_inverse.Damped`): ``(direction, stats)``."""
+        ``f`` (a number κ or :class:`physgrad.half_inverse.Damped`): ``(direction, stats)``.
+
+        ``stats``: ``loss``, ``route`` (the code of the route that ran,
+        ``physgrad.routes.ROUTE_NAMES[code]``), ``rank`` (singular values kept),
+        ``sigma_max`` and ``sigma_min_kept`` (:mod:`physgrad.routes`)."""
         direction, loss, stats = self.route(objective, params, batch, spectrum, self.truncation)
         _, unravel = ravel_pytree(params)
         return unravel(direction), {"loss": loss, **stats}
@@ -90,6 +102,11 @@ def hig(predict, loss, *, truncation: float = 1e-6, route: AbstractRoute = Auto(
         truncation: τ; singular values σ ≤ τ·σ_max are dropped (not clamped).
         route: how the κ-power is computed (:mod:`physgrad.routes`); ``Auto()`` picks
             the exact float64 Gram route or the SVD by the shape of J.
+
+    ``stats``: ``loss``; ``route``, the code of the route that ran
+    (``physgrad.routes.ROUTE_NAMES[int(stats["route"])]``; ``estimate.describe(params,
+    batch)`` names it from shapes alone, before a step); ``rank``, the number of singular
+    values kept; ``sigma_max`` and ``sigma_min_kept``, the kept range of J's spectrum.
     """
     return Estimator(JacobianPower(-0.5, truncation, route), Objective(predict, loss))
 
