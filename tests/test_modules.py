@@ -153,8 +153,9 @@ def methods():
     }
 
 
+# K-FAC (the costliest to compile, through kfac-jax) in the slow tier
 @pytest.mark.parametrize("case", CASES)
-@pytest.mark.parametrize("name", list(methods()))
+@pytest.mark.parametrize("name", [pytest.param(n, marks=pytest.mark.slow) if n == "kfac" else n for n in methods()])
 def test_methods_step_a_whole_module(case, name):
     """``method.init(model)`` and ``method.step(objective, model, …)`` return the model with
     its non-array leaves untouched and the arrays of the partitioned path's step."""
