@@ -34,6 +34,7 @@ from .methods import (
     UnrolledGradient,
 )
 from .methods.kfac import kfac
+from .methods.kronecker_hig import KroneckerPower
 from .rollout import Combined, M, R, S
 
 # `# isort: skip`: isort would split this compact `# fmt: skip` import into one name a line
@@ -117,6 +118,19 @@ def lm(*, lr: float = 1.0, damping: float = 1e-3, truncation: float = 1e-6, rout
     _check_route_sizes(blocks, lanczos_steps)
     rule = JacobianPower(-1.0, truncation, make_route(route, blocks=blocks, lanczos_steps=lanczos_steps))
     return LevenbergMarquardt(rule, optax.sgd(lr), damping, reject)
+
+
+def khig(*, lr: float = 1.0, power: float = -0.75, truncation: float = 1e-6, damping: float = 1e-4,
+         explicit_max: int = 1024):  # fmt: skip
+    """Kronecker-factored HIG: −η b^{−p} G^p ∇W A^p per dense layer (K-FAC's factors, HIG's power p = −3/4), by SGD.
+
+    ``power`` −1 is Kronecker-factored Gauss–Newton; ``truncation`` τ drops eigenvalue products
+    λ_G λ_A ≤ τ² of the block's largest (HIG's σ ≤ τ σ_max, λ ≈ σ²); ``damping`` adds
+    damping·λ_max before the power (0: the pure analogue, equal to HIG where the factors are
+    exact, diverges off that case); parameters outside the dense layers it sees form one
+    exact block, refused beyond an ``explicit_max``-wide eigendecomposition; convolutions are
+    refused (use hig)."""
+    return Method(KroneckerPower(power, truncation, damping, explicit_max), optax.sgd(lr))
 
 
 def _check_route_sizes(blocks, lanczos_steps):
@@ -372,17 +386,19 @@ PROBLEMS: dict[str, type[AbstractProblem]] = {
 
 METHODS: dict[str, Callable[..., AbstractMethod]] = _Methods({
     f.__name__: f
-    for f in (adam, sgd, rmsprop, adagrad, adadelta, gn, hig, lm, kfac, sip, newton, bptt, sbptt_m, sbptt_c, no_temporal, one,
-              nog, wig)
+    for f in (adam, sgd, rmsprop, adagrad, adadelta, gn, hig, khig, lm, kfac, sip, newton, bptt, sbptt_m, sbptt_c,
+              no_temporal, one, nog, wig)
 })  # fmt: skip
 
 
 def paper_defaults(problem: type[AbstractProblem], method: str) -> dict[str, Any]:
     """The problem's hyperparameters for ``method`` (batch size included); ``lm`` takes
-    Gauss–Newton's where the problem has none of its own, ``kfac`` Adam's batch size; an
+    Gauss–Newton's where the problem has none of its own, ``khig`` HIG's, ``kfac`` Adam's batch size; an
     optax zoo entry takes Adam's batch size, and Adam's learning rate when optax asks for one."""
     if method == "lm" and method not in problem.method_defaults:  # damped GN: GN's η, batch and τ
         return problem.defaults_for("gn")
+    if method == "khig" and method not in problem.method_defaults:  # HIG's η, batch and τ (the same meaning)
+        return problem.defaults_for("hig")
     if method == "kfac" and method not in problem.method_defaults:  # its own adaptive step; Adam's batch
         return {"batch_size": problem.defaults_for("adam")["batch_size"]}
     if not is_optax_name(method):

@@ -7,6 +7,7 @@ entry point            rule                             direction
 :func:`dp`             :class:`Gradient`                ∇_θ L (DP)
 :func:`gauss_newton`   :class:`JacobianPower` (κ = −1)  J⁺ g
 :func:`hig`            :class:`JacobianPower` (κ = −½)  V Σ^{−½} Uᵀ g
+:func:`kronecker_hig`  :class:`KroneckerPower`          b^{−p} G^p ∇W A^p per dense layer
 (method)               :class:`LevenbergMarquardt`      Jᵀ(J Jᵀ + λI)⁻¹ g, λ adapted per step
 :func:`newton`         :class:`Newton`                  (H + λI)⁻¹ ∇L
 :func:`sip`            :class:`ScaleInvariantPhysics`   ∇_θ ½‖x − x̃‖², x̃ from a local inverse
@@ -21,6 +22,7 @@ The registry of names for the command line is :mod:`physgrad.registry`.
 from .base import AbstractMethod, AbstractRule, Estimator, Method, Objective, trainable
 from .dp import Gradient, LossAwareDP, dp
 from .hig import JacobianPower, gauss_newton, hig
+from .kronecker_hig import KroneckerPower, kronecker_hig
 from .lm import LevenbergMarquardt, adapt_damping, predicted_decrease
 from .newton import Newton, newton
 from .sip import ScaleInvariantPhysics, sip
@@ -33,6 +35,7 @@ __all__ = [
     "Estimator",
     "Gradient",
     "JacobianPower",
+    "KroneckerPower",
     "LevenbergMarquardt",
     "LossAwareDP",
     "Method",
@@ -47,6 +50,7 @@ __all__ = [
     "dp",
     "gauss_newton",
     "hig",
+    "kronecker_hig",
     "newton",
     "predicted_decrease",
     "schedule",

@@ -1,0 +1,389 @@
+"""Kronecker-factored half-inverse gradients (KHIG): HIG's scaling under K-FAC's factors.
+
+Sources: Schnell, Holl & Thuerey, *Half-Inverse Gradients for Physical Deep Learning*,
+ICLR 2022 (the update and its truncation); Martens & Grosse, *Optimizing Neural Networks
+with Kronecker-factored Approximate Curvature*, ICML 2015 (the factors). physgrad's own
+combination of the two (issue 34 of the project).
+
+HIG as a power of the Gauss–Newton matrix
+-----------------------------------------
+With ``J = U Σ Vᵀ`` the joint per-sample Jacobian of the simulator outputs (rows = b · dim y,
+sample-major; columns = parameters) and ``g = ∂L/∂y`` the output gradient of the batch-mean
+loss, ``Jᵀ g`` is the ordinary gradient and, on the row space of J,
+
+    V Σ^κ Uᵀ g = (JᵀJ)^p Jᵀ g,        κ = 2p + 1,
+
+since ``(JᵀJ)^p Jᵀ g = V Σ^{2p} Vᵀ V Σ Uᵀ g`` (powers of the kept eigenvalues only, the
+pseudo-inverse's convention). HIG (κ = −½) is ``p = −¾``; Gauss–Newton (κ = −1) is
+``p = −1``; ``p = −½`` gives κ = 0, ``V Uᵀ g``, every kept direction at unit scale.
+
+The Kronecker factors
+---------------------
+A dense layer ``z = W a + c`` (W: d_out × d_in; the bias folded in as a last column of
+``W̄ = [W c]`` acting on ``ā = [a; 1]``) applied once per sample has the Jacobian rows
+``D_i ⊗ ā_iᵀ`` for sample i, with ``D_i = ∂y_i/∂z_i`` (dim y × d_out) the simulator output's
+derivative with respect to the layer's pre-activations. Its block of ``JᵀJ`` is
+``Σ_i D_iᵀD_i ⊗ ā_iā_iᵀ`` (row-major vec of W̄), which K-FAC's independence assumption
+replaces by the product of the sums divided by the batch size,
+
+    JᵀJ|_layer ≈ (1/b) G ⊗ A,   G = Σ_i D_iᵀ D_i  (d_out × d_out),   A = Σ_i ā_i ā_iᵀ  (d_in' × d_in'),
+
+d_in' = d_in + 1 with a bias. Every layer is its own block (block-diagonal over layers, as
+K-FAC), so with the eigendecompositions ``G = Q_G diag(γ) Q_Gᵀ`` and ``A = Q_A diag(α) Q_Aᵀ``
+the layer's update is
+
+    ΔW̄ = Q_G [ φ(γ αᵀ / b) ⊙ (Q_Gᵀ ∇W̄ Q_A) ] Q_Aᵀ,      φ(λ) = (λ + δ)^p,
+
+with ``∇W̄ = Σ_i (D_iᵀ g_i) ā_iᵀ`` the layer's gradient; without damping and truncation this
+is ``b^{−p} G^p ∇W̄ A^p``: two eigendecompositions of d_out and d_in' wide per layer instead
+of HIG's one of min(b · dim y, P) wide.
+
+Truncation and damping
+----------------------
+HIG drops singular values σ ≤ τ σ_max; the eigenvalue products ``λ = γ_j α_k / b`` stand for
+σ² (exactly so where the factorisation is exact), so KHIG drops ``λ ≤ τ² λ_max``, with
+``λ_max`` the largest product *of that layer's block* (each block is truncated relative to
+its own top). The same τ thus means the same on both rules. Damping ``δ = damping · λ_max``
+is relative to the block's top, as Levenberg–Marquardt's ``λ = μ σ_max²`` in physgrad.
+The default ``damping = 1e-4`` is needed off the exact case: the Kronecker product's
+spectrum ``γ_j α_k`` spans the product of the two factors' condition numbers, far below
+the smallest σ² of J itself (on the oscillators at batch 32, J keeps 64 singular values
+above τ = 1e-6 where the factors keep 891 products), and ``p < 0`` turns those tiny products
+into huge steps; with ``damping = 0`` KHIG diverges there at HIG's η = 1.
+
+When it is exact, and when it is not
+------------------------------------
+The factorisation is exact when the network's only trainable parameters are one dense
+layer and ``D_i`` is the same for every sample (linear physics after a linear layer, the
+same for all samples): then ``Σ_i D_iᵀD_i ⊗ ā_iā_iᵀ = (1/b) G ⊗ A`` and KHIG equals HIG
+to rounding. Otherwise it approximates HIG twice: (1) across layers, the cross-layer blocks
+of ``JᵀJ`` are dropped (each layer is scaled by its own spectrum, not the joint one);
+(2) within a layer, the correlation between ``D_iᵀD_i`` and ``ā_iā_iᵀ`` over samples is
+dropped (nonlinear networks or simulators, sample-dependent physics).
+
+What it sees
+------------
+Dense layers are found in the traced per-sample program as physgrad's structured
+half-inverse route finds them (:func:`physgrad.structured.find_structure`: any parameter
+matrix used once in a ``W @ x`` or ``x @ W`` with a vector, ``eqx.nn.Linear``,
+:class:`physgrad.nets.Dense`, hand-written), with a bias added right after the product
+folded in. Every other parameter (a weight used twice, a free scale, a layer hidden inside
+a nested ``jit``) joins one leftover block handled *exactly*: the κ-power of its own
+explicit Jacobian rows ``J_o``, ``(J_oᵀJ_o)^p J_oᵀ g``, through the eigendecomposition of
+the smaller of ``J_oᵀJ_o`` and ``J_oJ_oᵀ``; it is refused in one line when that matrix is
+wider than ``explicit_max``. Convolution kernels are refused in one line (the factors of
+Grosse & Martens 2016 are not implemented): use the exact ``hig``.
+
+Cost: one backward pass per Jacobian row to the pre-activations (the same signals ``D``
+HIG's structured route uses), ``rows · d_out²`` and ``b · d_in'²`` multiply-adds for the
+factors, and two float64 ``eigh`` of d_out and d_in' per layer. The factors are fresh for
+every batch (HIG's way). The factors and their eigendecompositions are computed in float64
+(``A`` and ``G`` square the conditioning of the activations and the signals, as the Gram
+matrix does in HIG's Gram route) and the direction is cast back to each leaf's dtype.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, PyTree
+
+from .. import structured
+from ..precision import float64_scope, to_float64
+from ..routes import jacobian_shape, loss_and_output_gradient
+from .base import AbstractRule, Estimator, Objective, required
+
+_F64 = 8
+# Operations that only move or relabel a kernel's numbers: a convolution whose kernel comes
+# from a parameter leaf through these alone is a convolution layer of the network.
+_RESHAPING = {"reshape", "transpose", "convert_element_type", "broadcast_in_dim", "squeeze", "expand_dims", "rev",
+              "copy", "copy_p"}  # fmt: skip
+
+
+class BlockSpectrum(NamedTuple):
+    """What one block's truncation kept: the count, the largest eigenvalue product λ_max
+    and the smallest kept one (``inf`` when none is kept)."""
+
+    rank: Array
+    top: Array
+    bottom_kept: Array
+
+
+def kept_power(lam: Array, power: float, truncation: float, damping: float) -> tuple[Array, BlockSpectrum]:
+    """``φ(λ) = (λ + δ)^p`` where ``λ > τ² λ_max``, else 0 (dropped, not clamped), with
+    ``δ = damping · λ_max``; and the block's :class:`BlockSpectrum`. ``lam ≥ 0`` (any shape)
+    are eigenvalues of a curvature block (σ² in HIG's terms)."""
+    lam = jnp.maximum(lam, 0.0)  # eigh's rounding may leave tiny negatives for zero eigenvalues
+    top = jnp.max(lam)
+    keep = lam > truncation**2 * top
+    # Guard the power before the `where`: 0**negative would leak inf/NaN.
+    safe = jnp.where(keep, lam, jnp.ones_like(lam))
+    values = jnp.where(keep, (safe + damping * top) ** power, jnp.zeros_like(lam))
+    bottom = jnp.min(jnp.where(keep, lam, jnp.inf))
+    return values, BlockSpectrum(jnp.sum(keep).astype(jnp.int32), top, bottom)
+
+
+def kronecker_factors(D: Array, a: Array, bias: bool) -> tuple[Array, Array]:
+    """``(A, G)`` of one dense layer: ``A = Σ_i ā_i ā_iᵀ`` (d_in' × d_in', ā = [a; 1] with a
+    bias) from its inputs ``a`` (b, d_in), and ``G = Σ_i D_iᵀ D_i = DᵀD`` (d_out × d_out) from
+    its back-propagated signals ``D`` (rows, d_out), every sample's rows stacked. Sums, not
+    means: the layer's Gauss–Newton block is approximated by ``(1/b) G ⊗ A``."""
+    if bias:
+        a = jnp.concatenate([a, jnp.ones((a.shape[0], 1), a.dtype)], axis=1)
+    return a.T @ a, D.T @ D
+
+
+def dense_block_direction(D: Array, a: Array, g: Array, bias: bool, power: float, truncation: float,
+                          damping: float) -> tuple[Array, BlockSpectrum]:  # fmt: skip
+    """``ΔW̄ = Q_G [φ(γαᵀ/b) ⊙ (Q_Gᵀ ∇W̄ Q_A)] Q_Aᵀ`` (d_out × d_in') for one dense layer from
+    its signals ``D`` (rows, d_out), inputs ``a`` (b, d_in) and the output gradient ``g``
+    (rows,); the bias, if any, is the last column."""
+    b, d_out = a.shape[0], D.shape[1]
+    A, G = kronecker_factors(D, a, bias)
+    a_bar = jnp.concatenate([a, jnp.ones((b, 1), a.dtype)], axis=1) if bias else a
+    # ∇W̄ = Σ_i (D_iᵀ g_i) ā_iᵀ: each sample's signals weighted by its output gradient.
+    weighted = (D * g[:, None]).reshape(b, -1, d_out).sum(axis=1)  # (b, d_out)
+    grad = weighted.T @ a_bar
+    alpha, q_a = jnp.linalg.eigh(A)
+    gamma, q_g = jnp.linalg.eigh(G)
+    phi, spectrum = kept_power(jnp.outer(gamma, alpha) / b, power, truncation, damping)
+    return q_g @ (phi * (q_g.T @ grad @ q_a)) @ q_a.T, spectrum
+
+
+def explicit_block_direction(J: Array, g: Array, power: float, truncation: float,
+                             damping: float) -> tuple[Array, BlockSpectrum]:  # fmt: skip
+    """``(J_oᵀJ_o)^p J_oᵀ g`` (P_o,) exactly, from the eigendecomposition of the smaller of
+    ``J_oᵀJ_o`` and ``J_oJ_oᵀ`` (the same nonzero eigenvalues σ²):
+    ``Q φ(Λ) Qᵀ J_oᵀ g`` or ``J_oᵀ U φ(Λ) Uᵀ g``."""
+    rows, size = J.shape
+    if size <= rows:
+        lam, q = jnp.linalg.eigh(J.T @ J)
+        phi, spectrum = kept_power(lam, power, truncation, damping)
+        return q @ (phi * (q.T @ (J.T @ g))), spectrum
+    lam, u = jnp.linalg.eigh(J @ J.T)
+    phi, spectrum = kept_power(lam, power, truncation, damping)
+    return J.T @ (u @ (phi * (u.T @ g))), spectrum
+
+
+def _kernel_leaves(structure: structured.Structure) -> set[int]:
+    """Parameter leaves that reach a convolution's kernel through reshaping alone."""
+    jaxpr = structure.jaxpr.jaxpr
+    n = len(structure.leaf_sizes)
+    origin = {v: k for k, v in enumerate(jaxpr.invars[:n])}
+    found = set()
+    for eqn in jaxpr.eqns:
+        name = eqn.primitive.name
+        if name in _RESHAPING and eqn.invars and eqn.invars[0] in origin:
+            for v in eqn.outvars:
+                origin[v] = origin[eqn.invars[0]]
+        elif name == "conv_general_dilated":
+            kernel = eqn.invars[1]
+            if not hasattr(kernel, "val") and kernel in origin:
+                found.add(origin[kernel])
+    return found
+
+
+class Plan(NamedTuple):
+    """What KHIG does for these shapes: the program's structure (one explicit group
+    holding every leftover leaf) and the leftover block's size."""
+
+    structure: structured.Structure
+    explicit: tuple[int, ...]
+    explicit_parameters: int
+    rows: int
+
+
+class KroneckerPower(AbstractRule):
+    """Per dense layer ``ΔW̄ = φ(G, A) ∇W̄``: the power ``p`` of K-FAC's block ``(1/b) G ⊗ A``
+    of ``JᵀJ`` applied to the gradient (p = −¾: HIG's κ = −½; p = −1: Gauss–Newton), the
+    leftover parameters' block exactly. See :mod:`physgrad.methods.kronecker_hig`."""
+
+    power: float = eqx.field(static=True, default=-0.75)
+    truncation: float = eqx.field(static=True, default=1e-6)
+    damping: float = eqx.field(static=True, default=1e-4)
+    explicit_max: int = eqx.field(static=True, default=1024)
+
+    def __check_init__(self):
+        if not self.truncation >= 0:
+            raise ValueError(f"truncation must be >= 0, got {self.truncation}")
+        if not self.damping >= 0:
+            raise ValueError(f"damping must be >= 0, got {self.damping}")
+        if not self.power < 0:
+            raise ValueError(f"power must be negative (-0.75: HIG, -1: Gauss-Newton), got {self.power}")
+        if self.explicit_max < 0:
+            raise ValueError(f"explicit_max must be >= 0, got {self.explicit_max}")
+
+    def check(self, objective):
+        if objective.predict is None or objective.loss is None:
+            raise ValueError("khig needs predict(params, sample) and loss(y, sample)")
+        objective.require_differentiable()
+
+    def plan(self, objective: Objective, params: PyTree, batch: PyTree) -> Plan:
+        """The dense layers and the leftover block for these shapes, or a one-line
+        ``ValueError`` for what KHIG refuses (complex parameters, convolution layers, a
+        leftover block wider than ``explicit_max``)."""
+        leaves = jax.tree.leaves(params)
+        if any(jnp.iscomplexobj(x) for x in leaves):
+            raise ValueError("khig: complex parameters have no real Kronecker factors; use hig")
+        rows, _ = jacobian_shape(objective, params, batch)
+        sample = jax.tree.map(lambda x: x[0], batch)
+        # One explicit group: the leftover block is one Jacobian of all its leaves.
+        predict = required(objective.predict, "predict")
+        structure = structured.find_structure(predict, params, sample, rows, chunk_elements=2**62)
+        kernels = _kernel_leaves(structure)
+        if kernels:
+            raise ValueError(
+                f"khig: the network has convolution layers ({len(kernels)} kernel leaves) and khig has Kronecker "
+                "factors for dense layers only; use hig (exact)"
+            )
+        explicit = tuple(k for group in structure.groups for k in group)
+        size = sum(structure.leaf_sizes[k] for k in explicit)
+        if explicit and min(rows, size) > self.explicit_max:
+            raise ValueError(
+                f"khig: {size} parameters are outside the dense layers it sees and their exact block needs an "
+                f"eigendecomposition of {min(rows, size)} > explicit_max={self.explicit_max}; use hig, or raise "
+                "explicit_max"
+            )
+        return Plan(structure, explicit, size, rows)
+
+    def describe(self, objective, params, batch):
+        """``{"dense": [(d_out, d_in', bias), …], "explicit_parameters": P_o, "jacobian":
+        (rows, P)}`` for these shapes (nothing is computed)."""
+        plan = self.plan(objective, params, batch)
+        dense = [(u.d_out, u.d_in + (u.bias is not None), u.bias is not None) for u in plan.structure.dense]
+        return {"dense": dense, "explicit_parameters": plan.explicit_parameters,
+                "jacobian": jacobian_shape(objective, params, batch)}  # fmt: skip
+
+    def footprint(self, objective, params, batch, devices=1):
+        plan = self.plan(objective, params, batch)
+        b = jax.tree.leaves(batch)[0].shape[0]
+        itemsize = max((jnp.dtype(x.dtype).itemsize for x in jax.tree.leaves(params)), default=4)
+        dense = plan.structure.dense
+        d_out, d_in = sum(u.d_out for u in dense), sum(u.d_in + 1 for u in dense)
+        signals = (plan.rows * (d_out + plan.explicit_parameters) + b * d_in) * (itemsize + _F64)
+        # factors, their eigenvectors and eigh's workspace; the leftover block's Gram likewise
+        squares = sum(u.d_out**2 + (u.d_in + 1) ** 2 for u in dense) * 3 * _F64
+        leftover = 3 * min(plan.rows, plan.explicit_parameters) ** 2 * _F64 if plan.explicit else 0
+        return signals + squares + leftover
+
+    def footprint_note(self, objective, params, batch):
+        plan = self.plan(objective, params, batch)
+        widths = "+".join(str(u.d_out) for u in plan.structure.dense) or "0"
+        return f"khig: {plan.rows} rows × ({widths}) signals, {plan.explicit_parameters} leftover parameters"
+
+    def __call__(self, objective, params, batch):
+        plan = self.plan(objective, params, batch)
+        structure = plan.structure
+        block, y = structured.factors(structure, params, batch, groups=(0,) if plan.explicit else ())
+        loss, g = loss_and_output_gradient(objective, params, batch, y)
+        # Constants for differentiation: the float64 scope below cannot be transposed.
+        block, g = jax.lax.stop_gradient((block, g))
+        leaves = jax.tree.leaves(params)
+        pieces: dict[int, Array] = {}
+        spectra = []
+        with float64_scope():
+            g64 = to_float64(g)
+            for use, D, a in zip(structure.dense, block.D, block.A):
+                bias = use.bias is not None
+                delta, spectrum = dense_block_direction(
+                    to_float64(D), to_float64(a), g64, bias, self.power, self.truncation, self.damping
+                )
+                weight = delta[:, : use.d_in]
+                pieces[use.leaf] = (weight.T if use.transposed else weight).astype(leaves[use.leaf].dtype)
+                if use.bias is not None:
+                    pieces[use.bias] = delta[:, use.d_in].astype(leaves[use.bias].dtype)
+                spectra.append(spectrum)
+            if plan.explicit:
+                assert block.J is not None  # the explicit rows of group 0: every leftover leaf
+                flat, spectrum = explicit_block_direction(
+                    to_float64(block.J), g64, self.power, self.truncation, self.damping
+                )
+                offset = 0
+                for k in plan.explicit:
+                    size = structure.leaf_sizes[k]
+                    pieces[k] = flat[offset : offset + size].reshape(leaves[k].shape).astype(leaves[k].dtype)
+                    offset += size
+                spectra.append(spectrum)
+            stats = _spectrum_stats(spectra, y.dtype)
+        direction = [pieces.get(k, jnp.zeros_like(x)) for k, x in enumerate(leaves)]
+        return jax.tree.unflatten(jax.tree.structure(params), direction), {"loss": loss, **stats}
+
+
+class LayerFactors(NamedTuple):
+    """One dense layer's Kronecker factors (float64): the parameter leaves it covers (by
+    their index in ``jax.tree.leaves(params)``), ``A`` (d_in' × d_in') and ``G`` (d_out × d_out)."""
+
+    weight: int
+    bias: int | None
+    A: Array
+    G: Array
+
+
+def layer_factors(predict, params: PyTree, batch: PyTree) -> list[LayerFactors]:
+    """The Kronecker factors ``A = Σ_i ā_i ā_iᵀ`` and ``G = Σ_i D_iᵀ D_i`` of every dense layer
+    that :func:`kronecker_hig` sees in ``predict`` for this batch (``params``: arrays only),
+    in program order; for inspection and tests, computed as the rule computes them."""
+    rows, _ = jacobian_shape(Objective(predict), params, batch)
+    structure = structured.find_structure(predict, params, jax.tree.map(lambda x: x[0], batch), rows)
+    block, _ = structured.factors(structure, params, batch, groups=())
+    block = jax.lax.stop_gradient(block)
+    out = []
+    with float64_scope():
+        for use, D, a in zip(structure.dense, block.D, block.A):
+            A, G = kronecker_factors(to_float64(D), to_float64(a), use.bias is not None)
+            out.append(LayerFactors(use.leaf, use.bias, A, G))
+    return out
+
+
+def _spectrum_stats(spectra: list[BlockSpectrum], dtype) -> dict[str, Array]:
+    """``rank`` (eigenvalue products kept, all blocks), ``sigma_max`` (√ of the largest
+    block top) and ``sigma_min_kept`` (√ of the smallest kept product): HIG's statistics,
+    with σ² read as the eigenvalue products."""
+    if not spectra:
+        raise ValueError("khig: the network has no parameters")
+    rank = sum(s.rank for s in spectra)
+    top = jnp.max(jnp.stack([s.top for s in spectra]))
+    bottom = jnp.min(jnp.stack([s.bottom_kept for s in spectra]))
+    return {"rank": jnp.asarray(rank, jnp.int32), "sigma_max": jnp.sqrt(top).astype(dtype),
+            "sigma_min_kept": jnp.sqrt(bottom).astype(dtype)}  # fmt: skip
+
+
+def kronecker_hig(predict, loss, *, truncation: float = 1e-6, power: float = -0.75, damping: float = 1e-4,
+                  explicit_max: int = 1024) -> Estimator:  # fmt: skip
+    """Kronecker-factored half-inverse gradients: ``(params, batch) -> (direction, stats)``.
+
+    Per dense layer ``z = W a + c`` (bias folded in as ``W̄ = [W c]``, ``ā = [a; 1]``)
+
+        ΔW̄ = b^{−p} G^p ∇W̄ A^p,   G = Σ_i D_iᵀ D_i,   A = Σ_i ā_i ā_iᵀ,
+
+    the power ``p`` of K-FAC's block ``(1/b) G ⊗ A`` of the Gauss–Newton matrix ``JᵀJ`` applied
+    to the layer's gradient, with ``D_i = ∂y_i/∂z_i`` the simulator output's derivative with
+    respect to the layer's pre-activations. ``p = −¾`` is HIG's ``V Σ^{−½} Uᵀ g = (JᵀJ)^{−¾} Jᵀ g``
+    and equals :func:`physgrad.hig` where the Gauss–Newton block is exactly Kronecker (one
+    dense layer, linear physics shared by the samples); ``p = −1`` is Kronecker-factored
+    Gauss–Newton. Apply with ``optax.sgd(η)`` (HIG's η) or any chain, as :func:`physgrad.hig`.
+
+    Arguments:
+        predict: ``predict(params, sample) -> y``, network and simulator for one sample.
+        loss: ``loss(y, sample) -> L_i``; the rule uses the batch mean.
+        truncation: τ as in :func:`physgrad.hig`: eigenvalue products ``λ ≤ τ² λ_max`` of a
+            block are dropped (λ stands for σ²), λ_max the block's largest.
+        power: ``p`` (−¾: HIG; −1: Gauss–Newton; −½: every kept direction at unit scale).
+        damping: ``δ/λ_max``: the kept products are raised as ``(λ + δ)^p``, δ relative to
+            the block's largest product. 0 is the pure analogue of HIG (equal to it where
+            the factorisation is exact); off that case the products of the factors' small
+            eigenvalues reach far below J's own spectrum and, raised to ``p``, blow up the
+            step (the oscillators diverge at HIG's η = 1), so the default damps them (1e-4).
+        explicit_max: the widest eigendecomposition allowed for the parameters outside the
+            dense layers it sees (handled exactly as one block; refused beyond).
+
+    ``stats``: ``loss``; ``rank``, the eigenvalue products kept over all blocks;
+    ``sigma_max`` and ``sigma_min_kept``, √ of the largest and of the smallest kept product
+    (HIG's σ range). Convolution layers are refused in one line (use :func:`physgrad.hig`).
+    See :mod:`physgrad.methods.kronecker_hig` for the derivation and its assumptions.
+    """
+    rule = KroneckerPower(power, truncation, damping, explicit_max)
+    return Estimator(rule, Objective(predict, loss))
