@@ -47,7 +47,7 @@ its own top). The same τ thus means the same on both rules. Damping ``δ = damp
 is relative to the block's top, as Levenberg–Marquardt's ``λ = μ σ_max²`` in physgrad.
 The default ``damping = 1e-4`` is needed off the exact case: the Kronecker product's
 spectrum ``γ_j α_k`` spans the product of the two factors' condition numbers, far below
-the smallest σ² of J itself (on the oscillators at batch 32, J keeps 64 singular values
+the smallest σ² of J itself (on the oscillators at batch 16, J keeps 64 singular values
 above τ = 1e-6 where the factors keep 891 products), and ``p < 0`` turns those tiny products
 into huge steps; with ``damping = 0`` KHIG diverges there at HIG's η = 1.
 
