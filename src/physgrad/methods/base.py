@@ -68,8 +68,16 @@ def trainable(params: PyTree) -> tuple[PyTree, PyTree]:
     """``(arrays, static)``: the inexact-array leaves of ``params`` (floating or complex,
     what the rules differentiate) and everything else (functions, integers, Python
     scalars), each with None in the other's places, as ``eqx.partition(params,
-    eqx.is_inexact_array)``; ``eqx.combine(arrays, static)`` is ``params`` again."""
-    return eqx.partition(params, eqx.is_inexact_array)
+    eqx.is_inexact_array)``; ``eqx.combine(arrays, static)`` is ``params`` again. Abstract
+    stand-ins of such arrays (``jax.ShapeDtypeStruct``, as the memory guard's footprints
+    see the parameters before they exist) count as arrays."""
+    return eqx.partition(params, _is_trainable)
+
+
+def _is_trainable(x: Any) -> bool:
+    if isinstance(x, jax.ShapeDtypeStruct):
+        return bool(jnp.issubdtype(x.dtype, jnp.inexact))
+    return eqx.is_inexact_array(x)
 
 
 def required(piece: _T | None, name: str) -> _T:
