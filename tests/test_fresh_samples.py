@@ -3,6 +3,7 @@
 
 import json
 
+import equinox as eqx
 import jax
 import numpy as np
 import pytest
@@ -41,8 +42,6 @@ def hand_written_sgd(fresh: bool, seed: int = 0):
 def trained(tmp_path, name, **extra):
     config = make_config("exp_inverse", "sgd", budget=Budget(steps=STEPS), settings={**SETTINGS, **extra})
     summary = train(config, tmp_path / name)
-    import equinox as eqx
-
     params = eqx.tree_deserialise_leaves(tmp_path / name / "params.eqx", build(config).params)
     return summary, params
 
