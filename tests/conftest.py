@@ -34,17 +34,39 @@ jax.config.update("jax_enable_x64", True)
 # test_methods + test_lm: 173 s of CPU cold, 59 s warm). The key is the program's HLO, the
 # compile options and the jax/jaxlib versions, so an entry never serves a changed program.
 # PHYSGRAD_TEST_XLA_CACHE names another directory; an empty value turns it off (a cold run,
-# as on a fresh machine). Size-capped; the oldest entries go first.
+# as on a fresh machine).
+#
+# Not JAX's own size cap (`jax_compilation_cache_max_size`): with it every write takes a file
+# lock and stats every entry in the directory to find the oldest, so a cold suite's ~5,000
+# writes cost quadratic time (the suite measured 27.6 min cold with it). The whole suite's
+# cache is ~70 MB; `_trim_cache` deletes the oldest entries beyond a cap once per session.
+_XLA_CACHE_CAP = 2 * 2**30
 _xla_cache = os.environ.get(
     "PHYSGRAD_TEST_XLA_CACHE", os.path.join(os.path.expanduser("~"), ".cache", "physgrad", "test-xla")
 )
+
+
+def _trim_cache(path: str, cap: int) -> None:
+    """Delete the least recently written entries of ``path`` until it holds at most ``cap``
+    bytes (entries are written once and never change, so mtime orders them by age)."""
+    try:
+        entries = [e for e in os.scandir(path) if e.is_file()]
+    except FileNotFoundError:
+        return
+    stats = sorted(((e.stat().st_mtime, e.stat().st_size, e.path) for e in entries), reverse=True)
+    total = 0
+    for _, size, file in stats:
+        total += size
+        if total > cap:
+            try:
+                os.remove(file)
+            except FileNotFoundError:  # another worker trimmed it first
+                pass
+
+
 if _xla_cache:
+    if "PYTEST_XDIST_WORKER" not in os.environ:  # once, in the controlling process
+        _trim_cache(_xla_cache, _XLA_CACHE_CAP)
     jax.config.update("jax_compilation_cache_dir", _xla_cache)
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
-    try:  # JAX evicts the oldest entries beyond the cap with filelock's help (a test extra)
-        import filelock  # noqa: F401
-
-        jax.config.update("jax_compilation_cache_max_size", 4 * 2**30)
-    except ImportError:
-        pass
