@@ -215,6 +215,13 @@ class Estimator(eqx.Module):
     def __check_init__(self):
         self.rule.check(self.objective)
 
+    # An estimator is a function, and `jax.jit(estimate)` hashes it as one: by identity. The
+    # field-wise hash a Module would get fails on the arrays some objectives hold (a rollout
+    # system's per-step weights), so `jax.jit(physgrad.bptt(...))` raised "unhashable type".
+    # Equality stays identity too, so two equal-hash estimators are never confused.
+    __hash__ = object.__hash__
+    __eq__ = object.__eq__
+
     def __call__(self, params: PyTree, batch: PyTree) -> tuple[PyTree, Stats]:
         arrays, static = trainable(params)
         return self.rule(self.objective.bind_static(static), arrays, batch)
