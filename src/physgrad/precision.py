@@ -8,7 +8,7 @@ with JAX's context manager ``jax.enable_x64(True)``:
   :mod:`physgrad.half_inverse_large`): the Gram matrix squares the condition number, so it
   is formed and decomposed in float64 and the direction is cast back to the Jacobian's dtype;
 * inverse solvers that iterate in float64 (:class:`physgrad.inverse.lbfgs.LBFGS`) and
-  SIP's ``precision="float64"``;
+  SIP's ``precision=jnp.float64``;
 * the float64 reference solvers that generate data (KS, Kolmogorov, advection), whose
   output is cast to float32 as before;
 * problems whose own arrays are float64 (``AbstractProblem.needs_float64``): the engine

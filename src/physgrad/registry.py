@@ -35,6 +35,7 @@ from .methods import (
 )
 from .methods.kfac import kfac
 from .methods.kronecker_hig import KroneckerPower
+from .methods.sip import L1Proxy, L2Proxy
 from .rollout import Combined, M, R, S
 
 # `# isort: skip`: isort would split this compact `# fmt: skip` import into one name a line
@@ -167,6 +168,9 @@ def make_solver(name: str, *, analytic=None, rcond=1e-5, max_loss_change=0.2, ma
     return LinearSolve(krylov, rtol=tol, max_steps=max_steps)
 
 
+SIP_PROXIES = {"l2": L2Proxy(), "l1": L1Proxy()}
+
+
 def sip(
     *,
     lr: float = 1e-3,
@@ -189,7 +193,9 @@ def sip(
     inverse = None if solver == "auto" else make_solver(solver, **settings)  # auto: decided by the problem
     if solver == "auto":
         make_solver("gauss_newton", **settings)  # the fallback's settings are checked now
-    return Method(ScaleInvariantPhysics(inverse, eta, proxy, precision), OPTIMIZERS[optimizer](lr))
+    _choose("proxy", proxy, SIP_PROXIES)
+    _choose("precision", precision, ("float32", "float64"))
+    return Method(ScaleInvariantPhysics(inverse, eta, SIP_PROXIES[proxy], precision), OPTIMIZERS[optimizer](lr))
 
 
 # --- BPTT and stabilised BPTT --------------------------------------------------------------

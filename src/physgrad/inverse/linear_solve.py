@@ -32,11 +32,11 @@ counts the others (``stats["inverse_failures"]``) and warns when most of a batch
 
 For nonlinear P this is one Newton–Krylov step, not the exact inverse. The error of x̃
 grows like the condition number times the tolerance: on ill-conditioned operators run
-SIP with ``precision="float64"``. A = ∂P/∂x is applied in forward mode: a reverse-mode-only
+SIP with ``precision=jnp.float64``. A = ∂P/∂x is applied in forward mode: a reverse-mode-only
 simulator (PhiFlow, :mod:`physgrad.phiflow`) gets a one-line ``ValueError`` naming
 ``GaussNewton``/``LBFGS``.
 
-Under ``precision="float64"`` SIP runs the solve in :func:`physgrad.precision.float64_call`:
+Under ``precision=jnp.float64`` SIP runs the solve in :func:`physgrad.precision.float64_call`:
 ``lineax.linear_solve`` is a primitive whose body is traced again when an enclosing
 ``jax.jit`` is lowered, after a plain float64 scope has closed.
 """

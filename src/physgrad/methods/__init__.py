@@ -25,17 +25,20 @@ from .hig import JacobianPower, gauss_newton, hig
 from .kronecker_hig import KroneckerPower, kronecker_hig
 from .lm import LevenbergMarquardt, adapt_damping, predicted_decrease
 from .newton import Newton, newton
-from .sip import ScaleInvariantPhysics, sip
+from .sip import AbstractProxy, L1Proxy, L2Proxy, ScaleInvariantPhysics, sip
 from .stable_bptt import RolloutGradient, bptt, stabilised_bptt
 from .unrolling import Unrolled, UnrolledGradient, schedule, unrolled
 
 __all__ = [
     "AbstractMethod",
+    "AbstractProxy",
     "AbstractRule",
     "Estimator",
     "Gradient",
     "JacobianPower",
     "KroneckerPower",
+    "L1Proxy",
+    "L2Proxy",
     "LevenbergMarquardt",
     "LossAwareDP",
     "Method",

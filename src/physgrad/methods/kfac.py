@@ -83,8 +83,10 @@ that the parameter-only ``init`` cannot foresee.
 
 from __future__ import annotations
 
+import enum
 import functools
-from typing import Any, NamedTuple
+from collections.abc import Callable
+from typing import Any, NamedTuple, TypeVar
 
 import equinox as eqx
 import jax
@@ -93,9 +95,50 @@ import jax.numpy as jnp
 from ..nets import Dense
 from .base import AbstractMethod, required, trainable
 
-BLOCKS = ("kfac", "full")
-ESTIMATIONS = ("ggn_curvature_prop", "ggn_exact")
-LOSS_HESSIANS = ("auto", "exact", "rayleigh")
+
+class Blocks(enum.StrEnum):
+    """The curvature blocks: ``KFAC`` (Kronecker factors per dense layer) or ``FULL`` (dense
+    per-layer blocks, small networks only)."""
+
+    KFAC = "kfac"
+    FULL = "full"
+
+
+class Estimation(enum.StrEnum):
+    """kfac-jax's curvature estimator: ``GGN_CURVATURE_PROP`` (sampled, its default) or
+    ``GGN_EXACT`` (one backward pass per output dimension after the loss transform)."""
+
+    GGN_CURVATURE_PROP = "ggn_curvature_prop"
+    GGN_EXACT = "ggn_exact"
+
+
+class LossHessian(enum.StrEnum):
+    """How the problem's loss is registered with kfac-jax (:func:`_curvature_output`):
+    ``EXACT`` (its per-sample Hessian, convex part), ``RAYLEIGH`` (its Rayleigh quotient
+    along the gradient, isotropic) or ``AUTO`` (exact up to ``EXACT_HESSIAN_MAX`` outputs)."""
+
+    AUTO = "auto"
+    EXACT = "exact"
+    RAYLEIGH = "rayleigh"
+
+
+_E = TypeVar("_E", bound=enum.StrEnum)
+
+
+def _member(kind: type[_E], name: str) -> Callable[[Any], _E]:
+    """A field converter: an enum member from itself or its value, with a one-line error
+    naming the setting and its valid values."""
+
+    def convert(value: Any) -> _E:
+        try:
+            return kind(value)
+        except ValueError:
+            valid = ", ".join(m.value for m in kind)
+            raise ValueError(f"unknown {name} {value!r}; valid choices: {valid}") from None
+
+    return convert
+
+
 EXACT_HESSIAN_MAX = 256  # dim y up to which ``auto`` forms the loss Hessian
 
 
@@ -207,15 +250,15 @@ def _graph_patterns():
 
 
 # --- the registered loss ------------------------------------------------------------------
-def _curvature_output(objective, y, batch, loss_hessian: str):
+def _curvature_output(objective, y, batch, loss_hessian: LossHessian):
     """z (b, k) with ½‖z − z*‖² having the loss's Hessian (or its isotropic part) in y."""
     b = y.shape[0]
     flat = y.reshape(b, -1)
     m = flat.shape[1]
     per_sample = lambda v, s: objective.loss(v.reshape(y.shape[1:]), s)  # noqa: E731
-    if loss_hessian == "auto":
-        loss_hessian = "exact" if m <= EXACT_HESSIAN_MAX else "rayleigh"
-    if loss_hessian == "exact":
+    if loss_hessian is LossHessian.AUTO:
+        loss_hessian = LossHessian.EXACT if m <= EXACT_HESSIAN_MAX else LossHessian.RAYLEIGH
+    if loss_hessian is LossHessian.EXACT:
         hessian = jax.lax.stop_gradient(jax.vmap(jax.hessian(per_sample))(flat, batch))
         eigenvalues, vectors = jnp.linalg.eigh(hessian)
         # Gauss–Newton keeps the loss's convex part: negative eigenvalues dropped.
@@ -254,18 +297,18 @@ class KFAC(AbstractMethod):
     damping_decay: float = eqx.field(static=True, default=0.9)
     curvature_ema: float = eqx.field(static=True, default=0.95)
     inverse_every: int = eqx.field(static=True, default=5)
-    blocks: str = eqx.field(static=True, default="kfac")
-    estimation: str = eqx.field(static=True, default="ggn_curvature_prop")
-    loss_hessian: str = eqx.field(static=True, default="auto")
+    blocks: Blocks = eqx.field(static=True, default=Blocks.KFAC, converter=_member(Blocks, "blocks"))
+    estimation: Estimation = eqx.field(
+        static=True, default=Estimation.GGN_CURVATURE_PROP, converter=_member(Estimation, "estimation")
+    )
+    loss_hessian: LossHessian = eqx.field(
+        static=True, default=LossHessian.AUTO, converter=_member(LossHessian, "loss_hessian")
+    )
     exact_inverses: bool = eqx.field(static=True, default=False)
     l2_reg: float = eqx.field(static=True, default=0.0)
     seed: int = eqx.field(static=True, default=0)
 
     def __check_init__(self):
-        for name, value, choices in (("blocks", self.blocks, BLOCKS), ("estimation", self.estimation, ESTIMATIONS),
-                                     ("loss_hessian", self.loss_hessian, LOSS_HESSIANS)):  # fmt: skip
-            if value not in choices:
-                raise ValueError(f"unknown {name} {value!r}; valid choices: {', '.join(choices)}")
         if not (self.damping > 0 and self.min_damping >= 0 and self.damping_interval >= 1 and self.inverse_every >= 1):
             raise ValueError("kfac needs damping > 0, min_damping >= 0, damping_interval >= 1 and inverse_every >= 1")
         if not (0 < self.damping_decay < 1 and 0 <= self.curvature_ema < 1):
@@ -279,7 +322,7 @@ class KFAC(AbstractMethod):
     # --- kfac-jax's optimizer, configured ---------------------------------------------------
     def _optimizer(self, func):
         kfac_jax = _kfac_jax()
-        full = {"dense": kfac_jax.DenseFull, "generic": kfac_jax.NaiveFull} if self.blocks == "full" else None
+        full = {"dense": kfac_jax.DenseFull, "generic": kfac_jax.NaiveFull} if self.blocks is Blocks.FULL else None
         return kfac_jax.Optimizer(
             value_and_grad_func=jax.value_and_grad(func),
             l2_reg=self.l2_reg,
@@ -291,7 +334,7 @@ class KFAC(AbstractMethod):
             damping_adaptation_interval=self.damping_interval,
             damping_adaptation_decay=self.damping_decay,
             num_burnin_steps=0,  # burn-in needs a data iterator; the EMA starts from the first batch
-            estimation_mode=self.estimation,
+            estimation_mode=self.estimation.value,
             curvature_ema=self.curvature_ema,
             curvature_update_period=1,  # every step: keeps kfac-jax's static step logic step-independent
             inverse_update_period=self.inverse_every,
@@ -403,9 +446,9 @@ def kfac(
     damping_decay: float = 0.9,
     curvature_ema: float = 0.95,
     inverse_every: int = 5,
-    blocks: str = "kfac",
-    estimation: str = "ggn_curvature_prop",
-    loss_hessian: str = "auto",
+    blocks: Blocks | str = Blocks.KFAC,
+    estimation: Estimation | str = Estimation.GGN_CURVATURE_PROP,
+    loss_hessian: LossHessian | str = LossHessian.AUTO,
     exact_inverses: bool = False,
     l2_reg: float = 0.0,
     seed: int = 0,
@@ -420,12 +463,9 @@ def kfac(
             ``min_damping``), else fixed. It scales with the loss.
         curvature_ema: decay of the factors' moving average; ``inverse_every``: steps
             between refreshing their inverses.
-        blocks: ``kfac`` (Kronecker factors per dense layer) or ``full`` (dense per-layer
-            blocks, small networks only).
-        estimation: ``ggn_curvature_prop`` (sampled, kfac-jax's default) or ``ggn_exact``
-            (one backward pass per output dimension after the loss transform).
-        loss_hessian: how the problem's loss is registered: ``exact``, ``rayleigh`` or
-            ``auto`` (see :mod:`physgrad.methods.kfac`).
+        blocks: :class:`Blocks` (or its value: ``"kfac"``, ``"full"``).
+        estimation: :class:`Estimation` (or ``"ggn_curvature_prop"``, ``"ggn_exact"``).
+        loss_hessian: :class:`LossHessian` (or ``"auto"``, ``"exact"``, ``"rayleigh"``).
         exact_inverses: invert the damped Kronecker blocks exactly (eigendecompositions)
             instead of kfac-jax's factored damping.
         l2_reg: weight decay coefficient known to the curvature (not added to the loss).
@@ -434,5 +474,5 @@ def kfac(
     from ..extras import require
 
     require("kfac", "kfac")  # kfac-jax is the optional extra physgrad[kfac]
-    return KFAC(adaptive, lr, momentum, damping, adaptive_damping, min_damping, damping_interval, damping_decay,
-                curvature_ema, inverse_every, blocks, estimation, loss_hessian, exact_inverses, l2_reg, seed)  # fmt: skip
+    hyperparameters = {name: value for name, value in locals().items() if name in KFAC.__dataclass_fields__}
+    return KFAC(**hyperparameters)

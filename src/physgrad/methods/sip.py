@@ -8,13 +8,13 @@ Per mini-batch, with the network output x_i = f(y*_i; θ) and y_i = P(x_i):
 
     y_t,i = y_i + η (y*_i − y_i)                  (the Newton step of an L2 loss in y)
     x̃_i  = stop_gradient(P⁻¹(y_t,i; x_i))        (local inverse solver, per sample)
-    L_proxy = (1/b) Σ_i ½ ‖x_i − x̃_i‖²            (or (1/b) Σ_i Σ_j |x_ij − x̃_ij|, proxy="l1")
+    L_proxy = (1/b) Σ_i ½ ‖x_i − x̃_i‖²            (L2Proxy; L1Proxy: (1/b) Σ_i Σ_j |x_ij − x̃_ij|)
     d = ∇_θ L_proxy                                (applied by any optax optimizer; Adam in the paper)
 
 The simulator and the solver run on stop-gradient values outside the network's autodiff:
 no gradient flows into the simulator (it may be non-differentiable, e.g. an external code,
 when the solver does not need derivatives), and the inverse may run in float64
-(``precision="float64"``, scoped to the solve: the user's process keeps its settings).
+(``precision=jnp.float64``, scoped to the solve: the user's process keeps its settings).
 A sample whose solve does not converge (or is not finite) gets x̃ = x, i.e. contributes
 nothing, and is counted in the step's ``inverse_failures``. The authors sum the proxy over
 the batch; physgrad averages (Adam is invariant to the factor; SGD's lr absorbs it). With
@@ -23,18 +23,46 @@ the batch; physgrad averages (Adam is invariant to the factor; SGD's lr absorbs 
 
 from __future__ import annotations
 
+import abc
 import warnings
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array
 
 from ..inverse import AbstractInverseSolver, Analytic, GaussNewton, InverseFailureWarning
 from ..precision import float64_call, to_float64
 from .base import AbstractRule, Estimator, Objective, required
 
-PROXIES = ("l2", "l1")
-PRECISIONS = ("float32", "float64")
+PRECISIONS = (np.dtype("float32"), np.dtype("float64"))
+
+
+class AbstractProxy(eqx.Module):
+    """The x-space proxy loss: ``proxy(x − x̃, b) -> (L_proxy, ∂L_proxy/∂x)``.
+
+    ``x − x̃`` has shape (b, …); the cotangent is what the network's pullback receives, so
+    the direction is ``d = Jᵀ ∂L_proxy/∂x`` with J the network's Jacobian (no simulator
+    derivative: x̃ is a constant of the step)."""
+
+    @abc.abstractmethod
+    def __call__(self, diff: Array, batch_size: int) -> tuple[Array, Array]: ...
+
+
+class L2Proxy(AbstractProxy):
+    """``L = (1/b) Σ_i ½ ‖x_i − x̃_i‖²``, cotangent ``(x − x̃)/b``: the paper's proxy (Algorithm 1)."""
+
+    def __call__(self, diff, batch_size):
+        return 0.5 * jnp.sum(diff**2) / batch_size, diff / batch_size
+
+
+class L1Proxy(AbstractProxy):
+    """``L = (1/b) Σ_i Σ_j |x_ij − x̃_ij|``, cotangent ``sign(x − x̃)/b``: the paper's choice for
+    the ill-conditioned sine inversion (Fig. 5), where a few large residuals would dominate L2."""
+
+    def __call__(self, diff, batch_size):
+        return jnp.sum(jnp.abs(diff)) / batch_size, jnp.sign(diff) / batch_size
 
 
 class ScaleInvariantPhysics(AbstractRule):
@@ -53,17 +81,18 @@ class ScaleInvariantPhysics(AbstractRule):
 
     solver: AbstractInverseSolver | None = eqx.field(static=True, default=None)
     eta: float = eqx.field(static=True, default=1.0)
-    proxy: str = eqx.field(static=True, default="l2")
-    precision: str = eqx.field(static=True, default="float32")
+    proxy: AbstractProxy = eqx.field(static=True, default=L2Proxy())
+    # the dtype of the local solve; any dtype specifier (jnp.float64, np.float64, "float64")
+    precision: np.dtype = eqx.field(static=True, default=np.dtype("float32"), converter=np.dtype)
     warn_failures: float | None = eqx.field(static=True, default=0.5)
 
     def __check_init__(self):
-        if self.proxy not in PROXIES:
-            raise ValueError(f"unknown proxy {self.proxy!r}; valid choices: {', '.join(PROXIES)}")
+        if not isinstance(self.proxy, AbstractProxy):
+            raise ValueError(f"proxy must be L2Proxy() or L1Proxy() (physgrad.methods.sip), got {self.proxy!r}")
         if not self.eta > 0:
             raise ValueError(f"eta must be > 0 (the fraction of the y-space step), got {self.eta}")
         if self.precision not in PRECISIONS:
-            raise ValueError(f"unknown precision {self.precision!r}; valid choices: {', '.join(PRECISIONS)}")
+            raise ValueError(f"precision must be float32 or float64, got {self.precision}")
         if self.solver is not None and not isinstance(self.solver, AbstractInverseSolver):
             raise ValueError(f"solver must be a physgrad.inverse solver object, got {self.solver!r}")
         if self.warn_failures is not None and not 0 <= self.warn_failures < 1:
@@ -101,10 +130,7 @@ class ScaleInvariantPhysics(AbstractRule):
         x_tilde, ok = self.local_inverse(objective, x0, jax.lax.stop_gradient(y), batch)
         b = x.shape[0]
         diff = x0 - x_tilde
-        if self.proxy == "l2":
-            proxy, cotangent = 0.5 * jnp.sum(diff**2) / b, diff / b
-        else:
-            proxy, cotangent = jnp.sum(jnp.abs(diff)) / b, jnp.sign(diff) / b
+        proxy, cotangent = self.proxy(diff, b)
         (grads,) = pullback(cotangent.astype(x.dtype))
         stats.setdefault("loss", proxy)
         failures = jnp.sum(~ok)
@@ -125,7 +151,7 @@ class ScaleInvariantPhysics(AbstractRule):
             warnings.warn(
                 f"SIP: more than {fraction:.0%} of a batch's local inverse solves ({type(solver).__name__}) failed "
                 "and gave those samples no update (stats['inverse_failures'] counts them); loosen the solver's "
-                "tolerance, raise max_steps, or use precision='float64'",
+                "tolerance, raise max_steps, or use precision=jnp.float64",
                 InverseFailureWarning,
                 stacklevel=2,
             )
@@ -135,7 +161,7 @@ class ScaleInvariantPhysics(AbstractRule):
     def local_inverse(self, objective, x, y, batch):
         """(x̃, converged) per sample; failed samples get x̃ = x.
 
-        With ``precision="float64"`` the solve is one :func:`physgrad.precision.float64_call`
+        With ``precision=jnp.float64`` the solve is one :func:`physgrad.precision.float64_call`
         (traced, batched and lowered with 64-bit types on, also inside a user's ``jax.jit``
         with x64 off) and x̃ comes back in x's dtype."""
         solver = self.resolve_solver(objective)
@@ -151,7 +177,7 @@ class ScaleInvariantPhysics(AbstractRule):
             x_new, ok = solve(*to_float64((x_, y_, batch_)))
             return x_new.astype(x.dtype), ok
 
-        if self.precision == "float64":
+        if self.precision == np.float64:
             x_new, ok = float64_call(solve_float64, x, y, batch)
         else:
             x_new, ok = solve(x, y, batch)
@@ -169,8 +195,8 @@ def sip(
     inverse=None,
     loss=None,
     eta: float = 1.0,
-    proxy: str = "l2",
-    precision: str = "float32",
+    proxy: AbstractProxy | None = None,
+    precision: np.dtype | type | str = jnp.float32,
     warn_failures: float | None = 0.5,
 ) -> Estimator:
     """Scale-invariant physics: ``(params, batch) -> (∇_θ L_proxy, stats)``.
@@ -189,11 +215,12 @@ def sip(
         inverse: ``inverse(x, y, y_target, sample) -> x̃``, a closed-form local inverse.
         loss: ``loss(y, sample) -> L_i``, for reporting only.
         eta: η, the fraction of the y-space Newton step (1: all the way to y*).
-        proxy: ``"l2"`` (½‖x − x̃‖²) or ``"l1"``.
-        precision: ``"float64"`` runs the inverse solve in double precision (also inside
+        proxy: :class:`L2Proxy` (½‖x − x̃‖², the paper's; None: this) or :class:`L1Proxy` (Σ|x − x̃|).
+        precision: ``jnp.float64`` runs the inverse solve in double precision (also inside
             your own ``jax.jit`` with x64 off: :func:`physgrad.precision.float64_call`).
         warn_failures: warn (:class:`physgrad.inverse.InverseFailureWarning`, once) when
             more than this fraction of a batch's solves fail; None: never.
     """
     objective = Objective(loss=loss, network_output=network_output, simulate=simulate, target=target, inverse=inverse)
+    proxy = L2Proxy() if proxy is None else proxy
     return Estimator(ScaleInvariantPhysics(solver, eta, proxy, precision, warn_failures), objective)
