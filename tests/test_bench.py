@@ -210,6 +210,21 @@ def test_a_config_error_or_an_interrupt_still_stops_the_study(tmp_path, monkeypa
     assert calls == [("hig", 0)] and not (tmp_path / "plain" / "failures.json").exists()
 
 
+def test_the_memory_guards_refusal_is_recorded_not_raised(tmp_path, monkeypatch):
+    """The real guard (a ConfigError subclass, DoesNotFit) refuses each seed: both recorded, the study goes on."""
+    from physgrad import memory
+    from physgrad.study import compare
+
+    monkeypatch.setattr(memory, "available_bytes", lambda device=None: 1000)
+    lines, out = [], tmp_path / "study"
+    assert compare("hig_toy", ["hig"], [0, 1], physgrad.Budget(steps=1), out, echo=lines.append,
+                   record_failures=True) == []  # fmt: skip
+    failures = bench.read_failures(out)
+    assert sorted(f["seed"] for f in failures.values()) == [0, 1]
+    assert all(f["error"].startswith("DoesNotFit: hig step needs") for f in failures.values())
+    assert sum("failed, recorded" in line for line in lines) == 2
+
+
 def test_each_method_of_a_problem_study_gets_the_bench_settings():
     """bench hands compare the problem's settings (study_settings); compare's own resolution
     must give every run the configuration the bench asked for (the same run names, so a
@@ -217,10 +232,10 @@ def test_each_method_of_a_problem_study_gets_the_bench_settings():
     from physgrad.config import make_config
     from physgrad.study import plan
 
-    methods = list(bench.QUICK["methods"])
-    settings = {**bench.quick_settings(bench.QUICK["problems"], methods), "hig_toy.sgd.lr": "0.5", "lr": "0.01",
+    methods, problems = list(bench.QUICK["methods"]), ["hig_toy", "sine", "oscillators"]  # the quick profile's scopes
+    settings = {**bench.quick_settings(problems, methods), "hig_toy.sgd.lr": "0.5", "lr": "0.01",
                 "adam.eps": "1e-7", "oscillators.batch_size": "16"}  # fmt: skip
-    verdicts = bench.plan(bench.QUICK["problems"], methods, settings)
+    verdicts = bench.plan(problems, methods, settings)
     budget = physgrad.Budget(seconds=10)
     for problem, vs in verdicts.items():
         runs = [v.method for v in vs if v.runs]
