@@ -6,6 +6,7 @@ import math
 
 import pytest
 
+import physgrad
 from physgrad import bench
 from physgrad.bench import Verdict, applicability, leaderboard, method_rows
 from physgrad.cli import main
@@ -122,16 +123,17 @@ def test_heatmap_marks_failed_and_blank_cells(tmp_path):
 
 
 def test_a_failing_run_is_recorded_and_the_problem_goes_on(tmp_path, monkeypatch):
-    import physgrad.train
+    import physgrad.study
+    from physgrad.errors import DoesNotFit
 
-    real = physgrad.train.train
+    real = physgrad.study.train  # the one run loop: study.compare's
 
     def refuse_hig(config, run_dir, **kwargs):
-        if config.method == "hig":
-            raise physgrad.ConfigError("hig step needs ~1 TiB; would fit: batch_size=1")
+        if config.method == "hig":  # the memory guard's refusal (a ConfigError, but the machine's, not the input's)
+            raise DoesNotFit("hig step needs ~1 TiB; would fit: batch_size=1")
         return real(config, run_dir, **kwargs)
 
-    monkeypatch.setattr(physgrad.train, "train", refuse_hig)
+    monkeypatch.setattr(physgrad.study, "train", refuse_hig)
     lines = []
     verdicts = [Verdict("adam", "applicable"), Verdict("hig", "applicable")]
     out = tmp_path / "toy2d"
@@ -140,8 +142,109 @@ def test_a_failing_run_is_recorded_and_the_problem_goes_on(tmp_path, monkeypatch
     failures = json.loads((out / "failures.json").read_text())
     assert [f["method"] for f in failures.values()] == ["hig"] and "1 TiB" in next(iter(failures.values()))["error"]
     assert any("failed, recorded" in line for line in lines)
+    assert all(line.startswith("toy2d [") for line in lines)  # compare's lines, with the problem in front
     table = {t["method"]: t for t in bench.problem_table(out, verdicts)}
     assert table["hig"]["status"] == "failed" and table["adam"]["rank"] == 1
+
+
+# --- study.compare's failure log: the bench's run loop ---------------------------------------
+
+
+def fail_on(monkeypatch, error, method="hig", seed=None):
+    """study.compare's train raising ``error`` for one method (one seed of it, where given);
+    returns the list of (method, seed) that train was called with."""
+    import physgrad.study
+    from physgrad.train import train as real  # study's own, also where an earlier call patched it
+
+    calls = []
+
+    def train(config, run_dir, **kwargs):
+        calls.append((config.method, config.seed))
+        if config.method == method and seed in (None, config.seed):
+            raise error
+        return real(config, run_dir, **kwargs)
+
+    monkeypatch.setattr(physgrad.study, "train", train)
+    return calls
+
+
+def test_compare_records_a_failing_seed_and_finishes_the_other_runs(tmp_path, monkeypatch):
+    from physgrad.study import compare
+
+    calls = fail_on(monkeypatch, RuntimeError("the solver\nbroke"), seed=1)
+    lines, out = [], tmp_path / "study"
+    rows = compare("toy2d", ["hig", "adam"], [0, 1], physgrad.Budget(steps=2), out, echo=lines.append,
+                   record_failures=True)  # fmt: skip
+    assert calls == [("hig", 0), ("hig", 1), ("adam", 0), ("adam", 1)]  # the runs after the failure still ran
+    assert sorted((r["method"], r["seed"]) for r in rows) == [("adam", 0), ("adam", 1), ("hig", 0)]
+    (name, entry), *others = bench.read_failures(out).items()
+    assert not others and (entry["method"], entry["seed"]) == ("hig", 1)
+    assert entry["error"] == "RuntimeError: the solver broke"  # one line
+    trace = (out / entry["traceback"]).read_text()
+    assert entry["traceback"] == f"runs/{name}/traceback.txt" and "Traceback" in trace and "the solver" in trace
+    assert "[2/4] hig seed 1: failed, recorded (RuntimeError: the solver broke)" in lines
+    # again, with the cause gone: the finished runs are skipped, the failed one runs and leaves the log
+    calls = fail_on(monkeypatch, RuntimeError("never"), method="none")
+    lines = []
+    rows = compare("toy2d", ["hig", "adam"], [0, 1], physgrad.Budget(steps=2), out, echo=lines.append,
+                   record_failures=True)  # fmt: skip
+    assert calls == [("hig", 1)] and sum("done already" in line for line in lines) == 3 and len(rows) == 4
+    assert bench.read_failures(out) == {} and not (out / "runs" / name / "traceback.txt").exists()
+
+
+def test_a_config_error_or_an_interrupt_still_stops_the_study(tmp_path, monkeypatch):
+    from physgrad.study import compare
+
+    budget = physgrad.Budget(steps=2)
+    for error in (physgrad.ConfigError("lr must be positive"), KeyboardInterrupt()):
+        calls = fail_on(monkeypatch, error)
+        with pytest.raises(type(error)):
+            compare("toy2d", ["hig", "adam"], [0], budget, tmp_path / "s", echo=lambda line: None,
+                    record_failures=True)  # fmt: skip
+        assert calls == [("hig", 0)]  # stopped: adam never ran
+        assert bench.read_failures(tmp_path / "s") == {}  # and nothing was recorded as the method's failure
+    # without record_failures, the first error of any kind stops the study (compare's default)
+    calls = fail_on(monkeypatch, RuntimeError("boom"))
+    with pytest.raises(RuntimeError, match="boom"):
+        compare("toy2d", ["hig", "adam"], [0], budget, tmp_path / "plain", echo=lambda line: None)
+    assert calls == [("hig", 0)] and not (tmp_path / "plain" / "failures.json").exists()
+
+
+def test_the_memory_guards_refusal_is_recorded_not_raised(tmp_path, monkeypatch):
+    """The real guard (a ConfigError subclass, DoesNotFit) refuses each seed: both recorded, the study goes on."""
+    from physgrad import memory
+    from physgrad.study import compare
+
+    monkeypatch.setattr(memory, "available_bytes", lambda device=None: 1000)
+    lines, out = [], tmp_path / "study"
+    assert compare("hig_toy", ["hig"], [0, 1], physgrad.Budget(steps=1), out, echo=lines.append,
+                   record_failures=True) == []  # fmt: skip
+    failures = bench.read_failures(out)
+    assert sorted(f["seed"] for f in failures.values()) == [0, 1]
+    assert all(f["error"].startswith("DoesNotFit: hig step needs") for f in failures.values())
+    assert sum("failed, recorded" in line for line in lines) == 2
+
+
+def test_each_method_of_a_problem_study_gets_the_bench_settings():
+    """bench hands compare the problem's settings (study_settings); compare's own resolution
+    must give every run the configuration the bench asked for (the same run names, so a
+    bench directory written before resumes)."""
+    from physgrad.config import make_config
+    from physgrad.study import plan
+
+    methods, problems = list(bench.QUICK["methods"]), ["hig_toy", "sine", "oscillators"]  # the quick profile's scopes
+    settings = {**bench.quick_settings(problems, methods), "hig_toy.sgd.lr": "0.5", "lr": "0.01",
+                "adam.eps": "1e-7", "oscillators.batch_size": "16"}  # fmt: skip
+    verdicts = bench.plan(problems, methods, settings)
+    budget = physgrad.Budget(seconds=10)
+    for problem, vs in verdicts.items():
+        runs = [v.method for v in vs if v.runs]
+        planned = plan(problem, runs, [0, 1], budget, bench.study_settings(problem, runs, settings))
+        expected = [make_config(problem, m, budget=budget, seed=s, settings=bench.problem_settings(problem, m, settings))
+                    for m in runs for s in (0, 1)]  # fmt: skip
+        assert planned == expected, problem
+    assert bench.study_settings("oscillators", ["adam", "hig"], settings) == {
+        "eval_seconds": "2", "hig.batch_size": "32", "lr": "0.01", "adam.eps": "1e-7", "batch_size": "16"}  # fmt: skip
 
 
 @pytest.mark.slow

@@ -22,8 +22,8 @@ The step fits when that is at most :data:`SAFETY` of the available memory (the d
 limit less what is in use on a GPU; ``MemAvailable`` and the cgroup limit on a CPU host,
 whose devices all share the host's memory).
 
-A refused step raises :class:`physgrad.ConfigError` with what would fit: the largest batch
-size found (halving, then bisecting; confirmed by compiling when the compiled figure
+A refused step raises :class:`physgrad.errors.DoesNotFit` (a :class:`physgrad.ConfigError`)
+with what would fit: the largest batch size found (halving, then bisecting; confirmed by compiling when the compiled figure
 decided), a lighter variant of the method at this batch size (another half-inverse route),
 or a device count where the run could use more devices. Before the data exist only the
 footprint is known, and what the run will hold besides the step (the dataset, parameters
@@ -43,7 +43,7 @@ from typing import Any
 import jax
 import numpy as np
 
-from .errors import ConfigError
+from .errors import DoesNotFit
 
 SAFETY = 0.9  # a step may take this fraction of the available memory (fragmentation, runtime)
 _CONFIRMATIONS = 3  # compilations at most to confirm a suggested batch size
@@ -135,7 +135,7 @@ def check_step_fits(
     label: str = "",
     resident: int = 0,
 ) -> int:
-    """Raise :class:`~physgrad.ConfigError` (one line, with what would fit) unless one
+    """Raise :class:`~physgrad.errors.DoesNotFit` (one line, with what would fit) unless one
     step of ``method`` on ``batch`` fits in memory; return the bytes it needs per device.
 
     Arguments:
@@ -225,7 +225,7 @@ def check_step_fits(
         + f" but {where} has {_size(min(free))} available{held}; {fit} (memory_guard=false skips this check)"
     )  # fmt: skip
     # the library's words (devices=N, as fit takes it); the command line's flag is --devices N
-    raise ConfigError(message, flags=message.replace(" devices=", " --devices "))
+    raise DoesNotFit(message, flags=message.replace(" devices=", " --devices "))
 
 
 def tree_bytes(tree: Any) -> int:

@@ -251,3 +251,66 @@ def grid_panels(
     path = Path(path)
     fig.savefig(path)
     return path
+
+
+def heatmap(
+    tables: dict[str, Sequence[dict[str, Any]]],
+    path: str | Path,
+    *,
+    reference: str,
+    clip: tuple[float, float],
+    title: str = "",
+) -> Path:
+    """Method × problem heat map of log₁₀(mean final test loss / the ``reference``'s) from
+    the bench's tables (``{problem: physgrad.bench.method_rows(...)}``): blue below the
+    reference, red above; the ratio is written in each cell (``†``: some seeds diverged or
+    failed). Ratios enter the logarithm clipped to ``clip`` (a loss of exactly 0 has ratio
+    0). Cells whose runs all diverged or failed are grey, hatched and crossed; methods that
+    do not apply (or were skipped, or have not run) are blank; ``n/a``: ran, but the
+    reference has no result to compare with."""
+    from matplotlib.figure import Figure  # its own canvas: no pyplot, no backend switch
+    from matplotlib.patches import Rectangle
+
+    problems = list(tables)
+    methods = list(dict.fromkeys(t["method"] for table in tables.values() for t in table
+                                 if t["status"] not in ("not applicable", "skipped")))  # fmt: skip
+    cell = {(p, t["method"]): t for p, table in tables.items() for t in table}
+    values = np.full((len(methods), len(problems)), np.nan)
+    for i, m in enumerate(methods):
+        for j, p in enumerate(problems):
+            t = cell.get((p, m))
+            if t and math.isfinite(t["ratio"]):
+                values[i, j] = math.log10(min(max(t["ratio"], clip[0]), clip[1]))
+    finite = values[np.isfinite(values)]
+    limit = min(max(1.0, float(np.abs(finite).max()) if finite.size else 1.0), 4.0)  # beyond ±4: saturated
+    fig = Figure(figsize=(1.5 + 0.9 * max(len(problems), 1), 1.2 + 0.4 * max(len(methods), 1)), dpi=120)
+    ax = fig.subplots()
+    image = ax.imshow(np.ma.masked_invalid(values), cmap="RdBu_r", vmin=-limit, vmax=limit, aspect="auto")
+    for i, m in enumerate(methods):
+        for j, p in enumerate(problems):
+            t = cell.get((p, m))
+            if t is None or t["status"] in ("not applicable", "skipped", "pending"):
+                continue
+            if t["status"] in ("diverged", "failed"):
+                ax.add_patch(Rectangle((j - 0.5, i - 0.5), 1, 1, facecolor="0.85", hatch="xx", edgecolor="0.5", lw=0))
+                ax.text(
+                    j, i, "diverged" if t["status"] == "diverged" else "failed", ha="center", va="center", fontsize=6
+                )
+            elif np.isfinite(values[i, j]):
+                mark = "†" if t["diverged"] or t["failed"] else ""
+                ax.text(j, i, f"{t['ratio']:.2g}{mark}", ha="center", va="center", fontsize=6,
+                        color="white" if abs(values[i, j]) > 0.6 * limit else "black")  # fmt: skip
+            else:
+                ax.text(j, i, "n/a", ha="center", va="center", fontsize=6, color="0.4")
+    ax.set_xticks(range(len(problems)), problems, rotation=45, ha="right", fontsize=7)
+    ax.set_yticks(range(len(methods)), methods, fontsize=7)
+    ax.set_xlim(-0.5, len(problems) - 0.5)
+    ax.set_ylim(len(methods) - 0.5, -0.5)
+    bar = fig.colorbar(image, ax=ax, fraction=0.05, pad=0.02)
+    bar.set_label(f"log10(final test loss / {reference}'s)", fontsize=7)
+    bar.ax.tick_params(labelsize=6)
+    ax.set_title(title or f"final test loss relative to {reference} (blue: lower; blank: not applicable)", fontsize=8)
+    fig.tight_layout()
+    path = Path(path)
+    fig.savefig(path)
+    return path

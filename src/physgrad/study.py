@@ -3,9 +3,10 @@
 A study directory holds ``study.json`` (what was asked), ``runs/<method>-seed<k>-<hash>/``
 (one run directory each; the hash is of the run's canonical configuration, so a changed
 setting makes a new run), ``results.csv`` (every run's metrics in long format with
-problem, method and seed columns), ``summary.csv`` (one row per run) and
-``loss_vs_time.png``. Running the same study again skips finished (or diverged) runs and
-resumes interrupted ones from their checkpoints.
+problem, method and seed columns), ``summary.csv`` (one row per run),
+``loss_vs_time.png`` and, where runs raised and the study went on, ``failures.json``.
+Running the same study again skips finished (or diverged) runs and resumes interrupted
+ones from their checkpoints.
 """
 
 from __future__ import annotations
@@ -21,17 +22,9 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from . import rundir
-from .config import (
-    Budget,
-    ConfigError,
-    RunConfig,
-    choose,
-    make_config,
-    method_slug,
-    parse_method,
-    phase_methods,
-    valid_settings,
-)
+from .config import Budget, RunConfig, choose, make_config, method_slug, parse_method, phase_methods, valid_settings
+from .errors import ConfigError
+from .failures import FailureLog, recordable
 from .progress import AbstractProgressMeter
 from .registry import PROBLEMS
 from .train import is_complete, read_metrics, read_summary, train
@@ -74,9 +67,9 @@ def plan(
     budget: Budget,
     settings: dict[str, Any] | None = None,
 ) -> list[RunConfig]:
-    """The run configurations of a study (validated before anything runs)."""
+    """The run configurations of a study, validated before anything runs (``methods`` None: its defaults)."""
     choose("problem", problem, PROBLEMS)
-    methods = list(methods or PROBLEMS[problem].default_methods)
+    methods = list(PROBLEMS[problem].default_methods if methods is None else methods)
     for m in methods:
         parse_method(m)
     settings = settings or {}
@@ -104,24 +97,37 @@ def compare(
     progress: Callable[[], AbstractProgressMeter] | None = None,
     echo: Callable[[str], None] = print,
     devices: int | str | None = 1,
+    record_failures: bool = False,
 ) -> list[dict[str, Any]]:
     """Train every method × seed on the same budget into ``out``; return the summary rows.
     ``devices``: each run's batch is split over that many devices (``train``). One study
-    writes to ``out`` at a time (a second is refused in one line naming the first)."""
+    writes to ``out`` at a time (a second is refused in one line naming the first).
+    ``record_failures``: a run that raises is recorded and the study goes on (the bench's
+    choice: one crashing method must not cost the others' runs; :mod:`physgrad.failures`);
+    without it the first error stops the study, as bad input and KeyboardInterrupt always do."""
     out = Path(out)
     configs = plan(problem, methods, seeds, budget, settings)
     with rundir.one_writer(out, "study"):  # one writer per study directory, for the whole study
+        names = [run_name(c) for c in configs]
         rundir.atomic_write(out / "study.json", json.dumps({
             "problem": problem, "methods": list(dict.fromkeys(c.method for c in configs)), "seeds": list(seeds),
-            "budget": budget.to_dict(), "settings": settings or {}, "runs": [run_name(c) for c in configs],
+            "budget": budget.to_dict(), "settings": settings or {}, "runs": names,
         }, indent=2) + "\n")  # fmt: skip
-        for i, config in enumerate(configs, 1):
-            run_dir = out / "runs" / run_name(config)
+        log = FailureLog(out, names, write=record_failures)
+        for i, (config, name) in enumerate(zip(configs, names), 1):
+            run_dir = out / "runs" / name
             prefix = f"[{i}/{len(configs)}] {config.method} seed {config.seed}"
             if is_complete(run_dir):
                 echo(f"{prefix}: done already ({(read_summary(run_dir) or {}).get('status')}), skipped")
                 continue
-            summary = train(config, run_dir, resume=True, progress=progress() if progress else None, devices=devices)
+            try:
+                summary = train(config, run_dir, resume=True, progress=progress and progress(), devices=devices)
+            except Exception as e:  # KeyboardInterrupt is no Exception: it always stops the study
+                if not (record_failures and recordable(e)):
+                    raise
+                echo(f"{prefix}: failed, recorded ({log.record(name, config.method, config.seed, e)})")
+                continue
+            log.clear(name)
             echo(f"{prefix}: {describe_run(summary)}")
         return collect(out)
 
@@ -156,14 +162,13 @@ def collect(out: str | Path) -> list[dict[str, Any]]:
         ident = {"problem": config["problem"], "method": config["method"], "seed": config["seed"]}
         rows.append({**{k: summary.get(k) for k in SUMMARY_COLUMNS}, **ident, "run_dir": str(run_dir.relative_to(out))})
         results += [{**ident, **r} for r in read_metrics(run_dir / "metrics.csv")]
-    _write_csv(out / "summary.csv", SUMMARY_COLUMNS, rows)
-    _write_csv(
-        out / "results.csv", ("problem", "method", "seed", "step", "wall_time", "split", "metric", "value"), results
-    )
+    write_csv(out / "summary.csv", SUMMARY_COLUMNS, rows)
+    write_csv(out / "results.csv", ("problem", "method", "seed", "step", "wall_time", "split", "metric", "value"),
+              results)  # fmt: skip
     return rows
 
 
-def _write_csv(path: Path, columns: Sequence[str], rows: list[dict[str, Any]]):
+def write_csv(path: Path, columns: Sequence[str], rows: list[dict[str, Any]]):
     """A table written all at once (:func:`physgrad.rundir.atomic_write`): a kill never
     leaves half of it."""
     text = io.StringIO()
@@ -178,11 +183,22 @@ def read_csv(path: str | Path) -> list[dict[str, Any]]:  # str values; callers a
         return list(csv.DictReader(f))
 
 
-def _float(text) -> float:
+def as_float(text: Any) -> float:
+    """A number read from a CSV cell (str) or JSON; NaN for an empty or non-numeric cell."""
     try:
         return float(text)
     except (TypeError, ValueError):
         return math.nan
+
+
+def mean_std(values: Sequence[float]) -> tuple[float, float]:
+    """Mean ± sample standard deviation of the finite ``values`` (std 0 for a single value,
+    NaN, NaN for none): a diverged run's NaN or inf never enters a mean."""
+    finite = np.asarray(values, dtype=float)
+    finite = finite[np.isfinite(finite)]
+    if finite.size == 0:
+        return math.nan, math.nan
+    return float(finite.mean()), float(finite.std(ddof=1)) if finite.size > 1 else 0.0
 
 
 def method_order(rows: list[dict[str, Any]], study: dict[str, Any] | None = None) -> list[str]:
@@ -201,23 +217,13 @@ def aggregate(rows: list[dict[str, Any]], order: Sequence[str]) -> list[dict[str
         ok = [r for r in runs if r["status"] == "finished"]
 
         def stat(key, pool=ok):
-            values = np.array([_float(r[key]) for r in pool], dtype=float)
-            values = values[np.isfinite(values)]
-            if values.size == 0:
-                return math.nan, math.nan
-            return float(values.mean()), float(values.std(ddof=1)) if values.size > 1 else 0.0
+            return mean_std([as_float(r[key]) for r in pool])
 
-        table.append(
-            {
-                "method": method,
-                "runs": len(runs),
-                "diverged": len(runs) - len(ok),
-                "final_test_loss": stat("final_test_loss"),
-                "best_test_loss": stat("best_test_loss", runs),
-                "steps": stat("steps", runs)[0],
-                "ms_per_step": 1e3 * stat("time_per_step", runs)[0],
-            }
-        )
+        table.append({
+            "method": method, "runs": len(runs), "diverged": len(runs) - len(ok),
+            "final_test_loss": stat("final_test_loss"), "best_test_loss": stat("best_test_loss", runs),
+            "steps": stat("steps", runs)[0], "ms_per_step": 1e3 * stat("time_per_step", runs)[0],
+        })  # fmt: skip
     return table
 
 
@@ -243,8 +249,7 @@ def format_table(table: list[dict[str, Any]], reference: str | None = None) -> l
 
 
 def _no_loss(row: dict[str, Any]) -> str:
-    """What a table says for a method without a finite mean final loss: "all diverged" only
-    where every run did."""
+    """A table's cell for a method without a finite mean final loss ("all diverged": every run did)."""
     return "all diverged" if row["diverged"] == row["runs"] else "no final loss"
 
 
@@ -322,11 +327,7 @@ def final_metric(results, method: str, metric: str, tail: float = 0.0) -> tuple[
         points.sort()
         end = points[-1][0]
         values.append(np.mean([v for t, v in points if t >= (1 - tail) * end]) if tail > 0 else points[-1][1])
-    values = np.array(values)
-    values = values[np.isfinite(values)]
-    if values.size == 0:
-        return math.nan, math.nan
-    return float(values.mean()), float(values.std(ddof=1)) if values.size > 1 else 0.0
+    return mean_std(values)
 
 
 def markdown(lines: list[list[str]]) -> str:
@@ -471,7 +472,7 @@ def grid_report(
         if not (study / "summary.csv").exists():
             continue
         summary = read_csv(study / "summary.csv")
-        per_epoch = {(r["method"], r["seed"]): _float(r["epochs"]) / max(_float(r["steps"]), 1.0) for r in summary}
+        per_epoch = {(r["method"], r["seed"]): as_float(r["epochs"]) / max(as_float(r["steps"]), 1.0) for r in summary}
         results = [r for r in read_csv(study / "results.csv") if r["split"] == split and r["metric"] == metric]
         for r in results:
             r["epoch"] = float(r["step"]) * per_epoch.get((r["method"], r["seed"]), math.nan)
@@ -486,16 +487,8 @@ def grid_report(
             final = f"{fm:.3e} ± {fs:.1e}" if math.isfinite(fm) else _no_loss(t)
             lines.append([label, t["method"], runs, final, f"{bm:.3e} ± {bs:.1e}", f"{t['ms_per_step']:.2f}"])
         curves.append((cell, results))
-    columns = list(grid) + [
-        "method",
-        "runs",
-        "diverged",
-        "final_test_loss",
-        "final_test_loss_std",
-        "best_test_loss",
-        "ms_per_step",
-    ]
-    _write_csv(out / "grid_summary.csv", columns, rows)
+    write_csv(out / "grid_summary.csv", [*grid, "method", "runs", "diverged", "final_test_loss", "final_test_loss_std",
+                                         "best_test_loss", "ms_per_step"], rows)  # fmt: skip
     suffix = "" if metric == "loss" else f"_{metric}"
     smoothing = f", {smooth}-epoch moving average" if smooth > 1 else ""
     figure = draw(  # after grid_summary.csv: a failing figure is a warning

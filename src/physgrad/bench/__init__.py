@@ -1,0 +1,152 @@
+"""Benchmark every applicable method on every chosen problem at equal budgets, ranked.
+
+    physgrad bench                                   # every shipped problem, every applicable method
+    physgrad bench --quick                           # a handful of fast problems, ~10 s per run, 2 seeds
+    physgrad bench --seconds 600 --seeds 5           # the long version (hours to days on a few cores)
+    physgrad bench --problems oscillators,sine --methods adam,hig,optax:lion --steps 500
+
+A bench directory (default ``bench/``) holds one study directory per problem,
+``BENCH/<problem>/``, laid out exactly as ``physgrad compare`` writes it (``study.json``,
+``runs/``, ``summary.csv``, ``results.csv``, ``paired_tests.csv``, ``loss_vs_time.png``),
+so ``physgrad report BENCH/<problem>`` works on it, and running the same bench again skips
+finished (or diverged) runs and resumes interrupted ones from their checkpoints. Next to
+them:
+
+- ``BENCH/<problem>/bench_table.csv`` / ``.md``: per method the final test loss (mean ± std
+  over the finished seeds), its rank, its ratio to Adam's mean and the paired test against
+  the problem's best method;
+- ``BENCH/leaderboard.csv`` / ``.md``: per method the geometric-mean ratio to Adam over
+  the problems it ran on, its wins (rank 1), divergences and failures;
+- ``BENCH/heatmap.png``: log₁₀(ratio to Adam), method × problem;
+- ``BENCH/bench.md``: all of it, with the budgets, settings and machine;
+- ``BENCH/bench.json``: what was asked and the applicability of every candidate.
+
+**Applicability** (:mod:`physgrad.bench.applicability`): a candidate method runs on a
+problem when the run's configuration resolves and the method's own ``check`` accepts the
+problem's objective, decided from shapes alone (no data, no training); :data:`POLICY`
+skips a few pairings that make no sense as a bench entry, with the reason.
+
+**One run loop.** Each problem's runs are :func:`physgrad.study.compare`'s, with
+``record_failures=True``: a run that the engine refuses (the memory guard) or that raises
+is recorded in ``BENCH/<problem>/failures.json`` (its traceback in its run directory) and
+the bench goes on, while bad input and an interrupt stop it; a diverged run is an ordinary
+finished study run with status ``diverged``. Refused runs are tried again on the next
+invocation (a refusal costs seconds; the cause may have been fixed).
+
+**The metric** is the one ``compare``'s table uses: each run's final test loss
+(``summary.csv``). A method ranks by the fraction of its seeds that diverged first (a method
+that diverges is less useful than any that does not), then by its mean final test loss
+over the finished seeds. The paired test is ``physgrad.stats``' two-sided Wilcoxon
+signed-rank test on (seed, test case) pairs of the per-case final test loss, finished
+seeds only.
+
+The package: :mod:`~physgrad.bench.choices` (problems, candidates, the quick profile,
+``--set`` scopes), :mod:`~physgrad.bench.applicability` (which method runs where),
+:mod:`~physgrad.bench.tables` (method rows, paired tests, leaderboard) and
+:mod:`~physgrad.bench.report` (the files above, from the study directories alone); the
+heat map is drawn by :func:`physgrad.plots.heatmap`. Everything here is a pure function of
+its arguments and the files it reads; nothing changes global state on import.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+from ..config import Budget
+from ..failures import read_failures
+from ..rundir import atomic_write, one_writer
+from ..study import compare
+from .applicability import POLICY, Verdict, applicability, describe_verdicts, plan
+from .choices import QUICK, ZOO, choose_methods, choose_problems, problem_settings, quick_settings, study_settings
+from .report import BenchReport, heatmap, problem_table, report
+from .tables import REFERENCE, add_paired_tests, leaderboard, method_rows, table_lines
+
+# What the command line, the tests and the benchmarks use; the rest lives in the modules.
+__all__ = [
+    "POLICY", "QUICK", "REFERENCE", "ZOO", "BenchReport", "Verdict", "add_paired_tests", "applicability", "bench",
+    "choose_methods", "choose_problems", "describe_verdicts", "heatmap", "leaderboard", "machine", "method_rows",
+    "plan", "problem_settings", "problem_table", "quick_settings", "read_failures", "report", "run_problem",
+    "study_settings", "table_lines",
+]  # fmt: skip
+
+
+def machine() -> dict[str, Any]:
+    """What the budgets were spent on: CPU cores (all, and usable by this process), JAX's
+    backend and devices, versions (``engine.environment``)."""
+    from ..engine import environment
+
+    env = environment()
+    try:
+        usable = len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        usable = os.cpu_count()
+    import jax
+
+    kinds = sorted({getattr(d, "device_kind", d.platform) for d in jax.devices()})
+    return {**env, "usable_cpus": usable, "device_kind": ", ".join(kinds)}
+
+
+def run_problem(
+    problem: str,
+    verdicts: Sequence[Verdict],
+    seeds: Sequence[int],
+    budget: Budget,
+    out: str | Path,
+    *,
+    settings: dict[str, Any] | None = None,
+    progress: Callable[[], Any] | None = None,
+    echo: Callable[[str], None] = print,
+    devices: int | str | None = 1,
+) -> list[dict[str, Any]]:
+    """One problem's study in ``out``: :func:`physgrad.study.compare` of its applicable
+    methods × ``seeds`` (the same ``study.json``, run directories, skipping and resuming)
+    with ``record_failures=True``, so that a run which raises (the memory guard's refusal, a
+    crash) is recorded in ``failures.json`` and the others go on. Each of compare's lines is
+    echoed with the problem's name in front. Returns the study's summary rows."""
+    methods = [v.method for v in verdicts if v.runs]
+    return compare(problem, methods, seeds, budget, out, settings=study_settings(problem, methods, settings or {}),
+                   progress=progress, echo=lambda line: echo(f"{problem} {line}"), devices=devices,
+                   record_failures=True)  # fmt: skip
+
+
+def bench(
+    problems: Sequence[str],
+    methods: Sequence[str],
+    seeds: Sequence[int],
+    budget: Budget,
+    out: str | Path,
+    *,
+    settings: dict[str, Any] | None = None,
+    progress: Callable[[], Any] | None = None,
+    echo: Callable[[str], None] = print,
+    devices: int | str | None = 1,
+    profile: str = "",
+) -> BenchReport:
+    """Run the bench into ``out`` (see the module docstring) and write its report.
+
+    ``methods`` are the candidates (each problem runs those that apply); ``settings`` the
+    ``--set`` values (``p.name`` scopes to problem ``p``); ``profile`` names a preset such
+    as ``quick`` in the report."""
+    settings = settings or {}
+    out = Path(out)
+    verdicts = plan(problems, methods, settings, echo=echo)
+    with one_writer(out, "bench"):  # one writer per bench directory, for the whole bench
+        atomic_write(out / "bench.json", json.dumps({
+            "problems": list(problems), "methods": list(methods), "seeds": list(seeds), "budget": budget.to_dict(),
+            "settings": settings, "profile": profile, "devices": devices,
+            "verdicts": {p: [dataclasses.asdict(v) for v in vs] for p, vs in verdicts.items()},
+            "machine": machine(),
+        }, indent=2, default=str) + "\n")  # fmt: skip
+        for i, problem in enumerate(problems, 1):
+            runnable = sum(v.runs for v in verdicts[problem])
+            echo(
+                f"problem {i}/{len(problems)} {problem}: {runnable} methods x {len(seeds)} seeds, budget {budget} per run"
+            )
+            run_problem(problem, verdicts[problem], seeds, budget, out / problem, settings=settings, progress=progress,
+                        echo=echo, devices=devices)  # fmt: skip
+        return report(out)
