@@ -81,7 +81,8 @@ def half_inverse(
     if jacobian.ndim != 2 or grad.shape != jacobian.shape[:1]:
         raise ValueError(f"half_inverse needs jacobian (m, P) and grad (m,); got {jacobian.shape} and {grad.shape}")
     if route is None:
-        route = by_shape(jacobian.shape)
+        rows, size = jacobian.shape
+        route = by_shape((rows, size))
     if not isinstance(route, (SVD, Gram)):
         raise ValueError(f"half_inverse takes an explicit J: route SVD(), Gram() or None (by shape); got {route!r}")
     return route.power(jacobian, grad, exponent, truncation)[0]

@@ -300,6 +300,31 @@ class AbstractRoute(eqx.Module):
         return {"route": jnp.asarray(self.code, jnp.int32), **spectrum}
 
 
+class AbstractMatrixFree(AbstractRoute):
+    """A route that never forms J: from the map ``(params, sample) -> y``, the batch and
+    ``g`` (one forward pass, :meth:`JointJacobian.output_gradient`) to the direction."""
+
+    @abc.abstractmethod
+    def power(
+        self,
+        predict: Callable[[PyTree, PyTree], Array],
+        params: PyTree,
+        batch: PyTree,
+        grad: Array,
+        exponent,
+        truncation: float,
+    ) -> tuple[Array, dict[str, Array]]:
+        """``(J^κ g, spectrum)``: ``predict`` gives one sample's output, ``batch`` holds b
+        samples (leading axis), ``grad`` is ``g`` (m,), sample-major as the stacked
+        Jacobian's rows; the direction is raveled in ``ravel_pytree`` order, in the
+        parameters' dtype."""
+
+    def compute(self, jacobian, exponent, truncation):
+        g, loss = jacobian.output_gradient()
+        direction, spectrum = self.power(jacobian.predict, jacobian.params, jacobian.batch, g, exponent, truncation)
+        return direction, loss, self.stats(spectrum)
+
+
 def over_devices(local: Callable, jacobian: JointJacobian, devices: int, exponent, truncation):
     """``local(objective, params, batch, devices=, exponent=, truncation=)`` run by every
     device on its share of the batch (``shard_map``), parameters replicated; returns the

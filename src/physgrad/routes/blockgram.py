@@ -33,12 +33,12 @@ from jaxtyping import Array, Float, PyTree
 
 from ..jacobian import stacked_jacobian
 from ..precision import float64_scope
-from .base import F64, AbstractRoute, JointJacobian
+from .base import F64, AbstractMatrixFree
 from .gram import gram_bytes
-from .spectrum import Damped, Spectrum, cast_spectrum, gram_power
+from .spectrum import Damped, cast_spectrum, gram_power
 
 
-class BlockGram(AbstractRoute):
+class BlockGram(AbstractMatrixFree):
     """Exact Gram matrix from ``blocks`` sample groups, two groups' Jacobians at a time.
 
     Never forms J: memory two groups' rows × P plus m². Under a mesh XLA partitions what
@@ -57,22 +57,10 @@ class BlockGram(AbstractRoute):
         if batch_size % self.blocks:
             raise ValueError(f"route blockgram needs blocks ({self.blocks}) to divide the batch size {batch_size}")
 
-    def power(
-        self,
-        predict: Callable[[PyTree, PyTree], Array],
-        params: PyTree,
-        batch: PyTree,
-        grad: Float[Array, " m"],
-        exponent: float | Damped,
-        truncation: float,
-    ) -> tuple[Float[Array, " p"], Spectrum]:
-        """``J^κ g`` with ``G`` assembled from sample groups (exact), and the
-        :func:`~.spectrum.spectrum_stats` of J (σ's in the parameters' dtype).
-
-        ``predict`` gives one sample's output ``(params, sample) -> y``; ``batch`` holds b
-        samples (leading axis, ``blocks`` must divide b); ``grad`` is ``g`` (m,),
-        sample-major as the stacked Jacobian's rows. The direction is raveled in
-        ``ravel_pytree`` order, in the parameters' dtype."""
+    def power(self, predict, params, batch, grad, exponent, truncation):
+        """``J^κ g`` with ``G`` assembled from sample groups (exact; ``blocks`` must divide
+        the batch size), and the :func:`~.spectrum.spectrum_stats` of J (σ's in the
+        parameters' dtype)."""
         # Constants for differentiation: the float64 scope below cannot be transposed outside it.
         params, batch, grad = jax.lax.stop_gradient((params, batch, grad))
         flat, _ = ravel_pytree(params)
@@ -117,11 +105,9 @@ class BlockGram(AbstractRoute):
             direction = jax.lax.fori_loop(0, blocks, apply, jnp.zeros(flat.size, jnp.float64))
             return direction.astype(flat.dtype), cast_spectrum(spectrum, flat.dtype)
 
-    def compute(self, jacobian: JointJacobian, exponent, truncation):
+    def compute(self, jacobian, exponent, truncation):
         self.check_batch_size(jacobian.batch_size)
-        g, loss = jacobian.output_gradient()
-        direction, spectrum = self.power(jacobian.predict, jacobian.params, jacobian.batch, g, exponent, truncation)
-        return direction, loss, self.stats(spectrum)
+        return super().compute(jacobian, exponent, truncation)
 
     def footprint_of(self, jacobian, devices=1):
         two_groups = 2 * -(-jacobian.rows // self.blocks) * jacobian.size * (jacobian.itemsize + F64)

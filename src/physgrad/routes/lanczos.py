@@ -37,11 +37,11 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float, PyTree
 
 from ..precision import float64_scope
-from .base import F64, AbstractRoute, JointJacobian, batch_output_map
-from .spectrum import Damped, Spectrum, cast_spectrum, gram_power
+from .base import F64, AbstractMatrixFree, batch_output_map
+from .spectrum import Damped, cast_spectrum, gram_power
 
 
-class Lanczos(AbstractRoute):
+class Lanczos(AbstractMatrixFree):
     """``steps`` Lanczos steps on J Jᵀ through JVP/VJP products (approximate; exact at
     steps = rows). Logs ``lanczos_change``, the relative change of the last step."""
 
@@ -52,21 +52,12 @@ class Lanczos(AbstractRoute):
         if self.steps < 1:
             raise ValueError(f"lanczos steps must be >= 1, got {self.steps}")
 
-    def power(
-        self,
-        predict: Callable[[PyTree, PyTree], Array],
-        params: PyTree,
-        batch: PyTree,
-        grad: Float[Array, " m"],
-        exponent: float | Damped,
-        truncation: float,
-    ) -> tuple[Float[Array, " p"], Float[Array, ""], Spectrum]:
-        """``(direction, change, spectrum)``: ``Jᵀ x_k`` (P,) in the parameters' dtype
-        (``steps`` capped at m, where it is exact up to rounding), ``‖x_k − x_{k−1}‖ /
-        ‖x_k‖``, and the :func:`~.spectrum.spectrum_stats` of the Ritz values (√ of the
-        eigenvalues of T_k: σ_max is approximated from below first, the kept count and
-        σ_min_kept only as far as k steps resolve the spectrum); the estimate and σ's in
-        the caller's default float. Arguments as :meth:`.blockgram.BlockGram.power`."""
+    def power(self, predict, params, batch, grad, exponent, truncation):
+        """``Jᵀ x_k`` (P,) in the parameters' dtype (``steps`` capped at m, where it is
+        exact up to rounding) and the :func:`~.spectrum.spectrum_stats` of the Ritz values
+        (√ of the eigenvalues of T_k: σ_max is approximated from below first, the kept count
+        and σ_min_kept only as far as k steps resolve the spectrum) with ``lanczos_change``
+        = ``‖x_k − x_{k−1}‖ / ‖x_k‖``; the estimate and σ's in the caller's default float."""
         # Constants for differentiation: the float64 scope below cannot be transposed outside it.
         params, batch, grad = jax.lax.stop_gradient((params, batch, grad))
         outputs, flat = batch_output_map(predict, params, batch)
@@ -79,14 +70,8 @@ class Lanczos(AbstractRoute):
         outer_float = jax.dtypes.canonicalize_dtype(jnp.float64)
         with float64_scope():
             direction, estimate, spectrum = _lanczos(jvp, vjp, y.dtype, grad, self.steps, exponent, truncation)
-            return direction.astype(flat.dtype), estimate.astype(outer_float), cast_spectrum(spectrum, outer_float)
-
-    def compute(self, jacobian: JointJacobian, exponent, truncation):
-        g, loss = jacobian.output_gradient()
-        direction, change, spectrum = self.power(
-            jacobian.predict, jacobian.params, jacobian.batch, g, exponent, truncation
-        )
-        return direction, loss, self.stats({**spectrum, "lanczos_change": change})
+            spectrum = {**cast_spectrum(spectrum, outer_float), "lanczos_change": estimate.astype(outer_float)}
+            return direction.astype(flat.dtype), spectrum
 
     def footprint_of(self, jacobian, devices=1):
         return 2 * self.steps * (jacobian.rows + jacobian.size) * F64
@@ -103,9 +88,9 @@ def lanczos_half_inverse(
     truncation: float = 1e-6,
 ) -> tuple[Float[Array, " p"], Float[Array, ""]]:
     """``J^κ g ≈ Jᵀ x_k`` from ``steps`` Lanczos steps on ``G = J Jᵀ`` (matrix-free):
-    ``(direction, estimate)`` of :meth:`Lanczos.power`, without the spectrum."""
-    direction, estimate, _ = Lanczos(steps).power(predict, params, batch, grad, exponent, truncation)
-    return direction, estimate
+    ``(direction, estimate)``: :meth:`Lanczos.power`'s direction and ``lanczos_change``."""
+    direction, spectrum = Lanczos(steps).power(predict, params, batch, grad, exponent, truncation)
+    return direction, spectrum["lanczos_change"]
 
 
 def _lanczos(jvp, vjp, dtype, grad, steps, exponent, truncation):
