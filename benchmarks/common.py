@@ -63,13 +63,14 @@ def half_inverse_floor(setup, batch_size: int, repeats: int) -> dict:
       (the structured route's own matrix, so its spectrum is the real one).
 
     Returns seconds for both, ``floor`` = their sum, and ``rows``, ``P``, ``m``."""
-    from physgrad import routes, structured
     from physgrad.precision import float64_scope
+    from physgrad.routes import JointJacobian, structured
 
     batch = jax.tree.map(lambda a: a[:batch_size], setup.data["train"])
     params, objective = setup.params, setup.objective
-    rows, size = routes.jacobian_shape(objective, params, batch)
-    plan = routes._structure(objective, params, batch)
+    jacobian = JointJacobian.of(objective, params, batch)
+    rows, size = jacobian.shape
+    plan = jacobian.structure
     backward = jax.jit(lambda p, b: structured.factors(plan, p, b, groups=())[0].D)
     t_backward = median_seconds(backward, (params, batch), repeats)
     if rows <= size:

@@ -171,9 +171,7 @@ def cmd_accuracy(args):
 
     from physgrad import Budget
     from physgrad.config import make_config
-    from physgrad.half_inverse import half_inverse
-    from physgrad.half_inverse_large import blockgram_half_inverse, lanczos_half_inverse
-    from physgrad.routes import jacobian_and_gradient
+    from physgrad.routes import Gram, JointJacobian, blockgram_half_inverse, half_inverse, lanczos_half_inverse
     from physgrad.train import build
 
     print(header())
@@ -185,8 +183,9 @@ def cmd_accuracy(args):
         settings = {"hidden": str(h), "batch_size": str(args.batch), "n_train": str(args.batch), "n_test": "16"}
         setup = build(make_config("oscillators", "hig", budget=Budget(steps=1), settings=settings))
         batch = setup.data["train"]
-        jac, g, _ = jax.jit(lambda p, b: jacobian_and_gradient(setup.objective, p, b, 1))(setup.params, batch)
-        ref = half_inverse(jac, g, route="gram", truncation=args.truncation)
+        pieces = jax.jit(lambda p, b: JointJacobian.of(setup.objective, p, b).jacobian_and_gradient())
+        jac, g, _ = pieces(setup.params, batch)
+        ref = half_inverse(jac, g, route=Gram(), truncation=args.truncation)
         err = lambda d: float(jnp.linalg.norm(d - ref) / jnp.linalg.norm(ref))  # noqa: E731
         p = jac.shape[1]
         d = jax.jit(lambda p, b, g: blockgram_half_inverse(setup.objective.predict, p, b, g, blocks=8,

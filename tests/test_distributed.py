@@ -25,11 +25,16 @@ from jax.sharding import PartitionSpec
 from physgrad import Budget, ConfigError
 from physgrad.config import make_config
 from physgrad.distributed import make_mesh, replicate, use_mesh
-from physgrad.half_inverse import half_inverse, sharded_gram_route
-from physgrad.half_inverse_large import blockgram_half_inverse, lanczos_half_inverse
 from physgrad.jacobian import stacked_jacobian
 from physgrad.registry import METHODS
-from physgrad.routes import jacobian_and_gradient
+from physgrad.routes import (
+    Gram,
+    JointJacobian,
+    blockgram_half_inverse,
+    half_inverse,
+    lanczos_half_inverse,
+    sharded_gram_route,
+)
 from physgrad.train import build, load_network, make_step, train
 
 DEVICES = 4
@@ -152,7 +157,10 @@ def test_sharded_gram_route_equals_numpy_svd(shape, exponent):
     want = v[:, keep] @ (s[keep] ** exponent * (u[:, keep].T @ g))
     mesh = make_mesh(DEVICES)
     spec = PartitionSpec("data")
-    route = functools.partial(sharded_gram_route, axis="data", devices=DEVICES, exponent=exponent, truncation=1e-5)
+
+    def route(j, g):  # the direction (the spectrum also returned is checked elsewhere)
+        return sharded_gram_route(j, g, "data", DEVICES, exponent=exponent, truncation=1e-5)[0]
+
     with use_mesh(mesh):
         got = jax.jit(jax.shard_map(route, in_specs=(spec, spec), out_specs=PartitionSpec()))(
             jnp.asarray(jac), jnp.asarray(g)
@@ -165,7 +173,7 @@ def hig_pieces(batch_size=32):
         make_config("oscillators", "hig", budget=Budget(steps=1), settings={**OSC, "batch_size": str(batch_size)})
     )
     batch = jax.tree.map(lambda a: a[:batch_size], setup.data["train"])
-    jac, g, _ = jacobian_and_gradient(setup.objective, setup.params, batch, 1)
+    jac, g, _ = JointJacobian.of(setup.objective, setup.params, batch).jacobian_and_gradient()
     return setup, batch, np.asarray(jac), np.asarray(g)
 
 
@@ -173,7 +181,7 @@ def test_blockgram_route_equals_the_gram_route_without_forming_j():
     setup, batch, jac, g = hig_pieces()
     # τ = 1e-3: this ReLU net's J has singular values down to 1e-10 σ_max, whose σ^κ
     # would amplify the rounding differences of the two summation orders.
-    want = np.asarray(half_inverse(jnp.asarray(jac), jnp.asarray(g), route="gram", truncation=1e-3))
+    want = np.asarray(half_inverse(jnp.asarray(jac), jnp.asarray(g), route=Gram(), truncation=1e-3))
     for blocks in (1, 4, 32):
         route = functools.partial(blockgram_half_inverse, setup.objective.predict, blocks=blocks, truncation=1e-3)
         got = jax.jit(route)(setup.params, batch, jnp.asarray(g))

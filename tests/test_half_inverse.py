@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from physgrad import half_inverse
-from physgrad.half_inverse import choose_route
+from physgrad.routes import SVD, Gram, by_shape
 
 
 def reference(j, g, exponent, truncation):
@@ -25,7 +25,7 @@ def matrix_with_spectrum(rng, m, p, singular_values):
 @pytest.mark.parametrize("shape", [(12, 40), (40, 12), (30, 30)])
 @pytest.mark.parametrize("exponent", [-1.0, -0.5, 0.5, 1.0])
 @pytest.mark.parametrize("truncation", [1e-6, 1e-2, 0.3])
-@pytest.mark.parametrize("route", ["svd", "gram"])
+@pytest.mark.parametrize("route", [SVD(), Gram()])
 def test_matches_numpy_formula(shape, exponent, truncation, route):
     rng = np.random.default_rng(0)
     m, p = shape
@@ -43,8 +43,8 @@ def test_routes_agree_in_float32(shape):
     m, p = shape
     j = matrix_with_spectrum(rng, m, p, np.linspace(1.0, 0.2, min(m, p))).astype(np.float32)
     g = rng.standard_normal(m).astype(np.float32)
-    svd = half_inverse(jnp.asarray(j), jnp.asarray(g), route="svd")
-    gram = half_inverse(jnp.asarray(j), jnp.asarray(g), route="gram")
+    svd = half_inverse(jnp.asarray(j), jnp.asarray(g), route=SVD())
+    gram = half_inverse(jnp.asarray(j), jnp.asarray(g), route=Gram())
     assert svd.dtype == gram.dtype == jnp.float32
     rel = np.linalg.norm(np.asarray(svd) - np.asarray(gram)) / np.linalg.norm(np.asarray(gram))
     assert rel < 1e-5
@@ -53,7 +53,7 @@ def test_routes_agree_in_float32(shape):
 def test_exponent_plus_one_is_transpose_product():
     rng = np.random.default_rng(2)
     j, g = rng.standard_normal((20, 50)), rng.standard_normal(20)
-    for route in ("svd", "gram"):
+    for route in (SVD(), Gram()):
         got = half_inverse(jnp.asarray(j), jnp.asarray(g), exponent=1.0, truncation=0.0, route=route)
         np.testing.assert_allclose(np.asarray(got), j.T @ g, rtol=1e-9, atol=1e-10)
 
@@ -62,7 +62,7 @@ def test_exponent_minus_one_solves_least_squares():
     rng = np.random.default_rng(3)
     j, g = rng.standard_normal((60, 15)), rng.standard_normal(60)  # tall, full column rank
     want = np.linalg.lstsq(j, g, rcond=None)[0]
-    for route in ("svd", "gram"):
+    for route in (SVD(), Gram()):
         got = half_inverse(jnp.asarray(j), jnp.asarray(g), exponent=-1.0, truncation=1e-10, route=route)
         np.testing.assert_allclose(np.asarray(got), want, rtol=1e-8, atol=1e-10)
 
@@ -72,7 +72,7 @@ def test_truncated_directions_are_dropped_not_clamped():
     j = matrix_with_spectrum(rng, 5, 9, np.array([1.0, 0.5, 0.1, 1e-4, 1e-5]))
     u, s, vt = np.linalg.svd(j, full_matrices=False)
     g = u[:, 3]  # lies entirely in a direction below the cut-off
-    for route in ("svd", "gram"):
+    for route in (SVD(), Gram()):
         got = half_inverse(jnp.asarray(j), jnp.asarray(g), truncation=1e-3, route=route)
         assert np.linalg.norm(np.asarray(got)) < 1e-8
 
@@ -81,16 +81,16 @@ def test_rank_deficient_gives_finite_result():
     rng = np.random.default_rng(5)
     j = matrix_with_spectrum(rng, 20, 40, np.array([2.0, 1.0, 0.5]))  # rank 3
     g = rng.standard_normal(20)
-    for route in ("svd", "gram"):
+    for route in (SVD(), Gram()):
         got = half_inverse(jnp.asarray(j), jnp.asarray(g), truncation=1e-6, route=route)
         np.testing.assert_allclose(np.asarray(got), reference(j, g, -0.5, 1e-6), rtol=1e-6, atol=1e-9)
 
 
 def test_auto_route_and_errors():
-    assert choose_route((512, 2956)) == "gram"
-    assert choose_route((2956, 512)) == "gram"
-    assert choose_route((100, 120)) == "svd"
-    with pytest.raises(ValueError, match="valid choices: auto, svd, gram"):
+    assert isinstance(by_shape((512, 2956)), Gram)
+    assert isinstance(by_shape((2956, 512)), Gram)
+    assert isinstance(by_shape((100, 120)), SVD)
+    with pytest.raises(ValueError, match="route SVD\\(\\), Gram\\(\\) or None"):
         half_inverse(jnp.ones((3, 4)), jnp.ones(3), route="qr")
     with pytest.raises(ValueError, match="jacobian"):
         half_inverse(jnp.ones((3, 4)), jnp.ones(4))

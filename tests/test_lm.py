@@ -9,9 +9,9 @@ from jax.flatten_util import ravel_pytree
 
 from physgrad import Objective, half_inverse, routes
 from physgrad.cli import main
-from physgrad.half_inverse import Damped
 from physgrad.methods import JacobianPower, LevenbergMarquardt, adapt_damping, predicted_decrease
 from physgrad.nets import MLP
+from physgrad.routes import Damped
 
 
 def numpy_lm(j, g, lam):
@@ -21,7 +21,7 @@ def numpy_lm(j, g, lam):
 
 
 @pytest.mark.parametrize("shape", [(12, 40), (40, 12)])
-@pytest.mark.parametrize("route", ["svd", "gram"])
+@pytest.mark.parametrize("route", [routes.SVD(), routes.Gram()])
 @pytest.mark.parametrize("lam", [1e-3, 0.3, 20.0])
 def test_damped_filter_matches_the_numpy_formula(shape, route, lam):
     rng = np.random.default_rng(0)
@@ -37,11 +37,11 @@ def test_relative_damping_is_in_units_of_the_largest_squared_singular_value():
     rng = np.random.default_rng(1)
     j, g = 7.0 * rng.standard_normal((10, 30)), rng.standard_normal(10)
     s_max = np.linalg.svd(j, compute_uv=False).max()
-    got = half_inverse(jnp.asarray(j), jnp.asarray(g), exponent=Damped(0.05), truncation=0.0, route="gram")
+    got = half_inverse(jnp.asarray(j), jnp.asarray(g), exponent=Damped(0.05), truncation=0.0, route=routes.Gram())
     np.testing.assert_allclose(np.asarray(got), numpy_lm(j, g, 0.05 * s_max**2), rtol=1e-8)
 
 
-@pytest.mark.parametrize("route", ["svd", "gram"])
+@pytest.mark.parametrize("route", [routes.SVD(), routes.Gram()])
 def test_zero_damping_is_gauss_newton_and_large_damping_the_scaled_gradient(route):
     rng = np.random.default_rng(2)
     j, g = rng.standard_normal((15, 50)), rng.standard_normal(15)

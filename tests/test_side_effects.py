@@ -29,10 +29,9 @@ import pytest
 from jax.flatten_util import ravel_pytree
 
 from physgrad import problems
-from physgrad.half_inverse import half_inverse
-from physgrad.half_inverse_large import blockgram_half_inverse, lanczos_half_inverse
 from physgrad.inverse import LBFGS
 from physgrad.precision import cast_like, float64_scope, to_float64
+from physgrad.routes import Gram, blockgram_half_inverse, half_inverse, lanczos_half_inverse
 
 HERE = Path(__file__).parent
 
@@ -144,7 +143,7 @@ def hig_step(problem, batch_size=8):
         y = jax.vmap(predict, (None, 0))(flat, batch)
         jac = jax.vmap(jax.jacrev(predict), (None, 0))(flat, batch).reshape(-1, flat.size)
         g = jax.grad(lambda y: jnp.mean(jax.vmap(problem.loss)(y, batch)))(y).ravel()
-        direction = half_inverse(jac, g, exponent=-0.5, truncation=hig["truncation"], route="gram")
+        direction = half_inverse(jac, g, exponent=-0.5, truncation=hig["truncation"], route=Gram())
         return flat - hig["lr"] * direction, direction
 
     return step(flat, batch)
@@ -168,8 +167,8 @@ def update_rule_arrays() -> dict[str, np.ndarray]:
     out = {}
     for name, shape in (("wide", (12, 40)), ("tall", (40, 12))):
         j, g = gram_case(shape)
-        out[f"gram_{name}"] = half_inverse(jnp.asarray(j), jnp.asarray(g), exponent=-0.5, truncation=1e-6, route="gram")
-        out[f"gram_{name}_jit"] = jax.jit(lambda j, g: half_inverse(j, g, route="gram"))(j, g)
+        out[f"gram_{name}"] = half_inverse(jnp.asarray(j), jnp.asarray(g), exponent=-0.5, truncation=1e-6, route=Gram())
+        out[f"gram_{name}_jit"] = jax.jit(lambda j, g: half_inverse(j, g, route=Gram()))(j, g)
     rng = np.random.default_rng(3)
     params = {"w": jnp.asarray(rng.standard_normal((3, 5)), jnp.float32)}
     batch = {"x": jnp.asarray(rng.standard_normal((8, 5)), jnp.float32)}

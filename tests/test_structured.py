@@ -18,8 +18,8 @@ from physgrad.distributed import make_mesh, replicated, shard_batch, use_mesh
 from physgrad.jacobian import stacked_jacobian
 from physgrad.methods.base import Objective
 from physgrad.nets import MLP
-from physgrad.routes import loss_and_output_gradient
-from physgrad.structured import cross_gram, factors, find_structure
+from physgrad.routes import JointJacobian, find_structure
+from physgrad.routes.structured import cross_gram, factors
 
 
 class NoBiasMLP(eqx.Module):
@@ -86,7 +86,7 @@ def _batch(n_in, n_out, b=6, key=1, complex_target=False):
 def _numpy_reference(objective, params, batch, exponent, truncation):
     """``V Σ^κ Uᵀ g`` with σ ≤ τ σ_max dropped, from the explicit J in NumPy float64."""
     jac, y = stacked_jacobian(objective.predict, params, batch)
-    _, g = loss_and_output_gradient(objective, params, batch, y)
+    _, g = JointJacobian.of(objective, params, batch).loss_and_gradient(y)
     j, g = np.asarray(jac, np.float64), np.asarray(g, np.float64)
     u, s, vt = np.linalg.svd(j, full_matrices=False)
     keep = s > truncation * s.max()

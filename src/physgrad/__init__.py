@@ -13,8 +13,6 @@ computations that need it (the Gram route's eigendecomposition, float64 problems
 from . import distributed, inverse, routes, transforms
 from .engine import Budget, Phase, TrainSettings, TrainState, fit
 from .errors import ConfigError
-from .half_inverse import half_inverse
-from .half_inverse_large import blockgram_half_inverse, lanczos_half_inverse
 from .jacobian import stacked_jacobian
 from .methods import (
     AbstractMethod,
@@ -35,6 +33,7 @@ from .methods import (
 from .nets import MLP, UNet, parameter_count
 from .problems import AbstractProblem
 from .rollout import System, closed_loop
+from .routes import blockgram_half_inverse, half_inverse, lanczos_half_inverse
 from .train import load_network
 
 __version__ = "0.1.0"

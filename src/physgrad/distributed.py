@@ -6,7 +6,7 @@ jitted function; JAX's SPMD partitioner (GSPMD) inserts the collectives (the all
 of a mean gradient, for instance), so every method runs unchanged and gives the
 single-device update up to the order of floating-point sums. Methods that need explicit
 control over communication read the active mesh with :func:`data_axis_size` and use
-``jax.shard_map`` (the distributed half-inverse, :mod:`physgrad.half_inverse`).
+``jax.shard_map`` (the distributed half-inverse, :mod:`physgrad.routes.gram`).
 
 Multi-host: :func:`initialize` wraps ``jax.distributed.initialize``; afterwards
 ``jax.devices()`` lists every process's devices, every process runs the same program on

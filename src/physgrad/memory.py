@@ -35,11 +35,13 @@ exist (the compiled check that follows may still lower it). ``memory_guard=False
 
 from __future__ import annotations
 
+import dataclasses
 import os
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import equinox as eqx
 import jax
 import numpy as np
 
@@ -201,9 +203,9 @@ def check_step_fits(
     if size is not None:
         suggestions.append(f"batch_size={size}")
     rest = max((step or 0) - footprint, 0)  # what the compiled step holds besides the method's arrays
-    for setting, variant in method.lighter(b):
+    for variant in method.lighter(b):
         if _accepts(variant, b, n) and fits(variant.footprint(objective, params, batch, n) + rest):
-            suggestions.append(setting)
+            suggestions.append(_difference(method, variant))
             break
     if mine[0].platform != "cpu":  # more accelerators add memory; more CPU devices do not
         for more in range(n + 1, jax.device_count() + 1):
@@ -239,6 +241,28 @@ def _batch_size(batch) -> int:
 
 def _first(batch, size: int):
     return jax.tree.map(lambda a: a[:size], batch)
+
+
+def _difference(before: Any, after: Any) -> str:
+    """What a variant changes, as ``field=value`` in the objects' own field names: a field
+    holding an object of another class by that class's lower-case name and its fields that
+    differ from their defaults (a rule whose ``route`` became ``BlockGram(4)`` reads
+    as the field, ``blockgram`` and ``blocks=4``); objects of one class are compared field
+    by field."""
+    parts = []
+    for field in dataclasses.fields(after):
+        old, new = getattr(before, field.name), getattr(after, field.name)
+        if old is new or (type(old) is type(new) and eqx.tree_equal(old, new) is True):
+            continue
+        if type(old) is type(new) and dataclasses.is_dataclass(new):
+            parts.append(_difference(old, new))
+        elif dataclasses.is_dataclass(new):
+            own = [f"{f.name}={getattr(new, f.name)}" for f in dataclasses.fields(new)
+                   if f.default is dataclasses.MISSING or getattr(new, f.name) != f.default]  # fmt: skip
+            parts.append(" ".join([f"{field.name}={type(new).__name__.lower()}", *own]))
+        else:
+            parts.append(f"{field.name}={new}")
+    return " ".join(parts)
 
 
 def _accepts(method, batch_size: int, devices: int) -> bool:

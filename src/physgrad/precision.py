@@ -4,8 +4,8 @@ Importing physgrad leaves ``jax_enable_x64`` as the user set it (off by default:
 ``jnp.zeros`` stays float32). The few computations that need double precision scope it
 with JAX's context manager ``jax.enable_x64(True)``:
 
-* the Gram routes of the half-inverse (:mod:`physgrad.half_inverse`,
-  :mod:`physgrad.half_inverse_large`): the Gram matrix squares the condition number, so it
+* the Gram routes of the half-inverse (:mod:`physgrad.routes`: gram, structured,
+  blockgram, lanczos): the Gram matrix squares the condition number, so it
   is formed and decomposed in float64 and the direction is cast back to the Jacobian's dtype;
 * inverse solvers that iterate in float64 (:class:`physgrad.inverse.lbfgs.LBFGS`) and
   SIP's ``precision=jnp.float64``;

@@ -78,21 +78,24 @@ def adadelta(*, lr: float = 1.0, rho: float = 0.95, eps: float = 1e-7):
 OPTIMIZERS = {f.__name__: (lambda lr, f=f: f(lr=lr).optimizer) for f in (adam, sgd, rmsprop, adagrad, adadelta)}
 
 # --- Gauss–Newton and HIG ---------------------------------------------------------------
-ROUTES = ("auto", "svd", "gram", "structured", "blockgram", "lanczos")
+# The route names of the command line and the route objects they stand for: the one table
+# of them (the library speaks route objects, physgrad.routes).
+_ROUTES: dict[str, Callable[[int, int], routes.AbstractRoute]] = {
+    "auto": lambda blocks, steps: routes.Auto(),
+    "svd": lambda blocks, steps: routes.SVD(),
+    "gram": lambda blocks, steps: routes.Gram(),
+    "structured": lambda blocks, steps: routes.Structured(),
+    "blockgram": lambda blocks, steps: routes.BlockGram(blocks),
+    "lanczos": lambda blocks, steps: routes.Lanczos(steps),
+}
+ROUTES = tuple(_ROUTES)
 
 
 def make_route(name: str, *, blocks: int = 8, lanczos_steps: int = 64) -> routes.AbstractRoute:
     """A half-inverse route object by name (``blocks`` and ``lanczos_steps`` go to the
     routes that use them)."""
     _choose("route", name, ROUTES)
-    return {
-        "auto": lambda: routes.Auto(),
-        "svd": lambda: routes.SVD(),
-        "gram": lambda: routes.Gram(),
-        "structured": lambda: routes.Structured(),
-        "blockgram": lambda: routes.BlockGram(blocks),
-        "lanczos": lambda: routes.Lanczos(lanczos_steps),
-    }[name]()
+    return _ROUTES[name](blocks, lanczos_steps)
 
 
 def hig(*, lr: float = 1.0, truncation: float = 1e-6, route: str = "auto", blocks: int = 8, lanczos_steps: int = 64):

@@ -189,9 +189,9 @@ class AbstractRule(eqx.Module):
         (e.g. ``route gram: 4096 × 37249 Jacobian``); empty by default."""
         return ""
 
-    def lighter(self, batch_size: int) -> list[tuple[str, AbstractRule]]:
-        """Variants of this rule that may need less memory at ``batch_size``, each with the
-        setting that selects it (``route=lanczos``), the most faithful first; none by default."""
+    def lighter(self, batch_size: int) -> list[AbstractRule]:
+        """Variants of this rule that may need less memory at ``batch_size`` (e.g. another
+        half-inverse route), the most faithful first; none by default."""
         return []
 
     def describe(self, objective: Objective, params: PyTree, batch: PyTree) -> dict[str, Any]:
@@ -228,7 +228,7 @@ class Estimator(eqx.Module):
 
     def describe(self, params: PyTree, batch: PyTree) -> dict[str, Any]:
         """The rule's choices for these shapes, without computing (:meth:`AbstractRule.describe`;
-        for :func:`physgrad.hig`: ``{"route": "structured", "jacobian": (rows, P)}``)."""
+        for :func:`physgrad.hig`: the name of the route that runs and J's ``(rows, P)``)."""
         arrays, static = trainable(params)
         return self.rule.describe(self.objective.bind_static(static), arrays, batch)
 
@@ -270,9 +270,9 @@ class AbstractMethod(eqx.Module):
         """What :meth:`footprint` counts, in a few words; empty by default."""
         return ""
 
-    def lighter(self, batch_size: int) -> list[tuple[str, AbstractMethod]]:
-        """``(setting, method)`` variants that may need less memory at ``batch_size``, the
-        most faithful first; none by default."""
+    def lighter(self, batch_size: int) -> list[AbstractMethod]:
+        """Variants of this method that may need less memory at ``batch_size``, the most
+        faithful first; none by default."""
         return []
 
     def stages(self) -> list[tuple[AbstractMethod, float | None]]:
@@ -315,7 +315,7 @@ class Method(AbstractMethod):
         return self.rule.footprint_note(objective.bind_static(static), arrays, batch)
 
     def lighter(self, batch_size):
-        return [(setting, dataclasses.replace(self, rule=rule)) for setting, rule in self.rule.lighter(batch_size)]
+        return [dataclasses.replace(self, rule=rule) for rule in self.rule.lighter(batch_size)]
 
     def step(self, objective, params, state, batch):
         arrays, static = trainable(params)

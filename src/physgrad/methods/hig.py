@@ -21,7 +21,7 @@ import dataclasses
 import equinox as eqx
 from jax.flatten_util import ravel_pytree
 
-from ..routes import SVD, AbstractRoute, Auto, BlockGram, Gram, Lanczos, Structured, jacobian_shape
+from ..routes import AbstractRoute, Auto, JointJacobian, alternatives
 from .base import AbstractRule, Estimator, Objective
 
 
@@ -47,45 +47,39 @@ class JacobianPower(AbstractRule):
         self.route.check_batch_size(batch_size)
 
     def footprint(self, objective, params, batch, devices=1):
-        return self.route.footprint(objective, params, batch, devices)
+        return self.route.footprint_of(JointJacobian.of(objective, params, batch), devices)
 
     def footprint_note(self, objective, params, batch):
-        rows, size = jacobian_shape(objective, params, batch)
+        jacobian = JointJacobian.of(objective, params, batch)
         name = self.route.name()
         if isinstance(self.route, Auto):  # say which route auto takes for this batch
-            name += f" ({self.route.choose(objective, params, batch).name()})"
-        return f"route {name}: {rows} × {size} Jacobian"
+            name += f" ({self.route.resolve(jacobian).name()})"
+        return f"route {name}: {jacobian.rows} × {jacobian.size} Jacobian"
 
     def describe(self, objective, params, batch):
         """``{"route": name, "jacobian": (rows, P)}``: the route that runs on this batch
         (``Auto()`` resolved; a tall J sends ``Structured()`` to ``gram``) and J's shape."""
-        rows, size = jacobian_shape(objective, params, batch)
-        route = self.route.choose(objective, params, batch) if isinstance(self.route, Auto) else self.route
-        name = "gram" if isinstance(route, Structured) and rows > size else route.name()
-        return {"route": name, "jacobian": (rows, size)}
+        jacobian = JointJacobian.of(objective, params, batch)
+        return {"route": self.route.resolve(jacobian).name(), "jacobian": jacobian.shape}
 
     def lighter(self, batch_size):
-        """The other routes: the exact ones by speed (structured, gram, svd, then blockgram
-        with ever more sample groups), then lanczos (approximate). Settings as the command
-        line names them (``--set route=blockgram --set blocks=16``)."""
-        exact = [("route=structured", Structured()), ("route=gram", Gram()), ("route=svd", SVD())]
-        groups = [
-            (f"route=blockgram blocks={k}", BlockGram(k)) for k in range(2, batch_size + 1) if batch_size % k == 0
-        ]
-        variants = exact + groups + [("route=lanczos", Lanczos())]
-        return [(setting, dataclasses.replace(self, route=route)) for setting, route in variants if route != self.route]
+        """This rule with each other route (:func:`physgrad.routes.alternatives`): the exact
+        ones by speed, then blockgram with ever more sample groups, then lanczos."""
+        return [dataclasses.replace(self, route=route) for route in alternatives(self.route, batch_size)]
 
     def __call__(self, objective, params, batch):
         return self.filtered(objective, params, batch, self.exponent)
 
     def filtered(self, objective, params, batch, spectrum):
         """``V f(Σ) Uᵀ g`` by this rule's route and truncation for another spectral filter
-        ``f`` (a number κ or :class:`physgrad.half_inverse.Damped`): ``(direction, stats)``.
+        ``f`` (a number κ or :class:`physgrad.routes.Damped`): ``(direction, stats)``.
 
         ``stats``: ``loss``, ``route`` (the code of the route that ran,
         ``physgrad.routes.ROUTE_NAMES[code]``), ``rank`` (singular values kept),
         ``sigma_max`` and ``sigma_min_kept`` (:mod:`physgrad.routes`)."""
-        direction, loss, stats = self.route(objective, params, batch, spectrum, self.truncation)
+        # The joint Jacobian's shape facts, built once (one trace of predict) for the route.
+        jacobian = JointJacobian.of(objective, params, batch)
+        direction, loss, stats = self.route.compute(jacobian, spectrum, self.truncation)
         _, unravel = ravel_pytree(params)
         return unravel(direction), {"loss": loss, **stats}
 

@@ -64,7 +64,7 @@ dropped (nonlinear networks or simulators, sample-dependent physics).
 What it sees
 ------------
 Dense layers are found in the traced per-sample program as physgrad's structured
-half-inverse route finds them (:func:`physgrad.structured.find_structure`: any parameter
+half-inverse route finds them (:func:`physgrad.routes.find_structure`: any parameter
 matrix used once in a ``W @ x`` or ``x @ W`` with a vector, ``eqx.nn.Linear``,
 :class:`physgrad.nets.Dense`, hand-written), with a bias added right after the product
 folded in. Every other parameter (a weight used twice, a free scale, a layer hidden inside
@@ -91,9 +91,9 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, PyTree
 
-from .. import structured
 from ..precision import float64_scope, to_float64
-from ..routes import jacobian_shape, loss_and_output_gradient
+from ..routes import JointJacobian, structured
+from ..routes.base import Structure
 from .base import AbstractRule, Estimator, Objective, required
 
 _F64 = 8
@@ -168,7 +168,7 @@ def explicit_block_direction(J: Array, g: Array, power: float, truncation: float
     return J.T @ (u @ (phi * (u.T @ g))), spectrum
 
 
-def _kernel_leaves(structure: structured.Structure) -> set[int]:
+def _kernel_leaves(structure: Structure) -> set[int]:
     """Parameter leaves that reach a convolution's kernel through reshaping alone."""
     jaxpr = structure.jaxpr.jaxpr
     n = len(structure.leaf_sizes)
@@ -190,10 +190,11 @@ class Plan(NamedTuple):
     """What KHIG does for these shapes: the program's structure (one explicit group
     holding every leftover leaf) and the leftover block's size."""
 
-    structure: structured.Structure
+    structure: Structure
     explicit: tuple[int, ...]
     explicit_parameters: int
     rows: int
+    jacobian: JointJacobian  # the step's shape facts (one trace of predict)
 
 
 class KroneckerPower(AbstractRule):
@@ -228,11 +229,11 @@ class KroneckerPower(AbstractRule):
         leaves = jax.tree.leaves(params)
         if any(jnp.iscomplexobj(x) for x in leaves):
             raise ValueError("khig: complex parameters have no real Kronecker factors; use hig")
-        rows, _ = jacobian_shape(objective, params, batch)
-        sample = jax.tree.map(lambda x: x[0], batch)
+        required(objective.predict, "predict")
+        jacobian = JointJacobian.of(objective, params, batch)
+        rows = jacobian.rows
         # One explicit group: the leftover block is one Jacobian of all its leaves.
-        predict = required(objective.predict, "predict")
-        structure = structured.find_structure(predict, params, sample, rows, chunk_elements=2**62)
+        structure = jacobian.structure.regrouped(rows, 2**62)
         kernels = _kernel_leaves(structure)
         if kernels:
             raise ValueError(
@@ -247,7 +248,7 @@ class KroneckerPower(AbstractRule):
                 f"eigendecomposition of {min(rows, size)} > explicit_max={self.explicit_max}; use hig, or raise "
                 "explicit_max"
             )
-        return Plan(structure, explicit, size, rows)
+        return Plan(structure, explicit, size, rows, jacobian)
 
     def describe(self, objective, params, batch):
         """``{"dense": [(d_out, d_in', bias), …], "explicit_parameters": P_o, "jacobian":
@@ -255,7 +256,7 @@ class KroneckerPower(AbstractRule):
         plan = self.plan(objective, params, batch)
         dense = [(u.d_out, u.d_in + (u.bias is not None), u.bias is not None) for u in plan.structure.dense]
         return {"dense": dense, "explicit_parameters": plan.explicit_parameters,
-                "jacobian": jacobian_shape(objective, params, batch)}  # fmt: skip
+                "jacobian": plan.jacobian.shape}  # fmt: skip
 
     def footprint(self, objective, params, batch, devices=1):
         plan = self.plan(objective, params, batch)
@@ -278,7 +279,7 @@ class KroneckerPower(AbstractRule):
         plan = self.plan(objective, params, batch)
         structure = plan.structure
         block, y = structured.factors(structure, params, batch, groups=(0,) if plan.explicit else ())
-        loss, g = loss_and_output_gradient(objective, params, batch, y)
+        loss, g = plan.jacobian.loss_and_gradient(y)
         # Constants for differentiation: the float64 scope below cannot be transposed.
         block, g = jax.lax.stop_gradient((block, g))
         leaves = jax.tree.leaves(params)
@@ -326,8 +327,7 @@ def layer_factors(predict, params: PyTree, batch: PyTree) -> list[LayerFactors]:
     """The Kronecker factors ``A = Σ_i ā_i ā_iᵀ`` and ``G = Σ_i D_iᵀ D_i`` of every dense layer
     that :func:`kronecker_hig` sees in ``predict`` for this batch (``params``: arrays only),
     in program order; for inspection and tests, computed as the rule computes them."""
-    rows, _ = jacobian_shape(Objective(predict), params, batch)
-    structure = structured.find_structure(predict, params, jax.tree.map(lambda x: x[0], batch), rows)
+    structure = JointJacobian.of(Objective(predict), params, batch).structure
     block, _ = structured.factors(structure, params, batch, groups=())
     block = jax.lax.stop_gradient(block)
     out = []

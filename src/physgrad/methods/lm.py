@@ -13,7 +13,7 @@ gradient ``g = ∂L/∂y`` of the batch-mean loss, as for Gauss–Newton and HIG
 
 computed by the same routes (SVD, float64 Gram, structured, block Gram, Lanczos) and the
 same truncation: λ → 0 gives physgrad's Gauss–Newton step, λ → ∞ the scaled gradient
-``−(η/λ) Jᵀ g``. λ is relative (``λ = μ · σ_max²``, :class:`physgrad.half_inverse.Damped`).
+``−(η/λ) Jᵀ g``. λ is relative (``λ = μ · σ_max²``, :class:`physgrad.routes.Damped`).
 
 After each step the **gain ratio** compares the actual decrease of the batch loss with the
 decrease predicted by the Gauss–Newton model (network and physics linearised, the loss
@@ -39,8 +39,8 @@ import jax.numpy as jnp
 import optax
 from jaxtyping import Array, PyTree
 
-from ..half_inverse import Damped
 from ..jacobian import require_forward_mode
+from ..routes import Damped
 from .base import Method, Objective, required, trainable, with_extra_args
 from .hig import JacobianPower
 
