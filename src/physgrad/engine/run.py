@@ -362,12 +362,13 @@ def _budget_met(
     kind, amount = budget.kind, budget.amount
     if kind == "epochs" and epochs is None:
         return True if recorded == budget.to_dict() else None
-    done = epochs(step) if kind == "epochs" else step if kind == "steps" else seconds
+    epochs_at = epochs or (lambda step: math.nan)  # called for an epochs budget only, which has it
+    done = epochs_at(step) if kind == "epochs" else step if kind == "steps" else seconds
     if done < amount - (1e-9 if kind == "epochs" else 0.0):
         return False
     if recorded == budget.to_dict():
         return True
-    if kind == "steps" and step == amount or kind == "epochs" and epochs(step - 1) < amount - 1e-9:
+    if kind == "steps" and step == amount or kind == "epochs" and epochs_at(step - 1) < amount - 1e-9:
         return True
     what = {"steps": f"{step} steps", "epochs": f"{done:g} epochs", "seconds": f"{seconds:.4g} training seconds"}[kind]
     trained = (
