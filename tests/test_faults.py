@@ -43,6 +43,9 @@ def train(out, steps=STEPS, resume=False, extra=()):
 def spawn(out, steps=STEPS, resume=False, fault=None, extra=()) -> subprocess.Popen:
     """The command line in a child process (killable), with the test-only fault hook."""
     env = {**os.environ, rundir.FAULT_VARIABLE: fault or ""}
+    # the child computes as this process does (tests/conftest.py turns x64 on; the command
+    # line, like physgrad.fit, leaves JAX's setting to the user: here, the environment)
+    env["JAX_ENABLE_X64"] = "1" if jax.config.jax_enable_x64 else "0"  # pyright: ignore[reportAttributeAccessIssue]
     cache = jax.config.jax_compilation_cache_dir  # the session's (tests/conftest.py), if any
     if cache:
         env["PHYSGRAD_COMPILATION_CACHE"] = cache

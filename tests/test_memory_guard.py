@@ -1,5 +1,6 @@
 """The memory guard (physgrad.memory): footprints, refusals that say what fits, the switch."""
 
+import gc
 import re
 import subprocess
 import sys
@@ -236,6 +237,9 @@ def test_the_first_suggestion_counts_the_dataset_and_passes(tmp_path, monkeypatc
     """Issue 29: heat with hig was told batch_size=7 before the data existed, then refused
     at 7 once they did (the dataset's memory was not counted). Here the memory free is a
     limit less what JAX arrays hold, as on a device: the suggestion must pass."""
+    # Earlier tests' garbage (exception tracebacks hold frames, and frames hold arrays) freed
+    # now, not by a collection in the middle of this test (which would raise the memory free).
+    gc.collect()
     base = sum(a.nbytes for a in jax.live_arrays())
     limit = 2_000_000  # without the data counted: batch_size=832 suggested, refused once the data exist
     monkeypatch.setattr(

@@ -494,12 +494,9 @@ COMMANDS = {
 
 
 def main(argv=None) -> int:
-    import jax
-
-    # The command line owns its process, so it may set JAX's configuration (the library never
-    # does): x64 on, as when importing physgrad enabled it, keeps CLI runs numerically identical
-    # to the study directories written then. Set before anything is built.
-    jax.config.update("jax_enable_x64", True)
+    # JAX's configuration is left as the user set it (x64 off by default), as physgrad.fit
+    # leaves it: a run from the command line and the same run through fit are one computation
+    # (fit scopes float64 to the problems that declare needs_float64).
     from .config import ConfigError
 
     # Outside a terminal (CI, pipes) rich would wrap at 80 columns; tables need more.

@@ -33,10 +33,12 @@ def initialize(coordinator: str, num_processes: int, process_id: int) -> None:
     ``coordinator`` is ``HOST:PORT`` of process 0, which listens there. On CPU the
     cross-process collectives use gloo (JAX's default)."""
     if num_processes < 1 or not 0 <= process_id < num_processes:
-        raise ConfigError(f"need 0 <= process-id < num-processes; got {process_id} and {num_processes}")
+        raise ConfigError(f"need 0 <= process_id < num_processes; got {process_id} and {num_processes}",
+                          flags=f"need 0 <= --process-id < --num-processes; got {process_id} and {num_processes}")  # fmt: skip
     host, _, port = coordinator.rpartition(":")
     if not host or not port.isdigit():
-        raise ConfigError(f"--coordinator must be HOST:PORT, got {coordinator!r}")
+        raise ConfigError(f"coordinator must be HOST:PORT, got {coordinator!r}",
+                          flags=f"--coordinator must be HOST:PORT, got {coordinator!r}")  # fmt: skip
     jax.distributed.initialize(coordinator, num_processes=num_processes, process_id=process_id)
 
 

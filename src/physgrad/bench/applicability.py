@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import math
 from collections.abc import Callable, Sequence
 from typing import Any
 
@@ -46,36 +45,6 @@ class Verdict:
         return self.status == "applicable"
 
 
-def _abstract_setup(problem_obj):
-    """(training-set size or None, trainable parameter count, static part) of a problem from
-    shapes alone. Data made by NumPy code (cached time-stepper data, the fluid's) cannot be
-    traced abstractly: then the size is unknown and the network is built from ``make_network``
-    (every shipped problem's start unless it is direct optimisation)."""
-    import equinox as eqx
-    import jax
-    import jax.numpy as jnp
-
-    from ..memory import stand_in
-
-    key = jax.random.key(0)
-    try:
-        data = eqx.filter_eval_shape(problem_obj.make_data, jax.random.fold_in(key, 0))
-    except Exception:  # noqa: BLE001 — not traceable: only the batch-size check is lost
-        data = None
-    if data is not None:
-        network = eqx.filter_eval_shape(problem_obj.initial_network, jax.random.fold_in(key, 1), data)
-        n_train = jax.tree.leaves(data["train"])[0].shape[0]
-    else:
-        network = eqx.filter_eval_shape(problem_obj.make_network, jax.random.fold_in(key, 1))
-        n_train = None
-    inexact = lambda x: isinstance(x, jax.ShapeDtypeStruct) and jnp.issubdtype(x.dtype, jnp.inexact)  # noqa: E731
-    params, static = eqx.partition(network, inexact)
-    # The static part's integer arrays (indices, masks) as zero views: objectives close over it.
-    static = jax.tree.map(lambda x: stand_in(x, None) if isinstance(x, jax.ShapeDtypeStruct) else x, static)
-    size = sum(math.prod(x.shape) for x in jax.tree.leaves(params))
-    return n_train, size, static
-
-
 def _newton_policy(method: str, n_params: int) -> str:
     if "newton" in phase_methods(method) and n_params > NEWTON_MAX_PARAMS:
         return (f"newton's dense Hessian of {n_params} network parameters (> {NEWTON_MAX_PARAMS}): "
@@ -93,6 +62,7 @@ def applicability(problem: str, methods: Sequence[str], settings: dict[str, Any]
 
     Raises :class:`ConfigError` for a bad setting value (the user's input, not the
     method's fault)."""
+    from ..engine import abstract_setup
     from ..precision import float64_scope
     from ..train import phases_of, problem_of
 
@@ -113,8 +83,12 @@ def applicability(problem: str, methods: Sequence[str], settings: dict[str, Any]
         try:
             with float64_scope(problem_obj.needs_float64):
                 if cache_key not in objectives:
-                    n_train, size, static = _abstract_setup(problem_obj)
-                    objectives[cache_key] = (n_train, size, problem_obj.objective(static))
+                    shapes = abstract_setup(problem_obj)  # the engine's, as its memory preflight sees it
+                    objectives[cache_key] = (
+                        shapes.n_train,
+                        shapes.parameter_count,
+                        problem_obj.objective(shapes.static),
+                    )
                 n_train, size, objective = objectives[cache_key]
                 for phase in phases:
                     batch_size = phase.batch_size

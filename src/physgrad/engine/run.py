@@ -1,0 +1,437 @@
+"""One run: :func:`fit` settles the caller's arguments, :func:`_run` builds and resumes,
+and :func:`loop` steps with one bundle of strategies (:class:`Strategies`).
+
+From the caller's objects to the jitted step::
+
+    fit(problem, method | [Phase], budget=, out=, seed=, settings=, resume=, devices=)
+      Request(...)                         the arguments checked, the phases settled
+      with float64_scope(problem.needs_float64), the run directory's lock:
+        preflight(problem, phases)         footprints from shapes alone   (setup.py)
+        build_setup(problem, phases, seed) data, network, objective, stages
+        TrainState(params, opt_state)      or the checkpoint's             (types.py)
+        Steps(...).compile(state, setup)   the jitted step, memory-guarded (step.py)
+        loop(state, setup=, compiled=, strategies=Strategies(...))
+        finish(ending, ...)                params.eqx, test_cases.json, summary.json (recording.py)
+
+Wall time counts training steps only: compilation (``compile_seconds``) and evaluation are
+excluded, so equal budgets compare update rules, not tracing.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import json
+import math
+import re
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import jax
+import numpy as np
+
+from .. import checks, distributed, rundir
+from ..errors import ConfigError
+from ..methods import AbstractMethod
+from ..precision import float64_scope
+from ..problems import AbstractProblem
+from ..progress import AbstractProgressMeter, NoProgressMeter
+from .recording import (
+    Checkpointer,
+    MetricsLog,
+    Recorder,
+    environment,
+    finish,
+    is_final,
+    read_json,
+    read_summary,
+    write_json,
+)
+from .setup import build_setup, preflight
+from .step import Steps
+from .strategies import EvalSchedule, Fidelity, Placement, StopRule
+from .types import ADDED_SETTINGS, UNGUARDED_SETTINGS, Budget, Ending, Phase, Setup, TrainSettings, TrainState
+
+_ABSENT = object()
+DEFAULT_SETTINGS = TrainSettings()  # frozen: one shared default
+
+
+def fit(
+    problem: AbstractProblem,
+    method: AbstractMethod | Phase | Sequence[Phase],
+    *,
+    budget: Budget,
+    out: str | Path,
+    seed: int = 0,
+    batch_size: int | None = None,
+    settings: TrainSettings = DEFAULT_SETTINGS,
+    resume: bool = False,
+    progress: AbstractProgressMeter | None = None,
+    devices: int | str | None = 1,
+    record: dict[str, Any] | None = None,
+    same_run: Callable[[dict[str, Any]], bool] | None = None,
+    label: str = "",
+    name: str = "",
+) -> dict[str, Any]:
+    """Train ``method`` (or a sequence of phases) on ``problem`` into the run directory
+    ``out`` and return the summary (also ``summary.json``).
+
+    ``batch_size`` applies to a single method (phases carry their own; default: the
+    problem's ``default_batch_size``). ``record`` is written as ``config.json`` (default: a
+    description of problem, method, seed, budget and settings); with ``resume=True`` an
+    existing run whose record matches (``same_run(old_record)``, default: equal apart from
+    the budget) continues from its checkpoint up to ``budget``, and a finished run whose
+    budget is met returns its summary. A run whose loss turns NaN or infinite stops with
+    status ``"diverged"``, the step and the last finite loss. ``devices`` (a number or
+    ``"all"``) splits every batch over a device mesh; in a multi-process run every process
+    calls ``fit`` alike and only process 0 writes. ``name`` is the method's name in the
+    summary (default: the phases' names joined by ``,``).
+
+    A problem that declares ``needs_float64`` runs inside ``jax.enable_x64(True)``; the
+    caller's JAX configuration is otherwise untouched.
+    """
+    _check_arguments(problem, budget=budget, seed=seed, batch_size=batch_size, settings=settings, out=out)
+    phases = _phases(method, batch_size)
+    record = record or _describe(problem, phases=phases, seed=seed, budget=budget, settings=settings)
+    same_run = same_run or (lambda old: _identity(old) == _identity(json.loads(json.dumps(record, default=str))))
+    run_dir = Path(out)
+    identity = {"problem": problem.name, "method": name or ",".join(p.label for p in phases), "seed": seed}
+    request = Request(problem, phases, seed, budget, settings, run_dir, resume, record, same_run,
+                      label or run_dir.name, identity)  # fmt: skip
+    with float64_scope(problem.needs_float64):
+        placement = Placement(devices)
+        with _writer_lock(run_dir, placement), rundir.terminate_as_interrupt():  # SIGTERM: a checkpoint, then stop
+            return _run(request, placement=placement, progress=progress or NoProgressMeter())
+
+
+@dataclasses.dataclass(frozen=True)
+class Request:
+    """:func:`fit`'s arguments, checked and settled: what one run is asked to do."""
+
+    problem: AbstractProblem
+    phases: list[Phase]
+    seed: int
+    budget: Budget
+    settings: TrainSettings
+    run_dir: Path
+    resume: bool
+    record: dict[str, Any]  # written as config.json
+    same_run: Callable[[dict[str, Any]], bool]  # whether a recorded run is this one
+    label: str  # the progress meter's
+    identity: dict[str, Any]  # problem, method and seed: the summary's first keys
+
+
+class Strategies(NamedTuple):
+    """Everything :func:`loop` consults besides its state, one decision each."""
+
+    stop: StopRule
+    schedule: EvalSchedule
+    placement: Placement
+    steps: Steps
+    fidelity: Fidelity
+    recorder: Recorder
+    checkpointer: Checkpointer
+    progress: AbstractProgressMeter
+
+
+def loop(state: TrainState, *, setup: Setup, compiled: Any, strategies: Strategies) -> Ending:
+    """Steps until the budget is met or the loss stops being finite (the training loop);
+    ``compiled`` is the current stage's step."""
+    stop, schedule, placement, steps, fidelity, recorder, checkpointer, progress = strategies
+    if state.step == 0:
+        state, _ = recorder(state, final=False)
+    schedule.start(state.train_time)
+    order_key, order = None, None
+    try:
+        while not stop.met(state.step, state.train_time):
+            index = setup.stage_index(state.step)
+            if index != state.stage:  # switch method: the parameters carry over, the new method starts fresh
+                opt_state = placement.put(setup.stages[index].method.init(distributed.to_host(state.params)))
+                compiled, state = steps.compile(state._replace(stage=index, opt_state=opt_state), setup)
+            stage = setup.stages[index]
+            epoch, batch = divmod(state.step - stage.start, stage.steps_per_epoch)
+            if (index, epoch) != order_key:
+                steps.draw(setup, index, epoch)
+                order, order_key = steps.order(index, epoch), (index, epoch)
+            t_start = time.perf_counter()
+            params, opt_state, stats = compiled(state.params, state.opt_state, steps.data, order, np.int32(batch))
+            loss = float(stats["loss"])  # waits for the step: the timing is honest
+            train_time = placement.clock(state.train_time + time.perf_counter() - t_start)
+            if not math.isfinite(loss) and not float(stats.get("skipped", 0.0)):
+                return Ending(state, setup, "diverged", state.step)
+            last_finite = loss if math.isfinite(loss) else state.last_finite_loss
+            state = recorder.accumulate(state, stats)._replace(params=params, opt_state=opt_state, step=state.step + 1,
+                                                                train_time=train_time, last_finite_loss=last_finite)  # fmt: skip
+            if fidelity.name:
+                state = state._replace(solver_iterations=state.solver_iterations + fidelity.iterations(state))
+            boundary = stop.met(state.step, state.train_time) or (
+                stage.steps is not None and state.step == stage.start + stage.steps
+            )
+            if schedule.due(state.step, state.train_time, stage, boundary):
+                state, finite = recorder(state, final=stop.met(state.step, state.train_time))
+                if not finite:
+                    return Ending(state, setup, "diverged", state.step)
+                refined = fidelity.problem_at(setup, state)
+                if refined is not setup:  # PRDP refined the solver: new problem, new step
+                    setup = refined
+                    recorder.use(setup)
+                    compiled, state = steps.compile(state, setup)
+                checkpointer.save(state)  # an evaluation is work too: never lost to a kill
+            else:
+                checkpointer.maybe(state)
+            rundir.fault("step")
+            progress.update(step=state.step, train_time=state.train_time, loss=loss)
+    except KeyboardInterrupt as e:
+        return Ending(state, setup, "terminated" if isinstance(e, rundir.Terminated) else "interrupted")
+    except ConfigError:  # the memory guard refused a later stage's step: keep what was done for a resume
+        checkpointer.save(state)
+        raise
+    return Ending(state, setup, "finished")
+
+
+# --- the run around the loop -----------------------------------------------------------------
+def _run(request: Request, *, placement: Placement, progress: AbstractProgressMeter) -> dict[str, Any]:
+    """One run while its writer process holds the run directory's lock: refuse or resume
+    what the directory holds, build, loop, finish."""
+    run_dir, settings, budget = request.run_dir, request.settings, request.budget
+    old = _recorded(request)
+    checkpointer = Checkpointer(run_dir, settings.checkpoint_seconds, placement.writer)
+    has_ckpt = request.resume and checkpointer.exists()
+    placement.barrier(f"physgrad.fit:{run_dir}")  # every process has looked before process 0 writes
+    if not placement.writer:  # other processes compute alike and write nothing
+        progress = NoProgressMeter()
+    done = _done_already(run_dir, budget) if request.resume else None
+    if done is not None:
+        return done  # every file unchanged (checked before building data and network)
+
+    fidelity = Fidelity.of(request.problem, settings)
+    setup, state = _start(
+        request, placement=placement, fidelity=fidelity, checkpoint=checkpointer if has_ckpt else None
+    )
+    met = state.step > 0 and _budget_met(budget, recorded=(old or {}).get("budget"), step=state.step,
+                                         seconds=state.train_time, epochs=setup.epochs, run_dir=run_dir)  # fmt: skip
+    if met:  # a kill came after the final checkpoint: nothing to train, maybe the summary to write
+        summary = read_summary(run_dir)
+        if summary and is_final(summary) and summary.get("steps") == state.step:
+            return summary
+    setup = fidelity.problem_at(setup, state)
+    state = state._replace(params=placement.put(state.params), opt_state=placement.put(state.opt_state))
+    steps, compiled = None, None
+    if not met:
+        steps = Steps(setup, placement, settings, request.seed)
+        compiled, state = steps.compile(state, setup)  # a step the memory guard refuses leaves no files behind
+    if placement.writer:
+        run_dir.mkdir(parents=True, exist_ok=True)  # made by the lock already, unless the caller holds none
+        write_json(run_dir / "config.json", request.record)
+        write_json(run_dir / "env.json", {**environment(), "mesh_devices": distributed.mesh_size(placement.mesh)})
+    # a checkpoint at step 0 precedes the first evaluation, which the resumed loop makes again
+    keep = state.step if has_ckpt and state.step > 0 else None
+    log = MetricsLog(run_dir / "metrics.csv", keep_until_step=keep, enabled=placement.writer)
+    recorder = Recorder(setup, settings=settings, placement=placement, fidelity=fidelity, log=log)
+    evaluated = recorder.restore(log.kept)
+    if steps is None:
+        ending = _evaluated(Ending(state, setup, "finished"), recorder=recorder, evaluated=evaluated)
+    else:
+        strategies = Strategies(StopRule(budget, setup), EvalSchedule(settings), placement, steps, fidelity, recorder,
+                                checkpointer, progress)  # fmt: skip
+        progress.start(budget=budget, steps_per_epoch=setup.steps_per_epoch, step=state.step,
+                       train_time=state.train_time, label=request.label)  # fmt: skip
+        try:
+            ending = loop(state, setup=setup, compiled=compiled, strategies=strategies)
+        finally:
+            progress.close()
+    return _close(ending, request=request, recorder=recorder, checkpointer=checkpointer)
+
+
+def _recorded(request: Request) -> dict[str, Any] | None:
+    """The record (``config.json``) of the run already in the directory, None for a new
+    run; refused unless the caller resumes that same run."""
+    path = request.run_dir / "config.json"
+    if not path.exists():
+        return None
+    run_dir = request.run_dir
+    if not request.resume:
+        raise ConfigError(f"run directory {run_dir} exists; resume it (resume=True) or choose another run directory",
+                          flags=f"run directory {run_dir} exists; pass --resume or choose another --out")  # fmt: skip
+    old = read_json(path)
+    if not request.same_run(old):
+        raise ConfigError(f"run directory {run_dir} holds a different configuration; choose another run directory",
+                          flags=f"run directory {run_dir} holds a different configuration; choose another --out")  # fmt: skip
+    return old
+
+
+def _start(
+    request: Request, *, placement: Placement, fidelity: Fidelity, checkpoint: Checkpointer | None
+) -> tuple[Setup, TrainState]:
+    """The setup and the first state: fresh, or ``checkpoint``'s (where resuming one)."""
+    problem, phases, seed = request.problem, request.phases, request.seed
+    if request.settings.memory_guard:
+        preflight(problem, phases, seed=seed, mesh=placement.mesh)  # before minutes of data generation
+    setup = build_setup(problem, phases, seed)
+    for stage in setup.stages:
+        distributed.check_batch(stage.batch_size, placement.mesh)
+    fresh = TrainState(setup.params, setup.method.init(setup.params), prdp=fidelity.initial())
+    like = lambda c: fresh._replace(opt_state=setup.stages[c["stage"]].method.init(setup.params))  # noqa: E731
+    state = (checkpoint.load(like) if checkpoint is not None else None) or fresh
+    if jax.process_count() > 1:  # every process must resume from the same checkpoint
+        from jax.experimental import multihost_utils
+
+        seen = multihost_utils.process_allgather(np.array([int(checkpoint is not None), state.step]))
+        if len({tuple(row) for row in np.asarray(seen).reshape(-1, 2)}) > 1:
+            raise ConfigError(f"the processes see different checkpoints in {request.run_dir}; a multi-process resume "
+                              "needs the run directory on a file system every process shares")  # fmt: skip
+    return setup, state
+
+
+def _evaluated(ending: Ending, *, recorder: Recorder, evaluated: int | None) -> Ending:
+    """A run that met its budget before a kill, with its final evaluation (made now if the
+    kill came before it was logged)."""
+    if evaluated == ending.state.step:
+        return ending
+    state, finite = recorder(ending.state, final=True)
+    return ending._replace(state=state) if finite else Ending(state, ending.setup, "diverged", state.step)
+
+
+def _close(ending: Ending, *, request: Request, recorder: Recorder, checkpointer: Checkpointer) -> dict[str, Any]:
+    """The summary of a finished or diverged run (written last); an interrupted run is
+    checkpointed and the interrupt raised again."""
+    state, writer, run_dir = ending.state, recorder.placement.writer, request.run_dir
+    if ending.status in ("interrupted", "terminated"):  # Ctrl-C or SIGTERM: keep what was done, then stop
+        checkpointer.save(state)
+        if writer:
+            write_json(run_dir / "summary.json",
+                       {"status": "interrupted", "steps": state.step, "train_seconds": state.train_time})  # fmt: skip
+        raise rundir.Terminated if ending.status == "terminated" else KeyboardInterrupt
+    summary = {
+        **request.identity,
+        **finish(ending, recorder=recorder, checkpointer=checkpointer, budget=request.budget),
+    }
+    if writer:
+        write_json(run_dir / "summary.json", summary)
+    return summary
+
+
+@contextlib.contextmanager
+def _writer_lock(run_dir: Path, placement: Placement):
+    """The writer process locks the run directory (:func:`physgrad.rundir.one_writer`); in a
+    multi-process run every process learns whether it got the lock, so that none waits at a
+    collective for a writer that was refused."""
+    with contextlib.ExitStack() as stack:
+        refused = None
+        try:
+            stack.enter_context(rundir.one_writer(run_dir, "run", enabled=placement.writer))
+        except ConfigError as e:
+            refused = e
+        if jax.process_count() > 1:
+            from jax.experimental import multihost_utils
+
+            flags = np.asarray(multihost_utils.process_allgather(np.array([int(refused is not None)])))
+            if refused is None and flags.any():
+                refused = ConfigError(f"the writer process could not lock {run_dir} (see its error)")
+        if refused is not None:
+            raise refused
+        yield
+
+
+def _done_already(run_dir: Path, budget: Budget) -> dict[str, Any] | None:
+    """The summary of a run that needs nothing more for ``budget`` (diverged, or finished
+    exactly at it), read before any work; None if it must train on or finish (a
+    ``summary.json`` without its final losses, as an older physgrad wrote after a resume,
+    is finished again from the checkpoint)."""
+    summary = read_summary(run_dir)
+    if summary is None or not is_final(summary):
+        return None
+    if summary["status"] == "diverged":
+        return summary
+    if not isinstance(summary.get("steps"), int):
+        return None
+    met = _budget_met(budget, recorded=summary.get("budget"), step=summary["steps"],
+                      seconds=summary.get("train_seconds", 0.0), epochs=None, run_dir=run_dir)  # fmt: skip
+    return summary if met else None
+
+
+def _budget_met(
+    budget: Budget, *, recorded: Any, step: int, seconds: float, epochs: Callable[[int], float] | None, run_dir: Path
+) -> bool | None:
+    """Whether a run at ``step`` (after ``seconds`` of training) is done with ``budget``:
+    False (train on), True (met at exactly this step, or ``budget`` is the ``recorded`` one
+    it ran to), None (cannot tell without ``epochs``, the data's step-to-epoch map). A budget
+    the run went past is refused: a resumed run cannot undo steps."""
+    kind, amount = budget.kind, budget.amount
+    if kind == "epochs" and epochs is None:
+        return True if recorded == budget.to_dict() else None
+    epochs_at = epochs or (lambda step: math.nan)  # called for an epochs budget only, which has it
+    done = epochs_at(step) if kind == "epochs" else step if kind == "steps" else seconds
+    if done < amount - (1e-9 if kind == "epochs" else 0.0):
+        return False
+    if recorded == budget.to_dict():
+        return True
+    if kind == "steps" and step == amount or kind == "epochs" and epochs_at(step - 1) < amount - 1e-9:
+        return True
+    what = {"steps": f"{step} steps", "epochs": f"{done:g} epochs", "seconds": f"{seconds:.4g} training seconds"}[kind]
+    trained = (
+        f"the run in {run_dir} has already trained {what}, more than the budget of {budget}; resume it with at least"
+    )
+    raise ConfigError(f"{trained} that budget, or choose another run directory",
+                      flags=f"{trained} that budget, or choose another --out")  # fmt: skip
+
+
+# --- fit's arguments --------------------------------------------------------------------------
+def _check_arguments(problem, *, budget, seed, batch_size, settings, out) -> None:
+    """:func:`fit`'s arguments by type and range, each refused in one line in the library's
+    words before any work (the method is checked by :func:`_phases`)."""
+    if not isinstance(problem, AbstractProblem):
+        raise ConfigError(f"problem must be a physgrad problem (an AbstractProblem instance), got {problem!r}")
+    if not isinstance(budget, Budget):
+        raise ConfigError(f"budget must be a physgrad.Budget, e.g. Budget(steps={budget!r}), got {budget!r}")
+    if not checks.NON_NEGATIVE_INT.valid(seed):
+        raise ConfigError(f"seed must be {checks.NON_NEGATIVE_INT.text}, got {seed!r}")
+    if batch_size is not None and not checks.POSITIVE_INT.valid(batch_size):
+        raise ConfigError(f"batch_size must be {checks.POSITIVE_INT.text} or None (the problem's default), "
+                          f"got {batch_size!r}")  # fmt: skip
+    if not isinstance(settings, TrainSettings):
+        raise ConfigError(f"settings must be a physgrad.TrainSettings, got {settings!r}")
+    try:
+        checks.check_directory(out, "out")
+    except ConfigError as e:
+        raise ConfigError(
+            str(e), flags=str(e).replace("out '", "--out '").replace("another out", "another --out")
+        ) from None
+
+
+def _identity(record: dict[str, Any]) -> dict[str, Any]:
+    """What must match for a run to resume: the record without its budget and without the
+    settings that change only how the run is guarded."""
+    settings = {k: v for k, v in record.get("settings", {}).items()
+                if k not in UNGUARDED_SETTINGS and ADDED_SETTINGS.get(k, _ABSENT) != v}  # fmt: skip
+    return {**record, "budget": None, "settings": settings}
+
+
+def _phases(method, batch_size) -> list[Phase]:
+    if isinstance(method, AbstractMethod):
+        return [Phase(method, None, batch_size)]
+    phases = [method] if isinstance(method, Phase) else list(method)
+    if not phases or not all(isinstance(p, Phase) for p in phases):
+        raise ConfigError("method must be a physgrad method (e.g. physgrad.methods.Method) or a list of Phase")
+    if any(p.steps is None for p in phases[:-1]) or phases[-1].steps is not None and len(phases) > 1:
+        raise ConfigError("every phase but the last needs steps; the last runs until the budget is spent")
+    return phases
+
+
+def _describe(problem, *, phases, seed, budget, settings) -> dict[str, Any]:
+    """A readable record of a run given as objects (memory addresses removed, so the same
+    objects describe alike in every process and session)."""
+    text = lambda obj: re.sub(r" at 0x[0-9a-f]+", "", repr(obj))  # noqa: E731
+    return {"problem": text(problem), "phases": [text(p) for p in phases], "seed": seed,
+            "budget": budget.to_dict(), "settings": _resolved(settings, problem)}  # fmt: skip
+
+
+def _resolved(settings: TrainSettings, problem: AbstractProblem) -> dict[str, Any]:
+    """The settings as recorded: ``shuffle`` and ``fresh_samples`` None stand for the
+    problem's defaults."""
+    out = dataclasses.asdict(settings)
+    out["shuffle"] = problem.default_shuffle if settings.shuffle is None else settings.shuffle
+    out["fresh_samples"] = problem.default_fresh_samples if settings.fresh_samples is None else settings.fresh_samples
+    return out

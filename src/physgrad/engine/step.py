@@ -1,0 +1,188 @@
+"""The jitted training step and evaluation, and :class:`Steps`: the training data on the
+devices, each epoch's batch order and each stage's step compiled (and checked by the
+memory guard, :mod:`physgrad.memory`) ahead of time."""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .. import distributed, memory, programs
+from ..errors import ConfigError
+from ..methods import AbstractMethod
+from ..precision import x64_enabled
+from .setup import mesh_devices, scalar_loss
+from .strategies import Placement
+from .types import Setup, Stage, TrainSettings, TrainState
+
+
+def make_step(setup: Setup, batch_size: int, method: AbstractMethod | None = None):
+    """The training step as one jitted function of (params, state, data, order, index).
+
+    The mini-batch is gathered inside the jit (``order`` is the epoch's sample order,
+    ``index`` the batch number), so a step is a single dispatch with no host work.
+    Traced under a mesh (``jax.set_mesh``, :mod:`physgrad.distributed`) the batch is split
+    over the mesh's ``"data"`` axis while parameters and state stay replicated."""
+    method = method or setup.method
+
+    def step(params, state, data, order, index):
+        rows = jax.lax.dynamic_slice_in_dim(order, index * batch_size, batch_size)
+        batch = distributed.shard_batch(jax.tree.map(lambda a: a[rows], data))
+        objective = setup.objective
+        if objective.loss is not None:
+            objective = objective._replace(loss=scalar_loss(objective.loss))
+        params, state, stats = method.step(objective, params, state, batch)
+        return distributed.replicated(params), distributed.replicated(state), stats
+
+    return jax.jit(step)
+
+
+def make_evaluate(setup: Setup, chunk: int = 1024, per_sample: bool = False):
+    """Mean per-sample loss and the problem's extra metrics over a data split (jitted, in
+    chunks of ``chunk``): ``{"loss": ..., **problem.metrics}``; with ``per_sample`` every
+    sample's values (for paired tests). Under a mesh the samples are split over its devices.
+
+    Runs of the same problem and network structure share one jitted function (and so its
+    compilations, :mod:`physgrad.programs`): the seeds differ in arguments only."""
+    key = programs.key("evaluate", setup.problem, chunk, per_sample, static=setup.static)
+    return programs.EVALUATIONS.get(key, lambda: _make_evaluate(setup, chunk, per_sample))[0]
+
+
+def _make_evaluate(setup: Setup, chunk: int, per_sample: bool):
+    problem = setup.problem
+
+    def one(params, sample):
+        x = problem.network_output(setup.network(params), sample)
+        y = problem.simulate(x, sample)
+        return {"loss": scalar_loss(problem.loss)(y, sample), **problem.metrics(x, y, sample)}
+
+    def split_evaluate(params, data):
+        n = jax.tree.leaves(data)[0].shape[0]
+        devices = distributed.data_axis_size()
+        if devices == 1:
+            values = jax.lax.map(lambda s: one(params, s), data, batch_size=min(chunk, n))
+        else:  # each device evaluates its share: (devices, n/devices) with the first axis split
+            pad = -n % devices  # repeats of the last sample, cut off again below
+            data = jax.tree.map(lambda a: jnp.concatenate([a, jnp.repeat(a[-1:], pad, axis=0)]), data)
+            data = jax.tree.map(lambda a: a.reshape(devices, (n + pad) // devices, *a.shape[1:]), data)
+            data = distributed.shard_batch(data)
+            per_device = min(chunk, (n + pad) // devices)
+            values = jax.vmap(lambda d: jax.lax.map(lambda s: one(params, s), d, batch_size=per_device))(data)
+            values = jax.tree.map(lambda v: v.reshape(n + pad, *v.shape[2:])[:n], values)
+        return values if per_sample else jax.tree.map(jnp.mean, values)
+
+    return jax.jit(lambda params, data: distributed.replicated(split_evaluate(params, data)))
+
+
+class Steps:
+    """The training data on the devices, each epoch's sample order, and each stage's step
+    compiled ahead of time (compilation is counted in ``compile_seconds``).
+
+    With ``settings.memory_guard`` a stage's step is checked before it first runs
+    (:mod:`physgrad.memory`): the method's footprint before compiling, XLA's memory
+    analysis of the compiled step after; a step that cannot fit raises ConfigError."""
+
+    def __init__(self, setup: Setup, placement: Placement, settings: TrainSettings, seed: int):
+        self.placement, self.settings = placement, settings
+        self.n_train = jax.tree.leaves(setup.data["train"])[0].shape[0]
+        self.data = placement.put(setup.data["train"])
+        self.shuffle_key = jax.random.fold_in(jax.random.key(seed), 2)
+        self.shuffle = setup.problem.default_shuffle if settings.shuffle is None else settings.shuffle
+        fresh = settings.fresh_samples
+        self.fresh = setup.problem.default_fresh_samples if fresh is None else fresh
+        self.fresh_key = jax.random.fold_in(jax.random.key(seed), 3)
+        self.first = self.data
+        groups = setup.problem.batch_groups(setup.data["train"]) if self.shuffle else None
+        self.groups = None if groups is None else np.asarray(groups)
+        self.batch_sizes = [stage.batch_size for stage in setup.stages]
+
+    def draw(self, setup: Setup, stage: int, epoch: int) -> None:
+        """The training data of a stage's epoch in ``self.data``: the first epoch of the first
+        stage trains on ``setup.data``; with ``fresh_samples`` every later epoch on a new
+        train split from ``make_data`` with a key of the seed, stage and epoch (so a resumed
+        run draws the same samples), of the same shapes, so the compiled step is reused."""
+        if not self.fresh:
+            return
+        if stage == 0 and epoch == 0:
+            self.data = self.first
+            return
+        key = jax.random.fold_in(jax.random.fold_in(self.fresh_key, stage), epoch)
+        try:
+            train = setup.problem.make_data(key)["train"]
+        except ValueError as e:
+            raise ConfigError(f"{setup.problem.name}: fresh_samples: {e}") from None
+        self.data = self.placement.put(train)
+
+    def order(self, stage: int, epoch: int):
+        """The sample order of a stage's epoch: fixed, or with ``shuffle`` a permutation
+        drawn from the seed, the stage and the epoch (so a resumed run takes the same
+        batches). Where the problem labels its samples (``batch_groups``) the permutation
+        keeps each of the stage's batches within one label (:func:`grouped_order`)."""
+        if not self.shuffle:
+            return self.placement.put(jnp.arange(self.n_train, dtype=jnp.int32))
+        key = jax.random.fold_in(jax.random.fold_in(self.shuffle_key, stage), epoch)
+        if self.groups is None:
+            return self.placement.put(jax.random.permutation(key, self.n_train).astype(jnp.int32))
+        rng = np.random.default_rng(np.asarray(jax.random.key_data(key)))
+        return self.placement.put(jnp.asarray(grouped_order(self.groups, self.batch_sizes[stage], rng)))
+
+    def compile(self, state: TrainState, setup: Setup) -> tuple[Any, TrainState]:
+        """The current stage's step, compiled (and checked by the memory guard), or the
+        same program compiled earlier in this process by a run that differs only in its
+        seed (:mod:`physgrad.programs`)."""
+        stage = setup.stages[state.stage]
+        t0 = time.perf_counter()
+        lower = lambda size: self._lower(state, setup=setup, stage=stage, batch_size=size)  # noqa: E731
+        guard = self.settings.memory_guard
+
+        def build():
+            if guard:  # the footprint alone, before spending time on compilation
+                self._check(setup, stage)
+            compiled = lower(stage.batch_size).compile()
+            if guard:
+                measure = lambda size: memory.compiled_bytes(lower(size).compile(), arguments=False)  # noqa: E731
+                self._check(setup, stage, compiled=compiled, measure=measure)
+            return compiled
+
+        compiled, _ = programs.STEPS.get(self._key(state, setup, stage), build)
+        return compiled, state._replace(compile_seconds=state.compile_seconds + time.perf_counter() - t0)
+
+    def _key(self, state: TrainState, setup: Setup, stage: Stage):
+        """What the compiled step depends on (None: something unhashable, compile afresh).
+        The epoch's sample order is not in it: its shape is the data's length, its placement
+        the mesh's."""
+        return programs.key("step", setup.problem, stage.method, stage.batch_size, self.placement.mesh,
+                            self.settings.memory_guard, x64_enabled(), static=setup.static,
+                            arguments=(state.params, state.opt_state, self.data))  # fmt: skip
+
+    def _lower(self, state: TrainState, *, setup: Setup, stage: Stage, batch_size: int):
+        with self.placement.scope():
+            fn = make_step(setup, batch_size, stage.method)
+            return fn.lower(state.params, state.opt_state, self.data, self.order(state.stage, 0), np.int32(0))
+
+    def _check(self, setup: Setup, stage: Stage, *, compiled=None, measure=None):
+        batch = memory.stand_in(setup.data["train"], stage.batch_size)
+        devices = mesh_devices(self.placement.mesh)
+        memory.check_step_fits(stage.method, setup.objective, setup.params, batch, devices=devices,
+                               compiled=compiled, measure=measure, label=stage.label)  # fmt: skip
+
+
+def grouped_order(groups: np.ndarray, batch_size: int, rng: np.random.Generator) -> np.ndarray:
+    """A permutation of ``range(len(groups))`` whose consecutive blocks of ``batch_size``
+    each hold samples of one group: every group's samples in random order cut into full
+    batches, those batches in random order (the groups interleaved at random). A group's
+    remainder (fewer than ``batch_size`` samples) goes to the end, where the epoch's last
+    batches may mix groups; every sample appears once."""
+    batches, rest = [], []
+    for label in np.unique(groups):
+        members = rng.permutation(np.flatnonzero(groups == label))
+        full = len(members) // batch_size * batch_size
+        batches.extend(members[:full].reshape(-1, batch_size))
+        rest.append(members[full:])
+    ordered = [batches[i] for i in rng.permutation(len(batches))]
+    tail = np.concatenate(rest)
+    return np.concatenate([*ordered, rng.permutation(tail)]).astype(np.int32)

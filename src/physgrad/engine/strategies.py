@@ -1,0 +1,157 @@
+"""The strategies around the training loop, one decision each: :class:`StopRule` (when the
+budget is spent), :class:`EvalSchedule` (when to evaluate), :class:`Placement` (where
+arrays live: one device or a data mesh over devices and processes) and :class:`Fidelity`
+(PRDP's solver refinement). The progress meter is :mod:`physgrad.progress`'s."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import jax
+import numpy as np
+
+from .. import distributed
+from .. import prdp as prdp_control
+from ..errors import ConfigError
+from ..problems import AbstractProblem
+from .types import Budget, Setup, Stage, TrainSettings, TrainState
+
+
+@dataclasses.dataclass
+class StopRule:
+    """The budget: steps, epochs (each stage at its own batch size) or training seconds."""
+
+    budget: Budget
+    setup: Setup
+
+    def met(self, step: int, train_time: float) -> bool:
+        kind, amount = self.budget.kind, self.budget.amount
+        if kind == "seconds":
+            return train_time >= amount
+        if kind == "steps":
+            return step >= amount
+        return self.setup.epochs(step) >= amount - 1e-9
+
+
+@dataclasses.dataclass
+class EvalSchedule:
+    """Every ``eval_seconds`` of training time if set (equal points per curve in a
+    wall-clock comparison), else every ``eval_every`` steps, else every epoch of the
+    current stage; always at the end of a stage and of the budget."""
+
+    settings: TrainSettings
+    next_time: float = 0.0
+
+    def start(self, train_time: float):
+        self.next_time = self._after(train_time)
+
+    def _after(self, train_time: float) -> float:
+        every = self.settings.eval_seconds
+        return every * (1 + math.floor(train_time / every)) if every > 0 else math.inf
+
+    def due(self, step: int, train_time: float, stage: Stage, boundary: bool) -> bool:
+        if boundary:
+            return True
+        if self.settings.eval_seconds > 0:
+            if train_time < self.next_time:
+                return False
+            self.next_time = self._after(train_time)
+            return True
+        if self.settings.eval_every:
+            return step % self.settings.eval_every == 0
+        return (step - stage.start) % stage.steps_per_epoch == 0
+
+
+@dataclasses.dataclass
+class Placement:
+    """Where arrays live: one device, or a data mesh over devices and processes."""
+
+    devices: int | str | None = 1
+
+    def __post_init__(self):
+        self.mesh = distributed.make_mesh(self.devices)
+        self.writer = distributed.is_writer()
+
+    def put(self, tree):
+        return distributed.replicate(tree, self.mesh)
+
+    def scope(self):
+        return distributed.use_mesh(self.mesh)
+
+    def clock(self, seconds: float) -> float:
+        """Process 0's training time on every process, so that seconds budgets and
+        ``eval_seconds`` stop and evaluate all processes at the same step."""
+        if jax.process_count() == 1:
+            return seconds
+        from jax.experimental import multihost_utils
+
+        return float(multihost_utils.broadcast_one_to_all(np.float64(seconds)))
+
+    def barrier(self, name: str):
+        if jax.process_count() > 1:
+            from jax.experimental import multihost_utils
+
+            multihost_utils.sync_global_devices(name)
+
+
+@dataclasses.dataclass
+class Fidelity:
+    """PRDP (Bhatia et al., ICLR 2025): start an iterative solver at few iterations and
+    refine on validation plateaus; the problem declares the setting (``refinable_setting``)."""
+
+    settings: TrainSettings
+    name: str | None  # the refinable problem setting, or None
+    full: int | None  # its value as given (the cap)
+
+    @classmethod
+    def of(cls, problem: AbstractProblem, settings: TrainSettings) -> Fidelity:
+        name = problem.refinable_setting
+        if settings.prdp and name is None:
+            raise ConfigError("prdp needs a problem with an iterative solver (one that declares refinable_setting)")
+        if settings.prdp:
+            try:
+                problem.check_refinable()
+            except ValueError as e:
+                raise ConfigError(str(e)) from None
+        if settings.prdp and (settings.prdp_start < 1 or settings.prdp_increment < 1):
+            raise ConfigError("prdp_start and prdp_increment must be >= 1")
+        if settings.prdp and not (0 < settings.prdp_tau_stop <= 1 and 0 < settings.prdp_tau_step <= 1):
+            raise ConfigError("prdp_tau_step and prdp_tau_stop must be in (0, 1]")
+        return cls(settings, name, getattr(problem, name) if name else None)
+
+    def _setting(self) -> tuple[str, int]:
+        """The refinable setting and its cap; only for a problem that declares one (with prdp
+        on, ``of`` checked that it does)."""
+        assert self.name is not None and self.full is not None
+        return self.name, self.full
+
+    @staticmethod
+    def _controller(state: TrainState) -> dict:
+        assert state.prdp is not None  # with prdp on, initial() made it
+        return state.prdp
+
+    def initial(self) -> dict | None:
+        return (
+            prdp_control.initial_state(min(self.settings.prdp_start, self._setting()[1]))
+            if self.settings.prdp
+            else None
+        )
+
+    def iterations(self, state: TrainState) -> int:
+        """The solver's iteration count at ``state``; only for a problem with a refinable setting."""
+        return self._controller(state)["K"] if self.settings.prdp else self._setting()[1]
+
+    def problem_at(self, setup: Setup, state: TrainState) -> Setup:
+        if not self.settings.prdp:
+            return setup
+        name, k = self._setting()[0], self._controller(state)["K"]
+        if getattr(setup.problem, name) == k:
+            return setup
+        return setup.with_problem(dataclasses.replace(setup.problem, **{name: k}))
+
+    def observe(self, state: TrainState, error: float) -> TrainState:
+        s = self.settings
+        new = prdp_control.update(self._controller(state), error, state.step, increment=s.prdp_increment,
+                                  maximum=self._setting()[1], tau_step=s.prdp_tau_step, tau_stop=s.prdp_tau_stop)  # fmt: skip
+        return state._replace(prdp=new)
