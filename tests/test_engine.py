@@ -25,7 +25,7 @@ from physgrad.nets import parameter_count
 from test_library import Cubic
 
 ADAM = Method(Gradient(), optax.adam(1e-2))
-RUN = {"problem": "hig_toy", "method": "hig", "steps": 6, "seed": 3}
+RUN = {"problem": "hig_toy", "method": "adam:3,hig", "steps": 6, "seed": 3}  # x64 on globally would change its numbers
 
 
 def fresh(args: list[str], tmp_path: Path) -> subprocess.CompletedProcess:
@@ -48,7 +48,9 @@ def metric_rows(run_dir: Path) -> list[tuple[str, str, str, str]]:
 
 
 def test_the_command_line_and_fit_run_the_same_computation(tmp_path):
-    """One configuration (hig on hig_toy: its Gram route computes in scoped float64) run by
+    """One configuration (Adam for 3 steps, then HIG, on hig_toy: HIG's Gram route computes in
+    scoped float64; Adam's final network differs when x64 is on globally, so a CLI that turned it
+    on would differ here) run by
     ``python -m physgrad train`` and by ``physgrad.fit`` in fresh interpreters: the same
     final network bit for bit and the same metrics; neither leaves x64 on for the run."""
     cli, lib = tmp_path / "cli", tmp_path / "fit"
