@@ -11,8 +11,8 @@ import jax.numpy as jnp
 
 import physgrad  # noqa: F401  (float64 on)
 from physgrad import Budget
-from physgrad.config import make_config
-from physgrad.train import build, make_step
+from physgrad.harness.config import make_config
+from physgrad.harness.train import build, make_step
 
 
 def benchmark_parser(description: str, default_problem: str) -> argparse.ArgumentParser:
@@ -74,7 +74,9 @@ def half_inverse_floor(setup, batch_size: int, repeats: int) -> dict:
     backward = jax.jit(lambda p, b: structured.factors(plan, p, b, groups=())[0].D)
     t_backward = median_seconds(backward, (params, batch), repeats)
     if rows <= size:
-        block = jax.jit(lambda p, b: structured.factors(plan, p, b, groups=tuple(range(len(plan.groups))))[0])(params, batch)
+        block = jax.jit(lambda p, b: structured.factors(plan, p, b, groups=tuple(range(len(plan.groups))))[0])(
+            params, batch
+        )
         with float64_scope():
             gram = jax.jit(lambda f: structured.cross_gram(plan, f, f))(block)
             t_eigh = median_seconds(jax.jit(jnp.linalg.eigh), (gram,), max(1, repeats // 3))

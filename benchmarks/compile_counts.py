@@ -20,7 +20,7 @@ from pathlib import Path
 import jax
 
 import physgrad
-from physgrad.cli import main as cli
+from physgrad.harness.cli import main as cli
 
 
 class Counter:

@@ -41,7 +41,7 @@ def flat_params(run_dir: Path) -> np.ndarray:
     import equinox as eqx
     from jax.flatten_util import ravel_pytree
 
-    from physgrad.train import load_network
+    from physgrad.harness.train import load_network
 
     network = load_network(run_dir)
     return np.asarray(ravel_pytree(eqx.filter(network, eqx.is_inexact_array))[0])
@@ -63,7 +63,9 @@ def main():
         with socket.socket() as s:
             s.bind(("127.0.0.1", 0))
             port = s.getsockname()[1]
-        multi = [("--coordinator", f"127.0.0.1:{port}", "--num-processes", "2", "--process-id", str(i)) for i in range(2)]
+        multi = [
+            ("--coordinator", f"127.0.0.1:{port}", "--num-processes", "2", "--process-id", str(i)) for i in range(2)
+        ]
         finish(*[physgrad_train(*common, tmp / "processes", m) for m in multi])
 
         reference = flat_params(tmp / "single")

@@ -17,9 +17,9 @@ import argparse
 import platform
 
 import jax
+from common import half_inverse_floor, median_seconds, step_bytes, training_step
 
 import physgrad
-from common import half_inverse_floor, median_seconds, step_bytes, training_step
 
 PROBLEMS = ("hig_toy", "oscillators", "quantum_dipole", "poisson_hig")
 
@@ -46,7 +46,9 @@ def main():
         b = config.phases[0].batch_size
         floor = half_inverse_floor(setup, b, args.repeats)
         shape = f"{floor['rows']:,} × {floor['P']:,}"
-        print(f"| {problem} | {b} | {shape} | floor: backward to pre-activations | {floor['backward'] * 1e3:.1f} | | | |")
+        print(
+            f"| {problem} | {b} | {shape} | floor: backward to pre-activations | {floor['backward'] * 1e3:.1f} | | | |"
+        )
         print(f"| {problem} | {b} | {shape} | floor: eigh({floor['m']}) float64 | {floor['eigh'] * 1e3:.1f} | | | |")
         cases = [("adam", {})] + [(args.method, {"route": r}) for r in args.routes.split(",")]
         gram = None

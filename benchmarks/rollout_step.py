@@ -17,8 +17,8 @@ from __future__ import annotations
 import platform
 
 import jax
-
 from common import benchmark_parser, median_seconds, settings_from, training_step
+
 from physgrad.rollout import rollout
 
 VARIANTS = [
@@ -56,10 +56,14 @@ def main():
         forward = jax.jit(lambda p: rollout(setup.objective.rollout, p, s0)[0])
         floor = median_seconds(forward, (setup.params,), args.repeats)
         r_time, r_mem = rows[0][1], rows[0][2]
-        print(f"\n{problem} (batch {batch}, {setup.objective.rollout.num_steps} steps): forward rollout alone {1e3 * floor:.3f} ms")
+        print(
+            f"\n{problem} (batch {batch}, {setup.objective.rollout.num_steps} steps): forward rollout alone {1e3 * floor:.3f} ms"
+        )
         print(f"{'variant':<12} {'ms/update':>10} {'/ R':>6} {'/ forward':>10} {'temp MiB':>9} {'mem / R':>8}")
         for label, t, mem in rows:
-            print(f"{label:<12} {1e3 * t:>10.3f} {t / r_time:>6.2f} {t / floor:>10.2f} {mem / 2**20:>9.3f} {mem / r_mem:>8.2f}")
+            print(
+                f"{label:<12} {1e3 * t:>10.3f} {t / r_time:>6.2f} {t / floor:>10.2f} {mem / 2**20:>9.3f} {mem / r_mem:>8.2f}"
+            )
 
 
 if __name__ == "__main__":

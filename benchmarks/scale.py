@@ -53,7 +53,7 @@ def measure(args) -> dict:
     from common import half_inverse_floor, median_seconds, training_step
 
     from physgrad.distributed import make_mesh, replicate, use_mesh
-    from physgrad.train import make_step
+    from physgrad.harness.train import make_step
 
     settings = dict(s.split("=", 1) for s in args.set)
     config, setup, _, step_args = training_step(args.problem, args.method, settings)
@@ -65,7 +65,9 @@ def measure(args) -> dict:
         seconds = median_seconds(compiled, inputs, args.repeats)
     floor = half_inverse_floor(setup, config.phases[0].batch_size, args.repeats) if args.floor else None
     mem = compiled.memory_analysis()
-    per_device = mem.argument_size_in_bytes + mem.output_size_in_bytes + mem.temp_size_in_bytes - mem.alias_size_in_bytes
+    per_device = (
+        mem.argument_size_in_bytes + mem.output_size_in_bytes + mem.temp_size_in_bytes - mem.alias_size_in_bytes
+    )
     from physgrad.nets import parameter_count
 
     return {
@@ -94,7 +96,11 @@ def run_case(problem, method, settings, devices=1, repeats=10, timeout=900, forc
         return {"error": f"over {timeout} s"}
     if done.returncode != 0:
         tail = (done.stderr.strip().splitlines() or ["?"])[-1]
-        return {"error": "out of memory" if done.returncode in (-9, 137) or "RESOURCE_EXHAUSTED" in done.stderr else tail[:80]}
+        return {
+            "error": "out of memory"
+            if done.returncode in (-9, 137) or "RESOURCE_EXHAUSTED" in done.stderr
+            else tail[:80]
+        }
     return json.loads(done.stdout.strip().splitlines()[-1])
 
 
@@ -155,7 +161,9 @@ def cmd_sizes(args):
                         print(f"| {rows} | {p:,} | floor | {floor['floor'] * 1e3:.1f} (backward {floor['backward'] * 1e3:.1f}"
                               f" + eigh {floor['eigh'] * 1e3:.1f}) | 1.00 | | | | |", flush=True)  # fmt: skip
                 if "error" in r:
-                    print(f"| {rows} | {p:,} | {route} | {r['error']} | | | | | {rows * p * 4 / 2**20:.0f} |", flush=True)
+                    print(
+                        f"| {rows} | {p:,} | {route} | {r['error']} | | | | | {rows * p * 4 / 2**20:.0f} |", flush=True
+                    )
                     continue
                 gram = r["seconds"] if route == "gram" else gram
                 x_floor = f"{r['seconds'] / floor['floor']:.2f}" if floor else ""
@@ -170,9 +178,9 @@ def cmd_accuracy(args):
     import jax.numpy as jnp
 
     from physgrad import Budget
-    from physgrad.config import make_config
+    from physgrad.harness.config import make_config
+    from physgrad.harness.train import build
     from physgrad.routes import Gram, JointJacobian, blockgram_half_inverse, half_inverse, lanczos_half_inverse
-    from physgrad.train import build
 
     print(header())
     print(f"one HIG direction on oscillators, batch {args.batch} (rows {4 * args.batch}), τ = {args.truncation}; "
@@ -208,7 +216,9 @@ def main():
     p = sub.add_parser("sizes")
     p.add_argument("--rows", default="256,1024")
     p.add_argument("--hidden", default="20,100,200,370,683")
-    p.add_argument("--routes", default="gram,structured,svd,blockgram,lanczos", help="the first also measures the floor")
+    p.add_argument(
+        "--routes", default="gram,structured,svd,blockgram,lanczos", help="the first also measures the floor"
+    )
     p.add_argument("--blocks", type=int, default=8)
     p.add_argument("--lanczos-steps", type=int, default=64)
     p.add_argument("--repeats", type=int, default=3)

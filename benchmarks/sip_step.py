@@ -24,9 +24,9 @@ from __future__ import annotations
 import platform
 
 import jax
-
 from common import benchmark_parser, median_seconds, settings_from, training_step
-from physgrad.config import ConfigError
+
+from physgrad.harness.config import ConfigError
 
 DEFAULT_SOLVERS = {
     "sine": "saddle_free_newton,gauss_newton,lbfgs",

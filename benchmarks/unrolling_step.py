@@ -16,8 +16,8 @@ from __future__ import annotations
 import platform
 
 import jax
-
 from common import benchmark_parser, median_seconds, settings_from, training_step
+
 from physgrad.rollout import rollout
 
 

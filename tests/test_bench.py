@@ -8,9 +8,9 @@ import pytest
 
 import physgrad
 from physgrad import bench
-from physgrad.bench import Verdict, applicability, leaderboard, method_rows
-from physgrad.cli import main
-from physgrad.config import split_methods
+from physgrad.harness.bench import Verdict, applicability, leaderboard, method_rows
+from physgrad.harness.cli import main
+from physgrad.harness.config import split_methods
 
 
 def rows(path):
@@ -123,17 +123,17 @@ def test_heatmap_marks_failed_and_blank_cells(tmp_path):
 
 
 def test_a_failing_run_is_recorded_and_the_problem_goes_on(tmp_path, monkeypatch):
-    import physgrad.study
+    import physgrad.harness.study
     from physgrad.errors import DoesNotFit
 
-    real = physgrad.study.train  # the one run loop: study.compare's
+    real = physgrad.harness.study.train  # the one run loop: study.compare's
 
     def refuse_hig(config, run_dir, **kwargs):
         if config.method == "hig":  # the memory guard's refusal (a ConfigError, but the machine's, not the input's)
             raise DoesNotFit("hig step needs ~1 TiB; would fit: batch_size=1")
         return real(config, run_dir, **kwargs)
 
-    monkeypatch.setattr(physgrad.study, "train", refuse_hig)
+    monkeypatch.setattr(physgrad.harness.study, "train", refuse_hig)
     lines = []
     verdicts = [Verdict("adam", "applicable"), Verdict("hig", "applicable")]
     out = tmp_path / "toy2d"
@@ -153,8 +153,8 @@ def test_a_failing_run_is_recorded_and_the_problem_goes_on(tmp_path, monkeypatch
 def fail_on(monkeypatch, error, method="hig", seed=None):
     """study.compare's train raising ``error`` for one method (one seed of it, where given);
     returns the list of (method, seed) that train was called with."""
-    import physgrad.study
-    from physgrad.train import train as real  # study's own, also where an earlier call patched it
+    import physgrad.harness.study
+    from physgrad.harness.train import train as real  # study's own, also where an earlier call patched it
 
     calls = []
 
@@ -164,12 +164,12 @@ def fail_on(monkeypatch, error, method="hig", seed=None):
             raise error
         return real(config, run_dir, **kwargs)
 
-    monkeypatch.setattr(physgrad.study, "train", train)
+    monkeypatch.setattr(physgrad.harness.study, "train", train)
     return calls
 
 
 def test_compare_records_a_failing_seed_and_finishes_the_other_runs(tmp_path, monkeypatch):
-    from physgrad.study import compare
+    from physgrad.harness.study import compare
 
     calls = fail_on(monkeypatch, RuntimeError("the solver\nbroke"), seed=1)
     lines, out = [], tmp_path / "study"
@@ -193,7 +193,7 @@ def test_compare_records_a_failing_seed_and_finishes_the_other_runs(tmp_path, mo
 
 
 def test_a_config_error_or_an_interrupt_still_stops_the_study(tmp_path, monkeypatch):
-    from physgrad.study import compare
+    from physgrad.harness.study import compare
 
     budget = physgrad.Budget(steps=2)
     for error in (physgrad.ConfigError("lr must be positive"), KeyboardInterrupt()):
@@ -213,7 +213,7 @@ def test_a_config_error_or_an_interrupt_still_stops_the_study(tmp_path, monkeypa
 def test_the_memory_guards_refusal_is_recorded_not_raised(tmp_path, monkeypatch):
     """The real guard (a ConfigError subclass, DoesNotFit) refuses each seed: both recorded, the study goes on."""
     from physgrad import memory
-    from physgrad.study import compare
+    from physgrad.harness.study import compare
 
     monkeypatch.setattr(memory, "available_bytes", lambda device=None: 1000)
     lines, out = [], tmp_path / "study"
@@ -229,8 +229,8 @@ def test_each_method_of_a_problem_study_gets_the_bench_settings():
     """bench hands compare the problem's settings (study_settings); compare's own resolution
     must give every run the configuration the bench asked for (the same run names, so a
     bench directory written before resumes)."""
-    from physgrad.config import make_config
-    from physgrad.study import plan
+    from physgrad.harness.config import make_config
+    from physgrad.harness.study import plan
 
     methods, problems = list(bench.QUICK["methods"]), ["hig_toy", "sine", "oscillators"]  # the quick profile's scopes
     settings = {**bench.quick_settings(problems, methods), "hig_toy.sgd.lr": "0.5", "lr": "0.01",

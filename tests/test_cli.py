@@ -10,10 +10,10 @@ import pytest
 
 import physgrad
 from physgrad import Budget
-from physgrad.cli import main
-from physgrad.config import make_config
+from physgrad.harness.cli import main
+from physgrad.harness.config import make_config
+from physgrad.harness.train import train
 from physgrad.progress import NoProgressMeter
-from physgrad.train import train
 
 RUN_FILES = ("config.json", "metrics.csv", "env.json", "summary.json", "params.eqx", "checkpoint/state.eqx")
 

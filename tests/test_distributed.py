@@ -23,10 +23,11 @@ from jax.flatten_util import ravel_pytree
 from jax.sharding import PartitionSpec
 
 from physgrad import Budget, ConfigError
-from physgrad.config import make_config
 from physgrad.distributed import make_mesh, replicate, use_mesh
+from physgrad.harness.config import make_config
+from physgrad.harness.registry import METHODS
+from physgrad.harness.train import build, load_network, make_step, train
 from physgrad.jacobian import stacked_jacobian
-from physgrad.registry import METHODS
 from physgrad.routes import (
     Gram,
     JointJacobian,
@@ -35,7 +36,6 @@ from physgrad.routes import (
     lanczos_half_inverse,
     sharded_gram_route,
 )
-from physgrad.train import build, load_network, make_step, train
 
 DEVICES = 4
 needs_devices = pytest.mark.skipif(jax.device_count() < DEVICES, reason="needs 4 (forced host) devices")
@@ -322,7 +322,7 @@ def test_two_process_loopback_run_matches_a_single_process_run(tmp_path):
 
 
 def test_cli_device_errors_are_one_line_with_exit_2(capsys, tmp_path):
-    from physgrad.cli import main
+    from physgrad.harness.cli import main
 
     base = ["train", "oscillators", "--method", "adam", "--steps", "1", "--out", str(tmp_path / "r")]
     assert main([*base, "--devices", "many"]) == 2
@@ -341,7 +341,7 @@ def test_cli_device_errors_are_one_line_with_exit_2(capsys, tmp_path):
 @needs_devices
 @pytest.mark.parametrize("n", [64, 30])  # 30: padded to 32 and cut again
 def test_evaluation_split_over_devices_equals_one_device(n):
-    from physgrad.train import make_evaluate
+    from physgrad.harness.train import make_evaluate
 
     setup = build(make_config("oscillators", "adam", budget=Budget(steps=1), settings=OSC))
     data = jax.tree.map(lambda a: a[:n], setup.data["test"])
@@ -358,7 +358,7 @@ def test_evaluation_split_over_devices_equals_one_device(n):
 def test_settings_added_later_keep_earlier_run_names_and_resume(tmp_path):
     """A config written before `blocks`/`lanczos_steps` (hig) and `dtype` (poisson)
     existed has the same digest as today's default config, and resumes."""
-    from physgrad.config import RunConfig
+    from physgrad.harness.config import RunConfig
 
     for problem, method, added in [("oscillators", "hig", ("blocks", "lanczos_steps")), ("poisson", "sip", ())]:
         config = make_config(problem, method, budget=Budget(steps=1))

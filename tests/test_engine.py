@@ -58,8 +58,8 @@ def test_the_command_line_and_fit_run_the_same_computation(tmp_path):
            "--seed", str(RUN["seed"]), "--set", "eval_every=2", "--out", str(cli), "--quiet"], tmp_path)  # fmt: skip
     code = f"""
         import physgrad
-        from physgrad.config import make_config
-        from physgrad.train import phases_of, problem_of, settings_of
+        from physgrad.harness.config import make_config
+        from physgrad.harness.train import phases_of, problem_of, settings_of
 
         config = make_config({RUN["problem"]!r}, {RUN["method"]!r}, budget=physgrad.Budget(steps={RUN["steps"]}),
                              seed={RUN["seed"]}, settings={{"eval_every": "2"}})

@@ -20,11 +20,11 @@ BLOCKED = ("kfac_jax", "exponax")
 SCRIPT = """
 import contextlib, io, json, sys, tempfile
 import physgrad
-from physgrad.cli import main
-from physgrad.config import make_config
+from physgrad.harness.cli import main
+from physgrad.harness.config import make_config
 from physgrad.engine import Budget
 from physgrad.extras import MissingExtra
-from physgrad.registry import METHODS
+from physgrad.harness.registry import METHODS
 
 out = {"imported": sorted(n for n in ("kfac_jax", "exponax") if sys.modules.get(n) is not None)}
 d = tempfile.mkdtemp()

@@ -26,7 +26,7 @@ import jax
 import pytest
 
 from physgrad import rundir
-from physgrad.cli import main
+from physgrad.harness.cli import main
 
 STEPS = 20
 ARGS = ["train", "hig_toy", "--method", "adam", "--set", "batch_size=64", "--set", "checkpoint_seconds=0",
@@ -143,7 +143,7 @@ def test_a_run_without_its_summary_finishes_from_the_final_checkpoint(reference,
 
 
 def physgrad_is_complete(out):
-    from physgrad.train import is_complete
+    from physgrad.harness.train import is_complete
 
     return is_complete(out)
 

@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 
 from physgrad import Budget
-from physgrad.config import make_config, train_settings
 from physgrad.engine import _identity
-from physgrad.registry import PROBLEMS
-from physgrad.train import build, train
+from physgrad.harness.config import make_config, train_settings
+from physgrad.harness.registry import PROBLEMS
+from physgrad.harness.train import build, train
 
 SETTINGS = {"n_train": 8, "n_test": 4, "batch_size": 4, "lr": 0.05, "eval_every": 2}
 STEPS = 6  # three epochs of two batches

@@ -118,7 +118,7 @@ def float32_network_float64_simulator():
 
 
 def _direction(name):
-    from physgrad.registry import make_route
+    from physgrad.harness.registry import make_route
 
     objective, params, batch = float32_network_float64_simulator()
     r = make_route(name, blocks=3, lanczos_steps=24)  # 24 = m: Lanczos exact up to rounding

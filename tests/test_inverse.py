@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 import scipy.optimize
 
+from physgrad.harness.registry import make_solver
 from physgrad.inverse import LBFGS, Analytic, GaussNewton, LinearSolve, SaddleFreeNewton
-from physgrad.registry import make_solver
 
 RNG = np.random.default_rng(0)
 A = RNG.normal(size=(3, 3))

@@ -6,9 +6,9 @@ import numpy as np
 from jax.flatten_util import ravel_pytree
 
 from physgrad import Budget
-from physgrad.config import make_config
+from physgrad.harness.config import make_config
+from physgrad.harness.train import build
 from physgrad.jacobian import stacked_jacobian
-from physgrad.train import build
 
 
 def test_rows_are_sample_major_against_finite_differences():

@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 
 from physgrad.engine import Phase, build_setup, make_evaluate, make_step
+from physgrad.harness.registry import PROBLEMS
 from physgrad.methods import Objective
 from physgrad.methods.kfac import kfac
 from physgrad.nets import Dense
-from physgrad.registry import PROBLEMS
 
 N_IN, N_OUT, M = 3, 4, 5  # x ∈ ℝ³, network output ∈ ℝ⁴, simulator output y = A(Wx + b) ∈ ℝ⁵
 

@@ -19,9 +19,9 @@ import pytest
 
 import physgrad
 from physgrad import routes
-from physgrad.cli import main
+from physgrad.harness.cli import main
+from physgrad.harness.registry import METHODS, PROBLEMS, describe, paper_defaults
 from physgrad.methods.kronecker_hig import layer_factors
-from physgrad.registry import METHODS, PROBLEMS, describe, paper_defaults
 
 
 def _linear_problem(d_in, d_out, dy, b, bias, transposed, dtype, seed=0):

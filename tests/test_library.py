@@ -245,7 +245,7 @@ class Cubic(AbstractProblem):
 
 
 def test_a_user_problem_trains_through_fit_without_a_registry(tmp_path):
-    from physgrad import registry
+    from physgrad.harness import registry
 
     assert "cubic" not in registry.PROBLEMS
     methods = {

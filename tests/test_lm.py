@@ -8,7 +8,7 @@ import pytest
 from jax.flatten_util import ravel_pytree
 
 from physgrad import Objective, half_inverse, routes
-from physgrad.cli import main
+from physgrad.harness.cli import main
 from physgrad.methods import JacobianPower, LevenbergMarquardt, adapt_damping, predicted_decrease
 from physgrad.nets import MLP
 from physgrad.routes import Damped
@@ -186,7 +186,7 @@ def test_lm_step_sharded_over_devices_equals_one_device(route):
 
 def test_lm_takes_gauss_newtons_paper_settings_on_a_problem():
     from physgrad import Budget
-    from physgrad.config import make_config
+    from physgrad.harness.config import make_config
 
     lm = make_config("poisson_hig", "lm", budget=Budget(steps=1)).phases[0]
     gn = make_config("poisson_hig", "gn", budget=Budget(steps=1)).phases[0]

@@ -14,9 +14,9 @@ import pytest
 
 import physgrad
 from physgrad import memory, routes
-from physgrad.cli import main
-from physgrad.config import make_config
 from physgrad.engine import Phase, build_setup
+from physgrad.harness.cli import main
+from physgrad.harness.config import make_config
 from physgrad.methods import Gradient, JacobianPower, Method
 from test_library import Cubic
 
@@ -74,7 +74,7 @@ def test_heat_footprint_from_shapes_alone():
     """The issue's case, from eval_shape: nothing generated, 524,288 × 37,249 Jacobian."""
     import equinox as eqx
 
-    heat = physgrad.registry.PROBLEMS["heat"]()
+    heat = physgrad.harness.registry.PROBLEMS["heat"]()
     data = eqx.filter_eval_shape(heat.make_data, jax.random.key(0))
     net = eqx.filter_eval_shape(heat.make_network, jax.random.key(1))
     params, static = eqx.partition(net, lambda x: isinstance(x, jax.ShapeDtypeStruct))

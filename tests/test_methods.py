@@ -7,10 +7,10 @@ import pytest
 from jax.flatten_util import ravel_pytree
 
 from physgrad import Budget
-from physgrad.config import make_config
 from physgrad.engine import Placement, Steps
-from physgrad.registry import METHODS
-from physgrad.train import build, make_evaluate, make_step, settings_of
+from physgrad.harness.config import make_config
+from physgrad.harness.registry import METHODS
+from physgrad.harness.train import build, make_evaluate, make_step, settings_of
 
 TINY = {"n_steps": "8", "hidden": "6", "n_train": "64", "n_test": "64", "dtype": "float64", "batch_size": "16"}
 

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from physgrad import fluid
-from physgrad.cli import main
+from physgrad.harness.cli import main
 from physgrad.problems import NavierStokes
 from physgrad.problems.navier_stokes import frequency_loss, threshold_top
 

@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 
 from physgrad import Budget, Objective
-from physgrad.cli import main
-from physgrad.config import make_config, method_slug, parse_method, split_methods
 from physgrad.errors import ConfigError
-from physgrad.registry import METHODS, describe, hyperparameters, optax_names
+from physgrad.harness.cli import main
+from physgrad.harness.config import make_config, method_slug, parse_method, split_methods
+from physgrad.harness.registry import METHODS, describe, hyperparameters, optax_names
 
 
 def quadratic():

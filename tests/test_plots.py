@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from physgrad import plots, study
-from physgrad.cli import main
+from physgrad.harness.cli import main
 
 # A diverging run's test loss: finite values growing to the largest floats, then inf and NaN.
 DIVERGING = [90.0, 8.1e25, 8.1e49, 8.1e97, 8.1e289, 1e308, math.inf, math.nan]

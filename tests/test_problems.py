@@ -7,10 +7,10 @@ import pytest
 
 import physgrad
 from physgrad import Budget
-from physgrad.config import make_config, phase_methods
+from physgrad.harness.config import make_config, phase_methods
+from physgrad.harness.registry import METHODS, PROBLEMS
+from physgrad.harness.train import build
 from physgrad.problems import HigToy
-from physgrad.registry import METHODS, PROBLEMS
-from physgrad.train import build
 
 # The contract is a property of the code, not of the size: each problem is built at the
 # smallest size that exercises every piece (data, network, loss, target), in seconds. The
@@ -104,7 +104,7 @@ def test_public_names_have_docstrings():
 
 @pytest.mark.parametrize("name", sorted(PROBLEMS))
 def test_paper_comparison_resolves_with_paper_defaults(name):
-    from physgrad.study import plan
+    from physgrad.harness.study import plan
 
     configs = plan(name, None, [0], Budget(seconds=1))
     assert [c.method for c in configs] == list(PROBLEMS[name].default_methods)

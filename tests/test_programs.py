@@ -118,7 +118,7 @@ def test_persistent_compilation_cache_from_the_command_line(tmp_path):
 
     cli = textwrap.dedent(f"""
         import jax
-        from physgrad.cli import main
+        from physgrad.harness.cli import main
         assert jax.config.jax_compilation_cache_dir is None  # importing physgrad set nothing
         code = main(["train", "hig_toy", "--method", "hig", "--steps", "2", "--quiet",
                      "--out", {str(tmp_path / "run")!r}, "--compilation-cache", {str(tmp_path / "xla")!r}])

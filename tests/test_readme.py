@@ -52,7 +52,7 @@ def test_readme_bptt_example_trains():
 
 
 def test_readme_time_stepper_example_trains(tmp_path, monkeypatch):
-    from physgrad.registry import PROBLEMS
+    from physgrad.harness.registry import PROBLEMS
 
     monkeypatch.chdir(tmp_path)
     monkeypatch.setenv("PHYSGRAD_CACHE", str(tmp_path / "cache"))

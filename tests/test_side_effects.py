@@ -313,7 +313,7 @@ def test_importing_physgrad_leaves_the_heavy_optional_packages_unimported(tmp_pa
     info = run_fresh(
         """
         import json, sys
-        import physgrad, physgrad.cli, physgrad.registry, physgrad.study, physgrad.bench
+        import physgrad, physgrad.harness.cli, physgrad.harness.registry, physgrad.harness.study, physgrad.harness.bench
         heavy = ("optimistix", "kfac_jax", "exponax", "matplotlib.pyplot", "phi", "phiml")
         print(json.dumps({"imported": [m for m in heavy if m in sys.modules]}))
         """,

@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 
 from physgrad import Budget
-from physgrad.config import make_config
+from physgrad.harness.config import make_config
+from physgrad.harness.registry import METHODS, PROBLEMS
+from physgrad.harness.train import build, make_step, train
 from physgrad.methods import L1Proxy
 from physgrad.problems import ExpInverse
-from physgrad.registry import METHODS, PROBLEMS
-from physgrad.train import build, make_step, train
 
 SMALL = {"exp_inverse": {"n_train": 256, "n_test": 16}, "sine": {"n_train": 256, "n_test": 16}}
 

@@ -11,11 +11,11 @@ import numpy as np
 import pytest
 
 import physgrad
-from physgrad.cli import main
-from physgrad.config import Budget, ConfigError, make_config
+from physgrad.harness.cli import main
+from physgrad.harness.config import Budget, ConfigError, make_config
+from physgrad.harness.train import build, make_step
 from physgrad.problems import CartPole, Guidance, QuantumControl
 from physgrad.problems.quantum_control import QuantumController
-from physgrad.train import build, make_step
 
 # --- cart-pole -------------------------------------------------------------------------
 
@@ -289,7 +289,7 @@ def test_cli_sweep_with_a_bad_value_is_one_line(tmp_path, capsys):
 
 
 def test_grid_panels_survive_a_partly_finished_grid(tmp_path):
-    from physgrad.plots import grid_panels
+    from physgrad.harness.plots import grid_panels
 
     rows = [{"method": "bptt", "seed": "0", "epoch": e, "value": str(1.0 / (e + 1))} for e in range(5)]
     path = grid_panels(
@@ -317,7 +317,7 @@ def test_a_reused_study_directory_reports_only_its_planned_runs(tmp_path, capsys
     assert main([*base, "--steps", "2"]) == 0
     assert main([*base, "--steps", "3"]) == 0  # same names, another budget: new run dirs beside the old
     assert len(list((out / "runs").iterdir())) == 2
-    from physgrad.study import read_csv
+    from physgrad.harness.study import read_csv
 
     rows = read_csv(out / "summary.csv")
     assert [r["steps"] for r in rows] == ["3"]

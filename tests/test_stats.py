@@ -17,8 +17,8 @@ import numpy as np
 import pytest
 from scipy.stats import wilcoxon
 
-from physgrad.stats import COLUMNS, case_values, format_p, format_tests, paired_tests, seed_means
-from physgrad.study import collect
+from physgrad.harness.stats import COLUMNS, case_values, format_p, format_tests, paired_tests, seed_means
+from physgrad.harness.study import collect
 
 CASES = 20
 
@@ -188,7 +188,7 @@ def test_the_printed_table_follows(tmp_path):
     """The command line's table (compare, report, demo) is built from format_tests."""
     from rich.console import Console
 
-    from physgrad.cli import _print_paired_tests
+    from physgrad.harness.cli import _print_paired_tests
 
     for seed in (0, 1):
         a, _ = reference_arrays(seed)

@@ -10,9 +10,9 @@ import pytest
 
 import physgrad
 from physgrad import Budget, ConfigError
-from physgrad.cli import main
-from physgrad.config import make_config, parse_method, split_methods
-from physgrad.train import build, make_step, read_metrics, train
+from physgrad.harness.cli import main
+from physgrad.harness.config import make_config, parse_method, split_methods
+from physgrad.harness.train import build, make_step, read_metrics, train
 
 SMALL = {"n_train": "128", "n_test": "64", "adam.batch_size": "32", "hig.batch_size": "16"}
 

@@ -15,17 +15,17 @@ import pytest
 
 import physgrad  # noqa: F401
 from physgrad import prdp
-from physgrad.cli import main
-from physgrad.config import Budget, ConfigError, make_config
 from physgrad.engine import Placement, Steps, TrainSettings, grouped_order
+from physgrad.harness.cli import main
+from physgrad.harness.config import Budget, ConfigError, make_config
+from physgrad.harness.registry import METHODS, PROBLEMS
+from physgrad.harness.train import build, make_step, settings_of, train
 from physgrad.problems import Advection1d, Kolmogorov, KuramotoSivashinsky
 from physgrad.problems.advection_1d import ImplicitUpwind, fou_distance
 from physgrad.problems.ks import ks_stepper
 from physgrad.problems.time_stepper import windows
-from physgrad.registry import METHODS, PROBLEMS
 from physgrad.rollout import value_and_grad
 from physgrad.steppers import NonDifferentiable, NotDifferentiableError, Solver, stepper_step
-from physgrad.train import build, make_step, settings_of, train
 
 
 @pytest.fixture(autouse=True)
@@ -633,7 +633,7 @@ def csv_rows(path):
 
 
 def test_paired_tests_pair_by_seed_and_case(tmp_path):
-    from physgrad.stats import paired_tests, seed_means
+    from physgrad.harness.stats import paired_tests, seed_means
 
     rows = ["problem,method,seed,run_dir"]
     for method, offset in (("a", 0.0), ("b", 1.0)):

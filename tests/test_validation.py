@@ -15,11 +15,11 @@ import pytest
 
 import physgrad
 from physgrad import Budget, ConfigError, TrainSettings, checks
-from physgrad.cli import main
-from physgrad.config import make_config
 from physgrad.extras import MissingExtra
+from physgrad.harness.cli import main
+from physgrad.harness.config import make_config
+from physgrad.harness.registry import METHODS, PROBLEMS, optax_names
 from physgrad.methods import Gradient, Method
-from physgrad.registry import METHODS, PROBLEMS, optax_names
 from test_library import Cubic
 
 ADAM = Method(Gradient(), optax.adam(1e-2))
@@ -91,7 +91,7 @@ def test_cli_in_a_fresh_process_exits_2_with_one_line(tmp_path):
     a_file.write_text("")
     script = (
         "import io, json, sys, contextlib\n"
-        "from physgrad.cli import main\n"
+        "from physgrad.harness.cli import main\n"
         "out = []\n"
         "for argv in json.loads(sys.argv[1]):\n"
         "    err = io.StringIO()\n"

@@ -15,7 +15,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from physgrad.study import study_section
+from physgrad.harness.study import study_section
 
 FIGURES = Path(__file__).parent / "figures"
 

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from physgrad.study import final_metric, load_studies, markdown, read_csv, study_section
+from physgrad.harness.study import final_metric, load_studies, markdown, read_csv, study_section
 
 FIGURES = Path(__file__).parent / "figures"
 XI_SWEEP = (1, 4, 16, 64)  # at φ = 0

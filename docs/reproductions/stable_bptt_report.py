@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from physgrad.study import cell_name, grid_cells, grid_report, markdown, read_csv
+from physgrad.harness.study import cell_name, grid_cells, grid_report, markdown, read_csv
 
 FIGURES = Path(__file__).parent / "figures"
 TASKS = {  # directory: (title, the complexity setting)

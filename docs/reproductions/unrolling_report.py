@@ -19,8 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
-from physgrad.stats import case_values, format_p, format_ratio, paired_tests, seed_means
-from physgrad.study import collect, markdown, read_csv
+from physgrad.harness.stats import case_values, format_p, format_ratio, paired_tests, seed_means
+from physgrad.harness.study import collect, markdown, read_csv
 
 FIGURES = Path(__file__).parent / "figures"
 METHODS = ("one", "nog", "wig")
@@ -126,7 +126,7 @@ def cross_test(cell_a: Path, method_a: str, cell_b: Path, method_b: str):
 
 def advection_section(root: Path) -> str:
     from physgrad.problems.advection_1d import fou_distance
-    from physgrad.train import load_network
+    from physgrad.harness.train import load_network
 
     out = ["## Advection (trainax quick-start)\n"]
     quick = root / "advection_quickstart"

@@ -13,6 +13,7 @@ computations that need it (the Gram route's eigendecomposition, float64 problems
 from . import distributed, inverse, routes, transforms
 from .engine import Budget, Phase, TrainSettings, TrainState, fit
 from .errors import ConfigError
+from .harness.train import load_network
 from .jacobian import stacked_jacobian
 from .methods import (
     AbstractMethod,
@@ -34,7 +35,6 @@ from .nets import MLP, UNet, parameter_count
 from .problems import AbstractProblem
 from .rollout import System, closed_loop
 from .routes import blockgram_half_inverse, half_inverse, lanczos_half_inverse
-from .train import load_network
 
 __version__ = "0.1.0"
 

@@ -1,7 +1,7 @@
 """Ranges of settings and budgets: one small validator per kind of value.
 
 Every setting is checked by type and range where it enters (the command line's ``--set``,
-:func:`physgrad.config.make_config`, :class:`physgrad.TrainSettings`, :class:`physgrad.Budget`,
+:func:`physgrad.harness.config.make_config`, :class:`physgrad.TrainSettings`, :class:`physgrad.Budget`,
 :func:`physgrad.fit`), before any data are generated; a value out of range is one
 :class:`~physgrad.ConfigError` line that names the valid range or choices::
 

@@ -19,5 +19,5 @@ class DoesNotFit(ConfigError):
 
     A :class:`ConfigError` (the remedy is a setting), but one that depends on the method and
     the machine rather than on a wrong name or value: a study that records failures
-    (``physgrad.study.compare(record_failures=True)``, the bench) records it as that run's
+    (``physgrad.harness.study.compare(record_failures=True)``, the bench) records it as that run's
     failure and goes on with the others."""

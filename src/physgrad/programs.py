@@ -10,7 +10,7 @@ compiled step (and the jitted evaluation) under a key of everything the program 
 - the network's static part (activation functions, layer structure; not its weights);
 - the method object (a method holds optax closures, so two separately built methods are
   never equal: the command line builds each configured method once per process,
-  :func:`physgrad.train.phases_of`, and a library user who passes the same method object
+  :func:`physgrad.harness.train.phases_of`, and a library user who passes the same method object
   to several ``fit`` calls shares its program the same way);
 - the batch size, the device mesh, and the shape, dtype and sharding of every argument.
 
@@ -61,7 +61,7 @@ def static_key(tree: Any) -> Hashable:
 
 class ProgramCache:
     """A small least-recently-used map from keys to what they build: compiled programs here,
-    the command line's method objects in :func:`physgrad.train.phases_of`.
+    the command line's method objects in :func:`physgrad.harness.train.phases_of`.
 
     ``get(key, build)`` returns the program stored under ``key``, or calls ``build()``,
     stores and returns its result; a ``key`` of None (nothing hashable to key on) always

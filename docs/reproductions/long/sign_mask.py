@@ -25,9 +25,9 @@ import equinox as eqx
 import jax
 import numpy as np
 
-from physgrad.config import RunConfig
+from physgrad.harness.config import RunConfig
 from physgrad.rollout import M, R, cosine, joint_gradients, sign_mask
-from physgrad.train import build, load_network
+from physgrad.harness.train import build, load_network
 
 DATA = Path(__file__).resolve().parent.parent / "data"
 RUNS = [  # (study, method directory, seeds)

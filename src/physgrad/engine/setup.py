@@ -3,7 +3,7 @@
 :func:`build_setup` makes them (deterministic per seed) and checks every method against
 the problem, with one-line errors. :func:`abstract_setup` makes the same from shapes alone
 (``eqx.filter_eval_shape``: nothing is generated or initialised); the memory guard's
-:func:`preflight` and the bench's applicability check (:mod:`physgrad.bench`) use it.
+:func:`preflight` and the bench's applicability check (:mod:`physgrad.harness.bench`) use it.
 """
 
 from __future__ import annotations

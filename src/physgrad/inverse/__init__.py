@@ -3,7 +3,7 @@
 Each solver maps one sample's prediction x and a y-space target y_t to x̃ ≈ P⁻¹(y_t; x)
 and reports convergence (:class:`InverseResult`). Pass one to :func:`physgrad.sip`
 (``solver=GaussNewton(rcond=1e-5)``); ``Analytic()`` without a function uses the
-problem's own inverse. The command line builds them by name (:mod:`physgrad.registry`).
+problem's own inverse. The command line builds them by name (:mod:`physgrad.harness.registry`).
 """
 
 from .analytic import Analytic

@@ -16,7 +16,7 @@ entry point            rule                             direction
 :func:`unrolled`       :class:`UnrolledGradient`        ONE / NOG / WIG gradients
 =====================  ===============================  =====================================
 
-The registry of names for the command line is :mod:`physgrad.registry`.
+The registry of names for the command line is :mod:`physgrad.harness.registry`.
 """
 
 from .base import AbstractMethod, AbstractRule, Estimator, Method, Objective, trainable

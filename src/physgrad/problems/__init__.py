@@ -1,4 +1,4 @@
-"""Benchmark problems, one file each (the command line's names for them: :mod:`physgrad.registry`)."""
+"""Benchmark problems, one file each (the command line's names for them: :mod:`physgrad.harness.registry`)."""
 
 from .advection_1d import Advection1d
 from .base import AbstractProblem

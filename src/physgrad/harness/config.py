@@ -8,10 +8,10 @@ import hashlib
 import json
 from typing import Any
 
-from .checks import check_setting
-from .engine import ADDED_SETTINGS, UNGUARDED_SETTINGS, Budget
-from .errors import ConfigError
-from .extras import MissingExtra, require
+from ..checks import check_setting
+from ..engine import ADDED_SETTINGS, UNGUARDED_SETTINGS, Budget
+from ..errors import ConfigError
+from ..extras import MissingExtra, require
 from .registry import METHODS, PROBLEMS, hyperparameters, is_optax_name, optax_method, paper_defaults
 
 # Training-engine settings, settable with --set like problem and method settings.

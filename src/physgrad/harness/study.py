@@ -21,11 +21,11 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from . import rundir
+from .. import rundir
+from ..errors import ConfigError
+from ..progress import AbstractProgressMeter
 from .config import Budget, RunConfig, choose, make_config, method_slug, parse_method, phase_methods, valid_settings
-from .errors import ConfigError
 from .failures import FailureLog, recordable
-from .progress import AbstractProgressMeter
 from .registry import PROBLEMS
 from .train import is_complete, read_metrics, read_summary, train
 
@@ -103,7 +103,7 @@ def compare(
     ``devices``: each run's batch is split over that many devices (``train``). One study
     writes to ``out`` at a time (a second is refused in one line naming the first).
     ``record_failures``: a run that raises is recorded and the study goes on (the bench's
-    choice: one crashing method must not cost the others' runs; :mod:`physgrad.failures`);
+    choice: one crashing method must not cost the others' runs; :mod:`physgrad.harness.failures`);
     without it the first error stops the study, as bad input and KeyboardInterrupt always do."""
     out = Path(out)
     configs = plan(problem, methods, seeds, budget, settings)
@@ -255,7 +255,7 @@ def _no_loss(row: dict[str, Any]) -> str:
 
 class Report(NamedTuple):
     """A study's aggregated table (per method), its printable lines and the figure's path
-    (None: the figure could not be drawn, a :class:`~physgrad.plots.FigureWarning` says why)."""
+    (None: the figure could not be drawn, a :class:`~physgrad.harness.plots.FigureWarning` says why)."""
 
     table: list[dict[str, Any]]
     lines: list[list[str]]

@@ -18,9 +18,9 @@ from typing import Any
 import optax
 import optax.contrib
 
-from . import routes
-from .inverse import LBFGS, Analytic, GaussNewton, LinearSolve, SaddleFreeNewton
-from .methods import (
+from .. import routes
+from ..inverse import LBFGS, Analytic, GaussNewton, LinearSolve, SaddleFreeNewton
+from ..methods import (
     AbstractMethod,
     Gradient,
     JacobianPower,
@@ -33,13 +33,13 @@ from .methods import (
     Unrolled,
     UnrolledGradient,
 )
-from .methods.kfac import kfac
-from .methods.kronecker_hig import KroneckerPower
-from .methods.sip import L1Proxy, L2Proxy
-from .rollout import Combined, M, R, S
+from ..methods.kfac import kfac
+from ..methods.kronecker_hig import KroneckerPower
+from ..methods.sip import L1Proxy, L2Proxy
+from ..rollout import Combined, M, R, S
 
 # `# isort: skip`: isort would split this compact `# fmt: skip` import into one name a line
-from .problems import (  # isort: skip
+from ..problems import (  # isort: skip
     AbstractProblem, Advection1d, CartPole, ExpInverse, Guidance, Heat, HigToy, Kolmogorov, KuramotoSivashinsky,
     LinearOscillators, NavierStokes, Oscillators, Poisson, PoissonHig, QuantumControl, QuantumDipole, Sine, Toy2d,
 )  # fmt: skip

@@ -1,5 +1,5 @@
 """A bench's report, (re)written from its files alone: every problem's table, the leaderboard,
-the heat map and ``bench.md`` (see :mod:`physgrad.bench` for the layout)."""
+the heat map and ``bench.md`` (see :mod:`physgrad.harness.bench` for the layout)."""
 
 from __future__ import annotations
 
@@ -8,10 +8,10 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, NamedTuple
 
+from ...rundir import atomic_write
 from .. import plots
 from ..config import ConfigError
 from ..failures import read_failures
-from ..rundir import atomic_write
 from ..stats import paired_tests
 from ..study import collect, markdown, read_csv, write_csv
 from ..study import report as study_report
@@ -68,8 +68,8 @@ def problem_table(out: str | Path, verdicts: Sequence[Verdict]) -> list[dict[str
 def heatmap(
     tables: dict[str, Sequence[dict[str, Any]]], path: str | Path, *, title: str = "", reference: str = REFERENCE
 ) -> Path:
-    """The bench's method × problem heat map (:func:`physgrad.plots.heatmap`) of the ratios
-    to ``reference``, clipped to :data:`~physgrad.bench.tables.RATIO_CLIP` as the leaderboard's."""
+    """The bench's method × problem heat map (:func:`physgrad.harness.plots.heatmap`) of the ratios
+    to ``reference``, clipped to :data:`~physgrad.harness.bench.tables.RATIO_CLIP` as the leaderboard's."""
     return plots.heatmap(tables, path, title=title, reference=reference, clip=RATIO_CLIP)
 
 
@@ -144,7 +144,7 @@ def bench_markdown(
         "finished seeds. Rank: by the fraction of runs that diverged or failed, then by that mean. "
         f"Ratio: mean / {REFERENCE}'s mean. The paired test against each problem's best method is the two-sided "
         "Wilcoxon signed-rank test on (seed, test case) pairs of the per-case final test loss, finished seeds of "
-        'both methods only (`physgrad.stats`); "seeds lower" counts the seeds on which the best method\'s mean '
+        'both methods only (`physgrad.harness.stats`); "seeds lower" counts the seeds on which the best method\'s mean '
         "over test cases is lower.",
         "",
         "## Leaderboard",

@@ -262,7 +262,7 @@ def heatmap(
     title: str = "",
 ) -> Path:
     """Method × problem heat map of log₁₀(mean final test loss / the ``reference``'s) from
-    the bench's tables (``{problem: physgrad.bench.method_rows(...)}``): blue below the
+    the bench's tables (``{problem: physgrad.harness.bench.method_rows(...)}``): blue below the
     reference, red above; the ratio is written in each cell (``†``: some seeds diverged or
     failed). Ratios enter the logarithm clipped to ``clip`` (a loss of exactly 0 has ratio
     0). Cells whose runs all diverged or failed are grey, hatched and crossed; methods that

@@ -122,7 +122,7 @@ def problem_settings(problem: str, method: str, settings: dict[str, Any]) -> dic
 
 
 def study_settings(problem: str, methods: Sequence[str], settings: dict[str, Any]) -> dict[str, Any]:
-    """The bench's ``--set`` values as one problem's study (:func:`physgrad.study.compare`
+    """The bench's ``--set`` values as one problem's study (:func:`physgrad.harness.study.compare`
     of its applicable ``methods``) takes them: :func:`scoped_settings`, less what none of
     the methods has (compare refuses such a name; the bench drops it): the study gives each
     method the same settings as :func:`problem_settings`, and records them in ``study.json``."""

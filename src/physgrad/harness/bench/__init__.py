@@ -21,12 +21,12 @@ them:
 - ``BENCH/bench.md``: all of it, with the budgets, settings and machine;
 - ``BENCH/bench.json``: what was asked and the applicability of every candidate.
 
-**Applicability** (:mod:`physgrad.bench.applicability`): a candidate method runs on a
+**Applicability** (:mod:`physgrad.harness.bench.applicability`): a candidate method runs on a
 problem when the run's configuration resolves and the method's own ``check`` accepts the
 problem's objective, decided from shapes alone (no data, no training); :data:`POLICY`
 skips a few pairings that make no sense as a bench entry, with the reason.
 
-**One run loop.** Each problem's runs are :func:`physgrad.study.compare`'s, with
+**One run loop.** Each problem's runs are :func:`physgrad.harness.study.compare`'s, with
 ``record_failures=True``: a run that the engine refuses (the memory guard) or that raises
 is recorded in ``BENCH/<problem>/failures.json`` (its traceback in its run directory) and
 the bench goes on, while bad input and an interrupt stop it; a diverged run is an ordinary
@@ -36,15 +36,15 @@ invocation (a refusal costs seconds; the cause may have been fixed).
 **The metric** is the one ``compare``'s table uses: each run's final test loss
 (``summary.csv``). A method ranks by the fraction of its seeds that diverged first (a method
 that diverges is less useful than any that does not), then by its mean final test loss
-over the finished seeds. The paired test is ``physgrad.stats``' two-sided Wilcoxon
+over the finished seeds. The paired test is ``physgrad.harness.stats``' two-sided Wilcoxon
 signed-rank test on (seed, test case) pairs of the per-case final test loss, finished
 seeds only.
 
-The package: :mod:`~physgrad.bench.choices` (problems, candidates, the quick profile,
-``--set`` scopes), :mod:`~physgrad.bench.applicability` (which method runs where),
-:mod:`~physgrad.bench.tables` (method rows, paired tests, leaderboard) and
-:mod:`~physgrad.bench.report` (the files above, from the study directories alone); the
-heat map is drawn by :func:`physgrad.plots.heatmap`. Everything here is a pure function of
+The package: :mod:`~physgrad.harness.bench.choices` (problems, candidates, the quick profile,
+``--set`` scopes), :mod:`~physgrad.harness.bench.applicability` (which method runs where),
+:mod:`~physgrad.harness.bench.tables` (method rows, paired tests, leaderboard) and
+:mod:`~physgrad.harness.bench.report` (the files above, from the study directories alone); the
+heat map is drawn by :func:`physgrad.harness.plots.heatmap`. Everything here is a pure function of
 its arguments and the files it reads; nothing changes global state on import.
 """
 
@@ -57,9 +57,9 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
+from ...rundir import atomic_write, one_writer
 from ..config import Budget
 from ..failures import read_failures
-from ..rundir import atomic_write, one_writer
 from ..study import compare
 from .applicability import POLICY, Verdict, applicability, describe_verdicts, plan
 from .choices import QUICK, ZOO, choose_methods, choose_problems, problem_settings, quick_settings, study_settings
@@ -78,7 +78,7 @@ __all__ = [
 def machine() -> dict[str, Any]:
     """What the budgets were spent on: CPU cores (all, and usable by this process), JAX's
     backend and devices, versions (``engine.environment``)."""
-    from ..engine import environment
+    from ...engine import environment
 
     env = environment()
     try:
@@ -103,7 +103,7 @@ def run_problem(
     echo: Callable[[str], None] = print,
     devices: int | str | None = 1,
 ) -> list[dict[str, Any]]:
-    """One problem's study in ``out``: :func:`physgrad.study.compare` of its applicable
+    """One problem's study in ``out``: :func:`physgrad.harness.study.compare` of its applicable
     methods × ``seeds`` (the same ``study.json``, run directories, skipping and resuming)
     with ``record_failures=True``, so that a run which raises (the memory guard's refusal, a
     crash) is recorded in ``failures.json`` and the others go on. Each of compare's lines is

@@ -1,6 +1,6 @@
 """The failure log of a study: runs that raised, recorded so that the study goes on.
 
-``physgrad.study.compare(..., record_failures=True)`` (and so every bench problem) records
+``physgrad.harness.study.compare(..., record_failures=True)`` (and so every bench problem) records
 a run that raises (:func:`recordable`: not bad input) and goes on; it keeps
 ``OUT/failures.json``, ``{run name: {"method", "seed", "error", "traceback"}}`` with the
 error in one line, and the full traceback in ``OUT/runs/<run name>/traceback.txt``. A run
@@ -18,8 +18,8 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from . import rundir
-from .errors import ConfigError, DoesNotFit
+from .. import rundir
+from ..errors import ConfigError, DoesNotFit
 
 FAILURES = "failures.json"
 TRACEBACK = "traceback.txt"

@@ -18,8 +18,8 @@ import json
 from collections.abc import Callable, Sequence
 from typing import Any
 
+from ...extras import MissingExtra
 from ..config import Budget, make_config, phase_methods
-from ..extras import MissingExtra
 from ..failures import one_line
 from .choices import check_settings, problem_settings
 
@@ -62,8 +62,8 @@ def applicability(problem: str, methods: Sequence[str], settings: dict[str, Any]
 
     Raises :class:`ConfigError` for a bad setting value (the user's input, not the
     method's fault)."""
-    from ..engine import abstract_setup
-    from ..precision import float64_scope
+    from ...engine import abstract_setup
+    from ...precision import float64_scope
     from ..train import phases_of, problem_of
 
     settings = settings or {}

@@ -1,8 +1,8 @@
-"""Runs from names: a :class:`~physgrad.config.RunConfig` (what the command line and the
+"""Runs from names: a :class:`~physgrad.harness.config.RunConfig` (what the command line and the
 studies write as ``config.json``) turned into objects and handed to :func:`physgrad.fit`.
 
 This is the edge between strings and the library: :func:`build` resolves the registered
-problem and methods (:mod:`physgrad.registry`) with their settings; :func:`train` runs a
+problem and methods (:mod:`physgrad.harness.registry`) with their settings; :func:`train` runs a
 configuration into a run directory with the same engine a notebook uses.
 """
 
@@ -16,8 +16,7 @@ from typing import Any
 
 import equinox as eqx
 
-from .config import ConfigError, RunConfig
-from .engine import (
+from ..engine import (
     Phase,
     Setup,
     TrainSettings,
@@ -29,9 +28,10 @@ from .engine import (
     read_metrics,
     read_summary,
 )
-from .problems.direct import DirectOptimisation
-from .programs import ProgramCache
-from .progress import AbstractProgressMeter
+from ..problems.direct import DirectOptimisation
+from ..programs import ProgramCache
+from ..progress import AbstractProgressMeter
+from .config import ConfigError, RunConfig
 from .registry import METHODS, PROBLEMS
 
 
@@ -96,7 +96,7 @@ def train(
     With ``resume=True`` an existing run continues from its last checkpoint up to
     ``config.budget`` (which may be larger than the original one); a finished run whose
     budget is already met returns its summary unchanged. Runs written before settings were
-    added keep matching (:data:`physgrad.config.ADDED_LATER`)."""
+    added keep matching (:data:`physgrad.harness.config.ADDED_LATER`)."""
     if config.prdp and PROBLEMS[config.problem].refinable_setting is None:
         valid = [name for name, cls in PROBLEMS.items() if cls.refinable_setting]
         raise ConfigError(f"prdp needs a problem with an iterative solver; valid choices: {', '.join(valid)}")

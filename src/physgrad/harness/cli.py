@@ -1,4 +1,4 @@
-"""The ``physgrad`` command line: a thin layer over :mod:`physgrad.train` and :mod:`physgrad.study`.
+"""The ``physgrad`` command line: a thin layer over :mod:`physgrad.harness.train` and :mod:`physgrad.harness.study`.
 
     physgrad list
     physgrad train PROBLEM --method M|M1:N,M2 [--seconds S | --steps N | --epochs E] [--seed K]
@@ -8,7 +8,7 @@
                      (--set name=a,b,c sweeps: every cell of the grid is a study)
     physgrad report DIR
     physgrad bench [--problems p1,p2|all] [--methods m1,m2|applicable] [--seeds N] [budget] [--out DIR]
-                   [--quick] [--set ...]   (every applicable method on every problem, ranked; physgrad.bench)
+                   [--quick] [--set ...]   (every applicable method on every problem, ranked; physgrad.harness.bench)
     physgrad demo
 
 Bad input (an unknown problem, method or setting) prints one line with the valid choices
@@ -80,7 +80,7 @@ def _run_settings(args):
 
 def _out(path) -> Path:
     """``--out``, refused in one line if it names a file or cannot be written (before any work)."""
-    from .checks import check_directory
+    from ..checks import check_directory
     from .config import ConfigError
 
     try:
@@ -124,7 +124,7 @@ def build_parser() -> Parser:
     parser = Parser(
         prog="physgrad", description="Train networks through physics simulators with improved update rules."
     )
-    from . import __version__
+    from .. import __version__
 
     parser.add_argument("--version", action="version", version=f"physgrad {__version__}")
     sub = parser.add_subparsers(dest="command", parser_class=Parser)
@@ -181,7 +181,7 @@ def build_parser() -> Parser:
         "bench", help="every applicable method on every chosen problem at equal budgets; tables, leaderboard, heat map",
         formatter_class=argparse.RawDescriptionHelpFormatter,
         description="Run every applicable method on every chosen problem with the same budget per run, rank them per "
-                    "problem and across problems (physgrad.bench). Resumable: the same command again skips finished "
+                    "problem and across problems (physgrad.harness.bench). Resumable: the same command again skips finished "
                     "runs and resumes interrupted ones.",
         epilog="examples:\n"
                "  physgrad bench --quick                      a few fast problems, 10 s per run, 2 seeds\n"
@@ -225,7 +225,7 @@ def _files(*paths) -> str:
 
 
 def cmd_list(args, console):
-    from .extras import method_extra, missing_note
+    from ..extras import method_extra, missing_note
     from .registry import METHODS, PROBLEMS, describe
 
     console.print("[bold]problems[/bold]")
@@ -253,7 +253,7 @@ def cmd_list(args, console):
 
 
 def _progress(args, console):
-    from .progress import NoProgressMeter, RichProgressMeter
+    from ..progress import NoProgressMeter, RichProgressMeter
 
     return NoProgressMeter() if args.quiet or not console.is_terminal else RichProgressMeter()
 
@@ -265,7 +265,7 @@ def _start_processes(args) -> str | None:
         return args.devices or "1"
     if any(v is None for v in multi):
         raise UsageError("a multi-process run needs all of --coordinator, --num-processes and --process-id")
-    from .distributed import initialize
+    from ..distributed import initialize
 
     initialize(args.coordinator, args.num_processes, args.process_id)
     return args.devices or "all"
@@ -306,7 +306,7 @@ def cmd_train(args, console):
 
 
 def _run_compare(console, problem, methods, seeds, budget, settings, out, quiet=False, devices="1"):
-    from .progress import RichProgressMeter
+    from ..progress import RichProgressMeter
     from .study import compare, plan, report
 
     plan(problem, methods, seeds, budget, settings)  # validate every name before anything runs
@@ -346,7 +346,7 @@ def cmd_compare(args, console):
 
 def _run_grid(console, problem, methods, seeds, budget, settings, out, quiet=False, devices="1"):
     """A sweep: ``--set a=1,2 --set b=x,y`` runs every cell of the grid as its own study."""
-    from .progress import RichProgressMeter
+    from ..progress import RichProgressMeter
     from .study import compare_grid, grid_cells, grid_report, split_grid
 
     fixed, grid = split_grid(settings)
@@ -424,7 +424,7 @@ def cmd_bench(args, console):
         f"budget {budget} per run, seeds {list(range(seeds))}, settings {settings or 'paper defaults'} -> {out}"
     )
     console.print("deciding which methods apply to which problem (from shapes; no data, no training)")
-    from .progress import RichProgressMeter
+    from ..progress import RichProgressMeter
 
     meter = None if args.quiet or not console.is_terminal else RichProgressMeter
     result = bench.bench(problems, methods, range(seeds), budget, out, settings=settings, progress=meter,
@@ -470,7 +470,7 @@ def cmd_demo(args, console):
 
 
 def _one_line_warnings(err: Console, show):
-    """``warnings.showwarning`` that prints a :class:`~physgrad.plots.FigureWarning` as one
+    """``warnings.showwarning`` that prints a :class:`~physgrad.harness.plots.FigureWarning` as one
     ``physgrad: warning:`` line (and leaves every other warning to ``show``)."""
     from .plots import FigureWarning
 
@@ -511,7 +511,7 @@ def main(argv=None) -> int:
             return 2
         cache = getattr(args, "compilation_cache", None) or os.environ.get("PHYSGRAD_COMPILATION_CACHE")
         if cache and args.command != "list":
-            from .programs import use_compilation_cache
+            from ..programs import use_compilation_cache
 
             use_compilation_cache(cache)
         with warnings.catch_warnings():  # a figure that cannot be drawn: one line, the tables stand
@@ -521,7 +521,7 @@ def main(argv=None) -> int:
         err.print(f"physgrad: error: {getattr(e, 'flags', None) or e}", markup=False, highlight=False, soft_wrap=True)
         return 2
     except KeyboardInterrupt as e:  # Ctrl-C, or SIGTERM (rundir.Terminated): runs checkpoint first
-        from .rundir import Terminated
+        from ..rundir import Terminated
 
         err.print(
             f"physgrad: {'terminated' if isinstance(e, Terminated) else 'interrupted'}; finished runs are kept, "
