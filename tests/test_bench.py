@@ -7,7 +7,7 @@ import math
 import pytest
 
 import physgrad
-from physgrad import bench
+from physgrad.harness import bench
 from physgrad.harness.bench import Verdict, applicability, leaderboard, method_rows
 from physgrad.harness.cli import main
 from physgrad.harness.config import split_methods

@@ -9,7 +9,7 @@ import warnings
 import numpy as np
 import pytest
 
-from physgrad import plots, study
+from physgrad.harness import plots, study
 from physgrad.harness.cli import main
 
 # A diverging run's test loss: finite values growing to the largest floats, then inf and NaN.

@@ -4,8 +4,9 @@ import jax
 import numpy as np
 import pytest
 
-from physgrad import Budget, study
+from physgrad import Budget
 from physgrad.engine import initial_network
+from physgrad.harness import study
 from physgrad.problems import HigToy
 from physgrad.programs import ProgramCache, abstract_key, key, static_key
 

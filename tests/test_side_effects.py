@@ -330,7 +330,7 @@ def test_figures_leave_the_matplotlib_backend_alone(tmp_path):
         import json, sys
         import matplotlib
         matplotlib.use("svg")
-        from physgrad import bench, plots
+        from physgrad.harness import bench, plots
         rows = [{{"method": m, "seed": s, "split": "test", "metric": "loss", "wall_time": t, "value": v}}
                 for m in ("adam", "hig") for s in (0, 1) for t, v in ((0.0, 1.0), (1.0, 0.5 + s / 10))]
         plots.loss_vs_time(rows, {str(tmp_path / "loss.png")!r}, order=["adam", "hig"])
