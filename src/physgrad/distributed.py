@@ -33,12 +33,10 @@ def initialize(coordinator: str, num_processes: int, process_id: int) -> None:
     ``coordinator`` is ``HOST:PORT`` of process 0, which listens there. On CPU the
     cross-process collectives use gloo (JAX's default)."""
     if num_processes < 1 or not 0 <= process_id < num_processes:
-        raise ConfigError(f"need 0 <= process_id < num_processes; got {process_id} and {num_processes}",
-                          flags=f"need 0 <= --process-id < --num-processes; got {process_id} and {num_processes}")  # fmt: skip
+        raise ConfigError(f"need 0 <= process_id < num_processes; got {process_id} and {num_processes}")
     host, _, port = coordinator.rpartition(":")
     if not host or not port.isdigit():
-        raise ConfigError(f"coordinator must be HOST:PORT, got {coordinator!r}",
-                          flags=f"--coordinator must be HOST:PORT, got {coordinator!r}")  # fmt: skip
+        raise ConfigError(f"coordinator must be HOST:PORT, got {coordinator!r}")
     jax.distributed.initialize(coordinator, num_processes=num_processes, process_id=process_id)
 
 
@@ -52,14 +50,12 @@ def make_mesh(devices: int | str | None = 1) -> Mesh | None:
         try:
             n = int(devices)
         except ValueError:
-            raise ConfigError(f"devices must be a number or 'all', got {devices!r}",
-                              flags=f"--devices must be a number or 'all', got {devices!r}") from None  # fmt: skip
+            raise ConfigError(f"devices must be a number or 'all', got {devices!r}") from None
         if not 1 <= n <= available:
             seen = f"this run sees {available} device(s) ({jax.default_backend()})"
-            raise ConfigError(f"devices={n}: {seen}", flags=f"--devices {n}: {seen}")
+            raise ConfigError(f"devices={n}: {seen}")
     if jax.process_count() > 1 and n != available:
-        raise ConfigError(f"a multi-process run uses every device ({available}); got devices={n}",
-                          flags=f"a multi-process run uses every device ({available}); got --devices {n}")  # fmt: skip
+        raise ConfigError(f"a multi-process run uses every device ({available}); got devices={n}")
     if n == 1:
         return None
     axis_type = (jax.sharding.AxisType.Auto,)

@@ -4,13 +4,9 @@
 class ConfigError(ValueError):
     """A wrong problem, method, setting or budget; the message is one line with the choices.
 
-    The message speaks the library's words (``resume=True``, ``out``); ``flags``, where
-    given, is the same line in the command line's words (``--resume``, ``--out``), which
-    the command line prints instead."""
-
-    def __init__(self, message: str, *, flags: str | None = None):
-        super().__init__(message)
-        self.flags = flags
+    The message speaks the library's words (``resume=True``, ``out``, ``devices=4``); the
+    command line prints it in its own (``--resume``, ``--out``, ``--devices 4``:
+    :func:`physgrad.harness.words.command_line_words`)."""
 
 
 class DoesNotFit(ConfigError):

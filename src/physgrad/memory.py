@@ -226,8 +226,7 @@ def check_step_fits(
         f"{label or 'the'} step needs ~{_size(need * shared)}" + (f" ({note})" if note else "")
         + f" but {where} has {_size(min(free))} available{held}; {fit} (memory_guard=false skips this check)"
     )  # fmt: skip
-    # the library's words (devices=N, as fit takes it); the command line's flag is --devices N
-    raise DoesNotFit(message, flags=message.replace(" devices=", " --devices "))
+    raise DoesNotFit(message)  # the library's words (devices=N, as fit takes it)
 
 
 def tree_bytes(tree: Any) -> int:

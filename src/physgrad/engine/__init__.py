@@ -30,8 +30,8 @@ The package, in the order of a run:
   bundle (:class:`~physgrad.engine.run.Strategies`).
 
 Errors are :class:`physgrad.ConfigError` lines in the library's words (``resume=True``,
-``out``, ``devices=``); where the command line words it differently the error carries
-that line too (``flags``), which the command line prints.
+``out``, ``devices=``); the command line prints them with its flags
+(:mod:`physgrad.harness.words`).
 """
 
 from .recording import (

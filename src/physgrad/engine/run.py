@@ -253,12 +253,10 @@ def _recorded(request: Request) -> dict[str, Any] | None:
         return None
     run_dir = request.run_dir
     if not request.resume:
-        raise ConfigError(f"run directory {run_dir} exists; resume it (resume=True) or choose another run directory",
-                          flags=f"run directory {run_dir} exists; pass --resume or choose another --out")  # fmt: skip
+        raise ConfigError(f"run directory {run_dir} exists; resume it (resume=True) or choose another run directory")
     old = read_json(path)
     if not request.same_run(old):
-        raise ConfigError(f"run directory {run_dir} holds a different configuration; choose another run directory",
-                          flags=f"run directory {run_dir} holds a different configuration; choose another --out")  # fmt: skip
+        raise ConfigError(f"run directory {run_dir} holds a different configuration; choose another run directory")
     return old
 
 
@@ -374,8 +372,7 @@ def _budget_met(
     trained = (
         f"the run in {run_dir} has already trained {what}, more than the budget of {budget}; resume it with at least"
     )
-    raise ConfigError(f"{trained} that budget, or choose another run directory",
-                      flags=f"{trained} that budget, or choose another --out")  # fmt: skip
+    raise ConfigError(f"{trained} that budget, or choose another run directory")
 
 
 # --- fit's arguments --------------------------------------------------------------------------
@@ -393,12 +390,7 @@ def _check_arguments(problem, *, budget, seed, batch_size, settings, out) -> Non
                           f"got {batch_size!r}")  # fmt: skip
     if not isinstance(settings, TrainSettings):
         raise ConfigError(f"settings must be a physgrad.TrainSettings, got {settings!r}")
-    try:
-        checks.check_directory(out, "out")
-    except ConfigError as e:
-        raise ConfigError(
-            str(e), flags=str(e).replace("out '", "--out '").replace("another out", "another --out")
-        ) from None
+    checks.check_directory(out, "out")
 
 
 def _identity(record: dict[str, Any]) -> dict[str, Any]:

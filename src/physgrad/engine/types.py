@@ -36,13 +36,11 @@ class Budget:
     def __post_init__(self):
         given = [k for k in ("steps", "epochs", "seconds") if getattr(self, k) is not None]
         if len(given) != 1:
-            raise ConfigError("give exactly one budget: Budget(steps=N), Budget(epochs=E) or Budget(seconds=S)",
-                              flags="give exactly one budget: --steps N, --epochs E or --seconds S")  # fmt: skip
+            raise ConfigError("give exactly one budget: Budget(steps=N), Budget(epochs=E) or Budget(seconds=S)")
         kind, amount = given[0], getattr(self, given[0])
         check = checks.POSITIVE if kind == "seconds" else checks.POSITIVE_INT
         if not check.valid(amount):  # a NaN or infinite budget would never be met
-            raise ConfigError(f"Budget({kind}={amount!r}): {kind} must be {check.text}",
-                              flags=f"--{kind} must be {check.text}, got {amount!r}")  # fmt: skip
+            raise ConfigError(f"Budget({kind}={amount!r}): {kind} must be {check.text}")
 
     @property
     def kind(self) -> str:

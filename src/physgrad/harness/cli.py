@@ -17,197 +17,18 @@ and exits with status 2.
 
 from __future__ import annotations
 
-import argparse
 import json
 import math
 import os
 import sys
 import warnings
 from pathlib import Path
-from typing import Any
 
 from rich.console import Console
 from rich.table import Table
 
-DEFAULT_SECONDS = 60.0
-
-# `make demo`: adam, gn and hig on the oscillators on 2 CPU cores in about two minutes.
-# Adam keeps the paper's settings (lr 3e-4, batch 512). GN and HIG use the PBDL book's
-# batch of 32 instead of the paper's 128: on 2 cores a step at 128 is dominated by a
-# 512×512 eigendecomposition (~13× the cost of a step at 32, benchmarks/hig_step.py),
-# so batch 32 makes far more progress per second. HIG's lead is largest early on (at 120 s
-# and the paper's batch sizes it is ~7x on 2 cores), so the demo trains 20 s per run, 2 seeds.
-DEMO = {
-    "problem": "oscillators",
-    "methods": ["adam", "gn", "hig"],
-    "seconds": 20.0,
-    "seeds": 2,
-    "settings": {"gn.batch_size": "32", "hig.batch_size": "32", "eval_every": "64"},
-}
-
-
-class UsageError(Exception):
-    pass
-
-
-class Parser(argparse.ArgumentParser):
-    """argparse with one-line errors (exit 2, no usage dump, no traceback)."""
-
-    def error(self, message):
-        raise UsageError(message)
-
-
-def _budget(args):
-    from .config import Budget
-
-    given: dict[str, Any] = {
-        k: getattr(args, k) for k in ("steps", "epochs", "seconds") if getattr(args, k) is not None
-    }
-    if not given:
-        given = {"seconds": DEFAULT_SECONDS}
-    if len(given) > 1:
-        raise UsageError("give only one of --steps, --epochs, --seconds")
-    return Budget(**given)
-
-
-def _run_settings(args):
-    """--set pairs plus the --no-network flag."""
-    settings = _settings(args.set)
-    if getattr(args, "no_network", False):
-        settings["no_network"] = True
-    return settings
-
-
-def _out(path) -> Path:
-    """``--out``, refused in one line if it names a file or cannot be written (before any work)."""
-    from ..checks import check_directory
-    from .config import ConfigError
-
-    try:
-        return check_directory(path, "--out")
-    except ConfigError as e:
-        raise UsageError(str(e)) from None
-
-
-def _settings(pairs):
-    settings = {}
-    for pair in pairs:
-        name, sep, value = pair.partition("=")
-        if not sep or not name:
-            raise UsageError(f"--set expects name=value, got {pair!r}")
-        settings[name.strip()] = value.strip()
-    return settings
-
-
-def _add_budget(p):
-    g = p.add_argument_group("budget (one of; default --seconds 60)")
-    g.add_argument("--seconds", type=float, help="training wall-clock seconds (evaluation excluded)")
-    g.add_argument("--steps", type=int, help="training steps")
-    g.add_argument("--epochs", type=int, help="epochs over the training set")
-    p.add_argument(
-        "--no-network",
-        action="store_true",
-        help="direct optimisation: optimise x itself for each test sample (no network)",
-    )
-    p.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
-                   help="a problem setting, method hyperparameter or training setting; repeatable")  # fmt: skip
-    _add_compilation_cache(p)
-
-
-def _add_compilation_cache(p):
-    p.add_argument("--compilation-cache", metavar="DIR", default=None,
-                   help="keep compiled steps in JAX's persistent cache in DIR, so that a repeated study or a "
-                        "resumed run does not compile them again (default: $PHYSGRAD_COMPILATION_CACHE, else off)")  # fmt: skip
-
-
-def build_parser() -> Parser:
-    parser = Parser(
-        prog="physgrad", description="Train networks through physics simulators with improved update rules."
-    )
-    from .. import __version__
-
-    parser.add_argument("--version", action="version", version=f"physgrad {__version__}")
-    sub = parser.add_subparsers(dest="command", parser_class=Parser)
-    sub.add_parser("list", help="problems and methods")
-
-    p = sub.add_parser("train", help="train one method on one problem")
-    p.add_argument("problem")
-    p.add_argument(
-        "--method", required=True, help="a method, or a sequence such as adam:2000,hig (Adam for 2000 steps, then HIG)"
-    )
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--out", help="run directory (default runs/PROBLEM-METHOD-seedK)")
-    p.add_argument("--resume", action="store_true", help="continue the run in --out from its last checkpoint")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
-    g = p.add_argument_group(
-        "devices and hosts (data parallel: the batch is split, the update is the single-device one)"
-    )
-    g.add_argument(
-        "--devices",
-        default=None,
-        metavar="N|all",
-        help="devices to split each batch over (default 1; all of them in a multi-process run)",
-    )
-    g.add_argument(
-        "--coordinator", metavar="HOST:PORT", help="multi-process run: address of process 0 (jax.distributed)"
-    )
-    g.add_argument("--num-processes", type=int, metavar="P", help="multi-process run: number of processes")
-    g.add_argument("--process-id", type=int, metavar="I", help="multi-process run: this process's index 0..P-1")
-    _add_budget(p)
-
-    p = sub.add_parser("compare", help="every method x seed on the same budget; table and figure")
-    p.add_argument("problem")
-    p.add_argument(
-        "--methods", help="comma-separated, sequences allowed: adam,hig,adam:2000,hig (default: the paper's comparison)"
-    )
-    p.add_argument("--seeds", type=int, default=1, help="number of seeds 0..N-1 (default 1)")
-    p.add_argument("--devices", default="1", metavar="N|all", help="devices to split each batch over (default 1)")
-    p.add_argument("--out", help="study directory (default studies/PROBLEM)")
-    p.add_argument("--quiet", action="store_true", help="no progress bars")
-    _add_budget(p)
-
-    p = sub.add_parser("report", help="re-draw a study's (or a sweep's) table and figure from its files")
-    p.add_argument("dir")
-    p.add_argument("--panel", help="sweeps: the swept setting with one panel per value (default: the first)")
-    p.add_argument(
-        "--metric",
-        default="loss",
-        help="sweeps: the metric to draw (default loss; e.g. step_grad_norm2 with --split train)",
-    )
-    p.add_argument("--split", default="test", help="sweeps: the split of --metric (default test)")
-    p.add_argument("--smooth", type=int, default=1, help="sweeps: moving average over this many epochs (the paper: 30)")
-
-    p = sub.add_parser(
-        "bench", help="every applicable method on every chosen problem at equal budgets; tables, leaderboard, heat map",
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-        description="Run every applicable method on every chosen problem with the same budget per run, rank them per "
-                    "problem and across problems (physgrad.harness.bench). Resumable: the same command again skips finished "
-                    "runs and resumes interrupted ones.",
-        epilog="examples:\n"
-               "  physgrad bench --quick                      a few fast problems, 10 s per run, 2 seeds\n"
-               "  physgrad bench --seconds 600 --seeds 5      every problem, 10 min per run, 5 seeds (long)\n"
-               "  physgrad bench --problems sine,oscillators --methods adam,hig,optax:lion --steps 500\n"
-               "  --set NAME=VALUE applies wherever the setting exists; --set PROBLEM.NAME=VALUE to one problem",
-    )  # fmt: skip
-    p.add_argument("--problems", help="comma-separated problems, or all (default: all shipped problems)")
-    p.add_argument("--methods", help="comma-separated candidate methods, or applicable (default: every registered "
-                                     "method; each problem runs those that apply)")  # fmt: skip
-    p.add_argument("--seeds", type=int, default=None, help="number of seeds 0..N-1 (default 1; --quick: 2)")
-    p.add_argument("--out", help="bench directory (default bench, --quick: bench-quick)")
-    p.add_argument(
-        "--quick",
-        action="store_true",
-        help="the quick profile: a few fast open-loop problems, small datasets, 10 s per run, 2 seeds",
-    )
-    p.add_argument("--devices", default="1", metavar="N|all", help="devices to split each batch over (default 1)")
-    p.add_argument("--quiet", action="store_true", help="no progress bars")
-    _add_budget(p)
-
-    p = sub.add_parser("demo", help="adam vs gn vs hig on the oscillators in about two minutes")
-    p.add_argument("--out", default="studies/demo")
-    p.add_argument("--seconds", type=float, default=DEMO["seconds"], help="training seconds per method")
-    _add_compilation_cache(p)
-    return parser
+from .arguments import DEMO, UsageError, budget_of, build_parser, output_dir, run_settings
+from .words import command_line_words
 
 
 def _print_table(console: Console, lines: list[list[str]], title: str = ""):
@@ -277,8 +98,8 @@ def cmd_train(args, console):
     from .train import read_summary, train
 
     devices = _start_processes(args)
-    config = make_config(args.problem, args.method, budget=_budget(args), seed=args.seed, settings=_run_settings(args))
-    out = _out(args.out or f"runs/{args.problem}-{method_slug(args.method)}-seed{args.seed}")
+    config = make_config(args.problem, args.method, budget=budget_of(args), seed=args.seed, settings=run_settings(args))
+    out = output_dir(args.out or f"runs/{args.problem}-{method_slug(args.method)}-seed{args.seed}")
     stages = "; then ".join(
         f"{p.method}"
         + (f" for {p.steps} steps" if p.steps else "")
@@ -330,16 +151,16 @@ def cmd_compare(args, console):
     methods = split_methods(args.methods) if args.methods else None
     if args.seeds < 1:
         raise UsageError("--seeds must be at least 1")
-    out = _out(args.out or f"studies/{args.problem}")
-    settings = _run_settings(args)
+    out = output_dir(args.out or f"studies/{args.problem}")
+    settings = run_settings(args)
     from .study import split_grid
 
     if split_grid(settings)[1]:
         _run_grid(
-            console, args.problem, methods, range(args.seeds), _budget(args), settings, out, args.quiet, args.devices
+            console, args.problem, methods, range(args.seeds), budget_of(args), settings, out, args.quiet, args.devices
         )
     else:
-        _run_compare(console, args.problem, methods, range(args.seeds), _budget(args), settings, out, args.quiet,
+        _run_compare(console, args.problem, methods, range(args.seeds), budget_of(args), settings, out, args.quiet,
                      args.devices)  # fmt: skip
     return 0
 
@@ -406,19 +227,19 @@ def cmd_bench(args, console):
 
     if args.seeds is not None and args.seeds < 1:
         raise UsageError("--seeds must be at least 1")
-    settings = _run_settings(args)
+    settings = run_settings(args)
     given = any(getattr(args, k) is not None for k in ("steps", "epochs", "seconds"))
     if args.quick:
         problems = bench.choose_problems(args.problems) if args.problems else list(bench.QUICK["problems"])
         methods = bench.choose_methods(args.methods) if args.methods else list(bench.QUICK["methods"])
         settings = {**bench.quick_settings(problems, methods), **settings}
-        budget = _budget(args) if given else Budget(seconds=bench.QUICK["seconds"])
+        budget = budget_of(args) if given else Budget(seconds=bench.QUICK["seconds"])
         seeds = args.seeds or bench.QUICK["seeds"]
     else:
         problems = bench.choose_problems(args.problems)
         methods = bench.choose_methods(args.methods)
-        budget, seeds = _budget(args), args.seeds or 1
-    out = _out(args.out or ("bench-quick" if args.quick else "bench"))
+        budget, seeds = budget_of(args), args.seeds or 1
+    out = output_dir(args.out or ("bench-quick" if args.quick else "bench"))
     console.print(
         f"bench{' (quick profile)' if args.quick else ''}: {len(problems)} problems x {len(methods)} candidate methods, "
         f"budget {budget} per run, seeds {list(range(seeds))}, settings {settings or 'paper defaults'} -> {out}"
@@ -518,7 +339,7 @@ def main(argv=None) -> int:
             warnings.showwarning = _one_line_warnings(err, warnings.showwarning)
             return COMMANDS[args.command](args, console)
     except (UsageError, ConfigError) as e:  # the library's line in the command line's words where it has them
-        err.print(f"physgrad: error: {getattr(e, 'flags', None) or e}", markup=False, highlight=False, soft_wrap=True)
+        err.print(f"physgrad: error: {command_line_words(str(e))}", markup=False, highlight=False, soft_wrap=True)
         return 2
     except KeyboardInterrupt as e:  # Ctrl-C, or SIGTERM (rundir.Terminated): runs checkpoint first
         from ..rundir import Terminated
