@@ -9,7 +9,7 @@ import time
 import jax
 import jax.numpy as jnp
 
-import physgrad  # noqa: F401  (float64 on)
+import physgrad  # noqa: F401
 from physgrad import Budget
 from physgrad.harness.config import make_config
 from physgrad.harness.train import build, make_step
