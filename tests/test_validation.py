@@ -1,6 +1,7 @@
 """Inputs refused in one line before any work (issue 29): every setting and budget by type
 and range at the edge (exit 2 on the command line), the Python API in the library's words."""
 
+import dataclasses
 import json
 import math
 import os
@@ -208,3 +209,15 @@ def test_empty_or_missing_splits_are_refused_in_one_line(tmp_path):
         physgrad.fit(EmptyTest(), ADAM, budget=Budget(steps=2), out=tmp_path / "a", batch_size=32)
     with pytest.raises(ConfigError, match=r"cubic: make_data must return \{'train': samples, 'test': samples\}"):
         physgrad.fit(NoTrain(), ADAM, budget=Budget(steps=2), out=tmp_path / "b", batch_size=32)
+
+
+def test_training_settings_are_defined_once():
+    """TrainSettings defines the training settings; the command line's table and RunConfig's
+    fields (the run directories' record) mirror it and must not drift."""
+    from physgrad.harness.config import TRAIN_SETTINGS, RunConfig
+
+    engine = {f.name for f in dataclasses.fields(TrainSettings)}
+    assert set(TRAIN_SETTINGS) == engine | {"batch_size", "no_network"}
+    recorded = {f.name for f in dataclasses.fields(RunConfig)} - {"problem", "method", "seed", "budget",
+                                                                   "problem_settings", "phases"}  # fmt: skip
+    assert recorded == engine | {"no_network"}

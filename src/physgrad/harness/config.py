@@ -9,31 +9,20 @@ import json
 from typing import Any
 
 from ..checks import check_setting
-from ..engine import ADDED_SETTINGS, UNGUARDED_SETTINGS, Budget
+from ..engine import ADDED_SETTINGS, UNGUARDED_SETTINGS, Budget, TrainSettings
 from ..errors import ConfigError
 from ..extras import MissingExtra, require
 from .registry import METHODS, PROBLEMS, hyperparameters, is_optax_name, optax_method, paper_defaults
 
-# Training-engine settings, settable with --set like problem and method settings.
+# Training-engine settings, settable with --set like problem and method settings: the batch
+# size (None: the paper's for the method), every field of the engine's TrainSettings (their
+# one definition, with its comments; shuffle and fresh_samples default to the problem's:
+# train_settings) and no_network (optimise x itself for each test sample: problems/direct.py).
+# RunConfig mirrors them as fields, the run directories' record (a test checks that they agree).
 TRAIN_SETTINGS: dict[str, Any] = {
-    "batch_size": None,  # None: the problem's default for the method (the paper's)
-    "eval_every": 0,  # steps between full train/test evaluations; 0 = once per epoch
-    "eval_seconds": 0.0,  # if > 0: evaluate every this many training seconds instead
-    # each problem's default_shuffle replaces this one: False (a fixed batch order, as the
-    # HIG, SIP and StableBPTT papers) or True (a fresh permutation every epoch: the time-steppers)
-    "shuffle": False,
-    # each problem's default_fresh_samples replaces this one: False (one training set, every
-    # epoch) or True (every epoch after the first a new train split: the SIP paper's stream)
-    "fresh_samples": False,
-    "checkpoint_seconds": 60.0,  # wall-clock seconds between checkpoints; also at every evaluation and the end
-    "eval_samples": 0,  # evaluate the train split on its first N samples only; 0 = all
-    "no_network": False,  # optimise x itself for each test sample instead of training a network
-    "prdp": False,  # refine the solver's iteration count on validation plateaus (physgrad.prdp)
-    "prdp_start": 1,  # PRDP's first iteration count
-    "prdp_increment": 1,  # iterations added per refinement
-    "prdp_tau_step": 0.98,  # plateau: EMA_now / EMA_3-checks-ago above this
-    "prdp_tau_stop": 0.9,  # refine only if EMA_now / E_at-last-refinement below this
-    "memory_guard": True,  # refuse a step that cannot fit in memory before it runs (physgrad.memory)
+    "batch_size": None,
+    **{field.name: field.default for field in dataclasses.fields(TrainSettings)},
+    "no_network": False,
 }
 
 
