@@ -26,6 +26,14 @@ TRAIN_SETTINGS: dict[str, Any] = {
 }
 
 
+def split_scope(key: str) -> tuple[str | None, str]:
+    """``(method, name)`` of a ``--set`` key, the one parser of the method scope:
+    ``("hig", "lr")`` for ``hig.lr``, ``(None, "lr")`` for ``lr``. (The bench adds a problem
+    scope in front: ``sine.hig.lr``, :func:`physgrad.harness.bench.choices.scoped_settings`.)"""
+    method, _, name = key.rpartition(".")
+    return method or None, name
+
+
 def choose(kind: str, name: str, choices) -> str:
     """Return ``name`` if it is one of ``choices``, else raise a one-line ConfigError."""
     if name not in choices:
@@ -249,7 +257,7 @@ def make_config(
     scoped: dict[str, dict[str, Any]] = {}
     plain: dict[str, Any] = {}
     for key, value in (settings or {}).items():
-        target, _, name = key.rpartition(".")
+        target, name = split_scope(key)
         if target and target not in names:
             raise ConfigError(
                 f"setting {key!r}: {target!r} is not a method of {method!r}; valid choices: {', '.join(names)}"

@@ -2,9 +2,9 @@
 
 A study directory holds ``study.json`` (what was asked), ``runs/<method>-seed<k>-<hash>/``
 (one run directory each; the hash is of the run's canonical configuration, so a changed
-setting makes a new run), ``results.csv`` (every run's metrics in long format with
-problem, method and seed columns), ``summary.csv`` (one row per run),
-``loss_vs_time.png`` and, where runs raised and the study went on, ``failures.json``.
+setting makes a new run), ``results.csv`` (every run's metrics in long format with problem,
+method and seed columns), ``summary.csv`` (one row per run), ``loss_vs_time.png`` and,
+where runs raised and the study went on, ``failures.json``.
 Running the same study again skips finished (or diverged) runs and resumes interrupted
 ones from their checkpoints.
 """
@@ -43,11 +43,13 @@ def settings_for(problem: str, method: str, methods: Sequence[str], settings: di
     one); ``m.name=value`` applies to method ``m``, also where ``m`` is a stage of a
     sequence such as ``adam:2000,hig``.
     """
+    from .config import split_scope  # here: the module-level import line is full
+
     names = set(phase_methods(method))
     everywhere = sorted(set().union(*(phase_methods(m) for m in methods)))
     out = {}
     for key, value in settings.items():
-        target, _, name = key.rpartition(".")
+        target, name = split_scope(key)
         if target:
             choose("method in a scoped setting", target, everywhere)
             if target in names:
@@ -169,8 +171,7 @@ def collect(out: str | Path) -> list[dict[str, Any]]:
 
 
 def write_csv(path: Path, columns: Sequence[str], rows: list[dict[str, Any]]):
-    """A table written all at once (:func:`physgrad.rundir.atomic_write`): a kill never
-    leaves half of it."""
+    """A table written all at once (:func:`physgrad.rundir.atomic_write`; never half)."""
     text = io.StringIO()
     writer = csv.DictWriter(text, fieldnames=list(columns), extrasaction="ignore")
     writer.writeheader()

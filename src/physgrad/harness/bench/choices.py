@@ -11,7 +11,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import Any
 
-from ..config import ConfigError, choose, parse_method, phase_methods, split_methods, valid_settings
+from ..config import ConfigError, choose, parse_method, phase_methods, split_methods, split_scope, valid_settings
 from ..registry import METHODS, PROBLEMS
 
 # The optax optimizers a default bench adds to the registered methods: Adam with decoupled
@@ -58,7 +58,7 @@ def quick_settings(problems: Sequence[str], methods: Sequence[str]) -> dict[str,
         problem, rest = _unscoped(key)
         if problem is not None and problem not in problems:
             continue
-        target = rest.rpartition(".")[0]
+        target, _ = split_scope(rest)
         if not target or target in stages:
             keep[key] = value
     return keep
@@ -115,7 +115,7 @@ def problem_settings(problem: str, method: str, settings: dict[str, Any]) -> dic
     valid = valid_settings(problem, method)
     out = {}
     for key, value in scoped_settings(problem, settings).items():
-        target, _, name = key.rpartition(".")
+        target, name = split_scope(key)
         if name in valid and (not target or target in names):
             out[key] = value
     return out
@@ -142,7 +142,7 @@ def check_settings(problems: Sequence[str], methods: Sequence[str], settings: di
         scope, key = _unscoped(key)
         if scope is not None:
             choose("problem in a scoped setting", scope, problems)
-        target, _, name = key.rpartition(".")
+        target, name = split_scope(key)
         if target:
             choose("method in a scoped setting", target, stages)
         if name not in everywhere:
