@@ -221,3 +221,20 @@ def test_training_settings_are_defined_once():
     recorded = {f.name for f in dataclasses.fields(RunConfig)} - {"problem", "method", "seed", "budget",
                                                                    "problem_settings", "phases"}  # fmt: skip
     assert recorded == engine | {"no_network"}
+
+
+@pytest.mark.parametrize(
+    "problem,method,says",
+    [
+        ("cartpole", "hig", "hig on cartpole: the Jacobian routes need predict(params, sample) to return one array"),
+        ("ks", "khig", "khig on ks: khig: 33125 parameters are outside the dense layers it sees"),
+    ],
+)
+def test_a_method_that_refuses_the_problem_in_the_memory_preflight_says_so_in_one_line(
+    tmp_path, capsys, problem, method, says
+):
+    """The memory guard's preflight computes footprints before the methods' checks; a
+    method's refusal there (a closed loop's tuple of outputs for the Jacobian routes, KHIG's
+    explicit-block limit) is the same one-line error, not a traceback."""
+    assert main(["train", problem, "--method", method, "--steps", "1", "--out", str(tmp_path / "run")]) == 2
+    assert says in one_line_error(capsys.readouterr().err)

@@ -219,6 +219,9 @@ def preflight(problem: AbstractProblem, phases: Sequence[Phase], *, seed: int, m
     * :class:`~physgrad.ConfigError` from building the abstract setup and its stages: a
       setting :func:`build_setup`, which runs next, refuses in the same words (after
       checking the methods, which may build solvers and so are not checked here).
+
+    A ``ValueError`` from a footprint is the method refusing the problem (as its ``check``
+    does); it is raised as that stage's one-line ConfigError, as :func:`build_stages` words it.
     """
     try:
         data = abstract_data(problem, seed)
@@ -241,6 +244,8 @@ def preflight(problem: AbstractProblem, phases: Sequence[Phase], *, seed: int, m
                                    label=stage.label, resident=resident)  # fmt: skip
         except NOT_TRACEABLE:  # a footprint that needs concrete values: checked once they exist
             return
+        except ValueError as e:  # the method refuses this problem (as its check would): build_stages' words
+            raise ConfigError(f"{stage.label} on {problem.name}: {e}") from None
 
 
 def _optimizer_state_shape(method: AbstractMethod, params) -> Any:

@@ -176,7 +176,8 @@ def _kernel_leaves(structure: Structure) -> set[int]:
     found = set()
     for eqn in jaxpr.eqns:
         name = eqn.primitive.name
-        if name in _RESHAPING and eqn.invars and eqn.invars[0] in origin:
+        # a Literal (an inline constant) is unhashable and never a parameter
+        if name in _RESHAPING and eqn.invars and not hasattr(eqn.invars[0], "val") and eqn.invars[0] in origin:
             for v in eqn.outvars:
                 origin[v] = origin[eqn.invars[0]]
         elif name == "conv_general_dilated":

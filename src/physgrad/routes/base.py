@@ -201,6 +201,11 @@ class JointJacobian:
         shape stand-ins (footprints)."""
         sample = jax.tree.map(lambda a: a[0], batch)
         structure, output = _trace(objective.predict, params, sample)
+        if not hasattr(output, "shape"):  # a pytree of outputs (a closed loop's trajectory)
+            raise ValueError(
+                "the Jacobian routes need predict(params, sample) to return one array per sample, "
+                f"got {type(output).__name__}; for a closed-loop rollout use bptt, sbptt_m or sbptt_c"
+            )
         per_sample = math.prod(output.shape) * (2 if jnp.issubdtype(output.dtype, jnp.complexfloating) else 1)
         b = jax.tree.leaves(batch)[0].shape[0]
         rows, size = b * per_sample, sum(math.prod(x.shape) for x in jax.tree.leaves(params))
