@@ -244,6 +244,8 @@ def preflight(problem: AbstractProblem, phases: Sequence[Phase], *, seed: int, m
                                    label=stage.label, resident=resident)  # fmt: skip
         except NOT_TRACEABLE:  # a footprint that needs concrete values: checked once they exist
             return
+        except ConfigError:  # the guard's own refusal (DoesNotFit), already in its words
+            raise
         except ValueError as e:  # the method refuses this problem (as its check would): build_stages' words
             raise ConfigError(f"{stage.label} on {problem.name}: {e}") from None
 
