@@ -8,10 +8,11 @@ the problem, with one-line errors. :func:`abstract_setup` makes the same from sh
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import functools
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from typing import Any
 
 import equinox as eqx
@@ -240,14 +241,24 @@ def preflight(problem: AbstractProblem, phases: Sequence[Phase], *, seed: int, m
         batch = memory.stand_in(data["train"], stage.batch_size)
         try:
             resident = memory.tree_bytes((data, setup.params, _optimizer_state_shape(stage.method, setup.params)))
-            memory.check_step_fits(stage.method, objective, setup.params, batch, devices=mesh_devices(mesh),
-                                   label=stage.label, resident=resident)  # fmt: skip
+            with method_refusals(stage.label, problem):
+                memory.check_step_fits(stage.method, objective, setup.params, batch, devices=mesh_devices(mesh),
+                                       label=stage.label, resident=resident)  # fmt: skip
         except NOT_TRACEABLE:  # a footprint that needs concrete values: checked once they exist
             return
-        except ConfigError:  # the guard's own refusal (DoesNotFit), already in its words
-            raise
-        except ValueError as e:  # the method refuses this problem (as its check would): build_stages' words
-            raise ConfigError(f"{stage.label} on {problem.name}: {e}") from None
+
+
+@contextlib.contextmanager
+def method_refusals(label: str, problem: AbstractProblem) -> Iterator[None]:
+    """A method's ``ValueError`` inside (it refuses this problem, as its ``check`` does) as
+    the stage's one-line ConfigError, in :func:`build_stages`' words; ConfigErrors (the
+    memory guard's own refusal) pass through unchanged."""
+    try:
+        yield
+    except ConfigError:
+        raise
+    except ValueError as e:
+        raise ConfigError(f"{label} on {problem.name}: {e}") from None
 
 
 def _optimizer_state_shape(method: AbstractMethod, params) -> Any:

@@ -15,7 +15,7 @@ from .. import distributed, memory, programs
 from ..errors import ConfigError
 from ..methods import AbstractMethod
 from ..precision import x64_enabled
-from .setup import mesh_devices, scalar_loss
+from .setup import mesh_devices, method_refusals, scalar_loss
 from .strategies import Placement
 from .types import Setup, Stage, TrainSettings, TrainState
 
@@ -167,8 +167,9 @@ class Steps:
     def _check(self, setup: Setup, stage: Stage, *, compiled=None, measure=None):
         batch = memory.stand_in(setup.data["train"], stage.batch_size)
         devices = mesh_devices(self.placement.mesh)
-        memory.check_step_fits(stage.method, setup.objective, setup.params, batch, devices=devices,
-                               compiled=compiled, measure=measure, label=stage.label)  # fmt: skip
+        with method_refusals(stage.label, setup.problem):
+            memory.check_step_fits(stage.method, setup.objective, setup.params, batch, devices=devices,
+                                   compiled=compiled, measure=measure, label=stage.label)  # fmt: skip
 
 
 def grouped_order(groups: np.ndarray, batch_size: int, rng: np.random.Generator) -> np.ndarray:
