@@ -167,7 +167,7 @@ def test_diverged_run_is_recorded_and_the_study_goes_on(tmp_path, capsys):
         ),
         (
             ["train", "quantum_dipole", "--method", "sip", "--steps", "1"],
-            "sip on quantum_dipole: sip needs a problem with a y-space target",
+            "sip on quantum_dipole: sip needs a problem with network_output, simulate and a y-space target",
         ),
         (
             ["train", "sine", "--method", "sip", "--set", "proxy=l3", "--steps", "1"],

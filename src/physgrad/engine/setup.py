@@ -13,7 +13,7 @@ import dataclasses
 import functools
 import math
 from collections.abc import Callable, Iterator, Sequence
-from typing import Any
+from typing import Any, cast
 
 import equinox as eqx
 import jax
@@ -269,13 +269,25 @@ def _optimizer_state_shape(method: AbstractMethod, params) -> Any:
         return None
 
 
+class _DeferredObjective:
+    """An :class:`Objective` built by ``make()`` on first use of any of its pieces: a
+    problem's objective may construct solvers (seconds), which only methods that estimate
+    memory need. Every piece, and what is missing, is the real objective's: nothing is
+    listed here, so a piece added to :class:`Objective` is never dropped."""
+
+    def __init__(self, make: Callable[[], Objective]):
+        self._make = functools.cache(make)
+
+    def __getattr__(self, name: str):
+        return getattr(self._make(), name)
+
+    def bind_static(self, static: Any) -> Objective:  # still deferred (Method.footprint binds first)
+        make = self._make
+        return _deferred_objective(lambda: make().bind_static(static))
+
+
 def _deferred_objective(make: Callable[[], Objective]) -> Objective:
-    """An :class:`Objective` whose functions build ``make()`` on first use: a problem's
-    objective may construct solvers (seconds), which only methods that estimate memory need."""
-    real = functools.cache(make)
-    deferred = lambda name: lambda *args: getattr(real(), name)(*args)  # noqa: E731
-    return Objective(**{name: deferred(name) for name in ("predict", "loss", "network_output", "simulate", "target",  # pyright: ignore[reportArgumentType]  # function fields only
-                                                          "inverse", "unrolled")})  # fmt: skip
+    return cast(Objective, _DeferredObjective(make))
 
 
 def mesh_devices(mesh) -> list | None:

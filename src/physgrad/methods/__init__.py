@@ -16,10 +16,28 @@ entry point            rule                             direction
 :func:`unrolled`       :class:`UnrolledGradient`        ONE / NOG / WIG gradients
 =====================  ===============================  =====================================
 
+Each rule declares the part of a problem's :class:`Objective` it uses (:class:`Part`):
+:data:`OPEN_LOOP` (``predict``, ``loss``: DP, Gauss–Newton, HIG, LM, Newton, K-FAC, KHIG),
+:data:`SPLIT` (``network_output``, ``simulate``, ``target``, optional ``inverse``: SIP),
+:data:`ROLLOUT` (a rollout system: BPTT and its variants) or :data:`UNROLLED` (a
+time-stepper's windows: ONE / NOG / WIG); its ``check`` refuses a problem without it.
+
 The registry of names for the command line is :mod:`physgrad.harness.registry`.
 """
 
-from .base import AbstractMethod, AbstractRule, Estimator, Method, Objective, trainable
+from .base import (
+    OPEN_LOOP,
+    ROLLOUT,
+    SPLIT,
+    UNROLLED,
+    AbstractMethod,
+    AbstractRule,
+    Estimator,
+    Method,
+    Objective,
+    Part,
+    trainable,
+)
 from .dp import Gradient, LossAwareDP, dp
 from .hig import JacobianPower, gauss_newton, hig
 from .kronecker_hig import KroneckerPower, kronecker_hig
@@ -44,6 +62,11 @@ __all__ = [
     "Method",
     "Newton",
     "Objective",
+    "OPEN_LOOP",
+    "Part",
+    "ROLLOUT",
+    "SPLIT",
+    "UNROLLED",
     "RolloutGradient",
     "ScaleInvariantPhysics",
     "Unrolled",

@@ -52,7 +52,7 @@ from __future__ import annotations
 import abc
 import dataclasses
 from collections.abc import Callable
-from typing import Any, NamedTuple, TypeVar
+from typing import Any, ClassVar, NamedTuple, TypeVar
 
 import equinox as eqx
 import jax
@@ -88,10 +88,40 @@ def required(piece: _T | None, name: str) -> _T:
     return piece
 
 
+class Part(NamedTuple):
+    """One group of :class:`Objective` pieces: what a family of rules needs from a problem.
+
+    A rule declares its part (``AbstractRule.part``) and :meth:`AbstractRule.check` refuses,
+    in one line, a problem whose objective lacks any of ``fields``:
+    ``"<rule> needs a problem with <words>[; <instead>]"``. Where ``differentiable`` is
+    true the rule back-propagates through ``predict`` and also refuses a problem whose
+    solver declares itself non-differentiable.
+    """
+
+    fields: tuple[str, ...]
+    words: str
+    instead: str = ""
+    differentiable: bool = False
+
+
+#: ``predict`` and ``loss``: the open-loop chain network → simulator → loss, differentiated
+#: as one (DP, Gauss–Newton, HIG, Levenberg–Marquardt, Newton, K-FAC, Kronecker HIG).
+OPEN_LOOP = Part(("predict", "loss"), "predict(params, sample) and loss(y, sample)", "use a rollout method", True)
+#: The network and the physics apart, and a y-space target (SIP; ``inverse`` is optional).
+SPLIT = Part(("network_output", "simulate", "target"),
+             "network_output, simulate and a y-space target (define target(sample))")  # fmt: skip
+#: A rollout system whose transition takes the parameters (BPTT and its variants).
+ROLLOUT = Part(("rollout",), "a rollout system", "use a closed-loop problem (cartpole, guidance, quantum_control)")
+#: Windows of a time-stepper's trajectories, unrolled over m steps (ONE / NOG / WIG).
+UNROLLED = Part(("unrolled",), "unrolled windows of a neural time-stepper",
+                "use a time-stepper problem (ks, kolmogorov, advection_1d)")  # fmt: skip
+
+
 class Objective(NamedTuple):
     """The per-sample pieces of a problem, as pure functions of the trainable parameters.
 
-    Each rule uses only the pieces it needs; the others may stay None.
+    Each rule uses only the pieces of its :class:`Part` (:data:`OPEN_LOOP`,
+    :data:`SPLIT`, :data:`ROLLOUT`, :data:`UNROLLED`); the others may stay None.
 
     - ``predict(params, sample) -> y`` runs network and simulator for one sample and
       ``loss(y, sample) -> L_i`` is the per-sample loss; rules use the batch mean
@@ -117,6 +147,19 @@ class Objective(NamedTuple):
     rollout: Any = None
     unrolled: Callable[[int | None, bool], Any] | None = None
     differentiable: bool = True
+
+    def provides(self, part: Part) -> bool:
+        """Whether every piece of ``part`` is here."""
+        return all(getattr(self, name) is not None for name in part.fields)
+
+    def require(self, part: Part, who: str) -> None:
+        """Raise the one-line error of rule ``who`` when a piece of ``part`` is missing,
+        and :meth:`require_differentiable` where the part back-propagates through
+        ``predict``."""
+        if not self.provides(part):
+            raise ValueError(f"{who} needs a problem with {part.words}" + (f"; {part.instead}" if part.instead else ""))
+        if part.differentiable:
+            self.require_differentiable()
 
     def require_differentiable(self) -> None:
         """Raise the one-line error of a rule that back-propagates through ``predict``
@@ -166,14 +209,24 @@ class AbstractRule(eqx.Module):
     ``direction`` has the structure of ``params`` and is used like a gradient (the
     optimizer steps against it); ``stats`` is a dict of scalars with at least ``"loss"``,
     the batch-mean loss at ``params``.
+
+    ``part`` is the group of the objective's pieces the rule uses (:class:`Part`) and
+    ``name`` how its errors call it; the default :meth:`check` refuses an objective without
+    them.
     """
+
+    part: ClassVar[Part | None] = None
+    name: ClassVar[str] = "this method"
 
     @abc.abstractmethod
     def __call__(self, objective: Objective, params: PyTree, batch: PyTree) -> tuple[PyTree, Stats]: ...
 
     def check(self, objective: Objective) -> None:
         """Raise ``ValueError`` (one line, saying what to use instead) if the rule cannot
-        run on ``objective``; by default it can."""
+        run on ``objective``: by default, when a piece of the rule's :attr:`part` is
+        missing (:meth:`Objective.require`)."""
+        if self.part is not None:
+            objective.require(self.part, self.name)
 
     def check_batch_size(self, batch_size: int) -> None:
         """Raise ``ValueError`` if the rule cannot take batches of this size."""

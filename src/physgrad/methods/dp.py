@@ -11,11 +11,13 @@ physics-based deep learning paper compares against.
 
 from __future__ import annotations
 
+from typing import ClassVar
+
 import equinox as eqx
 import jax
 import optax
 
-from .base import AbstractRule, Estimator, Method, Objective, trainable, with_extra_args
+from .base import OPEN_LOOP, AbstractRule, Estimator, Method, Objective, Part, trainable, with_extra_args
 
 
 class Gradient(AbstractRule):
@@ -25,10 +27,8 @@ class Gradient(AbstractRule):
         loss, grads = jax.value_and_grad(objective.batch_loss)(params, batch)
         return grads, {"loss": loss}
 
-    def check(self, objective):
-        if objective.predict is None or objective.loss is None:
-            raise ValueError("the DP gradient needs predict(params, sample) and loss(y, sample)")
-        objective.require_differentiable()
+    part: ClassVar[Part] = OPEN_LOOP
+    name: ClassVar[str] = "the DP gradient"
 
 
 def dp(predict, loss) -> Estimator:

@@ -17,12 +17,13 @@ is computed is a route object (:mod:`physgrad.routes`).
 from __future__ import annotations
 
 import dataclasses
+from typing import ClassVar
 
 import equinox as eqx
 from jax.flatten_util import ravel_pytree
 
 from ..routes import AbstractRoute, Auto, JointJacobian, alternatives
-from .base import AbstractRule, Estimator, Objective
+from .base import OPEN_LOOP, AbstractRule, Estimator, Objective, Part
 
 
 class JacobianPower(AbstractRule):
@@ -38,10 +39,8 @@ class JacobianPower(AbstractRule):
         if not isinstance(self.route, AbstractRoute):
             raise ValueError(f"route must be a physgrad.routes object (Auto(), Gram(), SVD(), …), got {self.route!r}")
 
-    def check(self, objective):
-        if objective.predict is None or objective.loss is None:
-            raise ValueError("the Jacobian methods need predict(params, sample) and loss(y, sample)")
-        objective.require_differentiable()
+    part: ClassVar[Part] = OPEN_LOOP
+    name: ClassVar[str] = "the Jacobian methods"
 
     def check_batch_size(self, batch_size):
         self.route.check_batch_size(batch_size)

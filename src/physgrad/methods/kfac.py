@@ -93,7 +93,7 @@ import jax
 import jax.numpy as jnp
 
 from ..nets import Dense
-from .base import AbstractMethod, required, trainable
+from .base import OPEN_LOOP, AbstractMethod, required, trainable
 
 
 class Blocks(enum.StrEnum):
@@ -315,9 +315,7 @@ class KFAC(AbstractMethod):
             raise ValueError("kfac needs 0 < damping_decay < 1 and 0 <= curvature_ema < 1")
 
     def check(self, objective):
-        if objective.predict is None or objective.loss is None:
-            raise ValueError("kfac needs predict(params, sample) and loss(y, sample); use a rollout method")
-        objective.require_differentiable()
+        objective.require(OPEN_LOOP, "kfac")
 
     # --- kfac-jax's optimizer, configured ---------------------------------------------------
     def _optimizer(self, func):

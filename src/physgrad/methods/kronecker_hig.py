@@ -84,7 +84,7 @@ matrix does in HIG's Gram route) and the direction is cast back to each leaf's d
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import ClassVar, NamedTuple
 
 import equinox as eqx
 import jax
@@ -94,7 +94,7 @@ from jaxtyping import Array, PyTree
 from ..precision import float64_scope, to_float64
 from ..routes import JointJacobian, structured
 from ..routes.base import Structure
-from .base import AbstractRule, Estimator, Objective, required
+from .base import OPEN_LOOP, AbstractRule, Estimator, Objective, Part, required
 
 _F64 = 8
 # Operations that only move or relabel a kernel's numbers: a convolution whose kernel comes
@@ -218,10 +218,8 @@ class KroneckerPower(AbstractRule):
         if self.explicit_max < 0:
             raise ValueError(f"explicit_max must be >= 0, got {self.explicit_max}")
 
-    def check(self, objective):
-        if objective.predict is None or objective.loss is None:
-            raise ValueError("khig needs predict(params, sample) and loss(y, sample)")
-        objective.require_differentiable()
+    part: ClassVar[Part] = OPEN_LOOP
+    name: ClassVar[str] = "khig"
 
     def plan(self, objective: Objective, params: PyTree, batch: PyTree) -> Plan:
         """The dense layers and the leftover block for these shapes, or a one-line

@@ -13,13 +13,15 @@ naming the alternatives if both fail).
 
 from __future__ import annotations
 
+from typing import ClassVar
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 from jax.flatten_util import ravel_pytree
 
 from ..jacobian import dense_hessian
-from .base import AbstractRule, Estimator, Objective
+from .base import OPEN_LOOP, AbstractRule, Estimator, Objective, Part
 
 
 class Newton(AbstractRule):
@@ -27,10 +29,8 @@ class Newton(AbstractRule):
 
     damping: float = eqx.field(static=True, default=0.0)
 
-    def check(self, objective):
-        if objective.predict is None or objective.loss is None:
-            raise ValueError("Newton needs predict(params, sample) and loss(y, sample)")
-        objective.require_differentiable()
+    part: ClassVar[Part] = OPEN_LOOP
+    name: ClassVar[str] = "Newton"
 
     def __call__(self, objective, params, batch):
         flat, unravel = ravel_pytree(params)

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import abc
 import warnings
+from typing import ClassVar
 
 import equinox as eqx
 import jax
@@ -34,7 +35,7 @@ from jaxtyping import Array
 
 from ..inverse import AbstractInverseSolver, Analytic, GaussNewton, InverseFailureWarning
 from ..precision import float64_call, to_float64
-from .base import AbstractRule, Estimator, Objective, required
+from .base import SPLIT, AbstractRule, Estimator, Objective, Part, required
 
 PRECISIONS = (np.dtype("float32"), np.dtype("float64"))
 
@@ -112,11 +113,11 @@ class ScaleInvariantPhysics(AbstractRule):
             solver = Analytic(objective.inverse)
         return solver
 
+    part: ClassVar[Part] = SPLIT
+    name: ClassVar[str] = "sip"
+
     def check(self, objective):
-        if objective.simulate is None or objective.network_output is None:
-            raise ValueError("sip needs a problem that exposes network_output and simulate")
-        if objective.target is None:
-            raise ValueError("sip needs a problem with a y-space target (define target(sample))")
+        super().check(objective)
         self.resolve_solver(objective)
 
     def __call__(self, objective, params, batch):

@@ -20,12 +20,14 @@ between g_M and g_R.
 
 from __future__ import annotations
 
+from typing import ClassVar
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 
 from ..rollout import Combined, GradientFlow, M, R, cosine, joint_gradients, sign_mask, value_and_grad
-from .base import AbstractRule, Estimator, Objective
+from .base import ROLLOUT, AbstractRule, Estimator, Objective, Part
 
 
 class RolloutGradient(AbstractRule):
@@ -35,12 +37,10 @@ class RolloutGradient(AbstractRule):
     policy: GradientFlow | Combined = R()
     checkpoint: bool = eqx.field(static=True, default=False)
 
+    part: ClassVar[Part] = ROLLOUT
+
     def check(self, objective):
-        if objective.rollout is None:
-            raise ValueError(
-                "this method back-propagates through a rollout; use a closed-loop problem "
-                "(cartpole, guidance, quantum_control)"
-            )
+        super().check(objective)
         differentiates_physics = isinstance(self.policy, Combined) or not self.policy.stop_physics
         if differentiates_physics and not objective.rollout.differentiable_physics:
             raise ValueError(

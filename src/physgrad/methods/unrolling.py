@@ -31,6 +31,7 @@ the solver reports a failure. Skips are counted in the step statistics ``skipped
 from __future__ import annotations
 
 import dataclasses
+from typing import ClassVar
 
 import equinox as eqx
 import jax
@@ -39,7 +40,17 @@ import optax
 
 from ..rollout import GradientFlow, R, S, value_and_grad
 from ..transforms import norm_guard
-from .base import AbstractMethod, AbstractRule, Estimator, Objective, required, trainable, with_extra_args
+from .base import (
+    UNROLLED,
+    AbstractMethod,
+    AbstractRule,
+    Estimator,
+    Objective,
+    Part,
+    required,
+    trainable,
+    with_extra_args,
+)
 
 
 class UnrolledGradient(AbstractRule):
@@ -60,11 +71,10 @@ class UnrolledGradient(AbstractRule):
     def system(self, objective):
         return objective.unrolled(self.m or None, self.teacher_forcing)
 
+    part: ClassVar[Part] = UNROLLED
+
     def check(self, objective):
-        if objective.unrolled is None:
-            raise ValueError(
-                "this method trains a neural time-stepper; use a time-stepper problem (ks, kolmogorov, advection_1d)"
-            )
+        super().check(objective)
         system = self.system(objective)
         if not system.differentiable_physics and not self.teacher_forcing and not self.policy.stop_physics:
             raise ValueError(
