@@ -139,7 +139,9 @@ def test_step_keeps_energy_and_incompressibility():
 
 
 @pytest.mark.parametrize(
-    "solver,steps", [(fluid.FFTProjection(), 3), (fluid.CGProjection(atol=1e-10), 1)], ids=["fft", "cg"]
+    "solver,steps",
+    [pytest.param(fluid.FFTProjection(), 3, marks=pytest.mark.slow), (fluid.CGProjection(atol=1e-10), 1)],
+    ids=["fft", "cg"],
 )
 def test_rollout_derivatives_match_finite_differences(solver, steps):
     """Forward (jvp) and reverse (grad) mode of a short rollout against central differences."""

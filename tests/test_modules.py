@@ -100,7 +100,7 @@ def estimators(predict_fn, network_fn):
     }
 
 
-@pytest.mark.parametrize("case", CASES)
+@pytest.mark.parametrize("case", ["mlp", pytest.param("conv", marks=pytest.mark.slow)])
 def test_estimators_take_a_whole_module(case):
     model, batch = CASES[case]()
     arrays, _, predict_arrays, network_arrays = partitioned(model)

@@ -150,7 +150,9 @@ def test_weight_standardisation_equals_numpy_and_is_scale_invariant():
     expected = (flat - flat.mean(1, keepdims=True)) / (flat.std(1, keepdims=True) + 1e-5) * np.sqrt(2 / 27)
     np.testing.assert_allclose(np.asarray(standardised_weight(jnp.asarray(w))), expected.reshape(w.shape), atol=1e-6)
     # as under batch norm, a standardised conv's output does not depend on its kernel's scale
-    net = UNet(2, 2, levels=3, filters=4, key=jax.random.key(0), activation="leaky_relu", weight_standardisation=True)
+    net = eqx.filter_jit(
+        lambda key: UNet(2, 2, levels=3, filters=4, key=key, activation="leaky_relu", weight_standardisation=True)
+    )(jax.random.key(0))  # one program, not every layer's initialisation op by op
     scaled = eqx.tree_at(lambda n: n.down[1].first.weight, net, 7.0 * net.down[1].first.weight)
     x = jax.random.uniform(jax.random.key(1), (2, 16, 16))
     apply = eqx.filter_jit(lambda n, x: n(x))  # one program, not hundreds of eager ops

@@ -60,7 +60,7 @@ def check_contract(name, settings):
 # The problems whose data alone take most of a minute to generate (exponax's reference
 # solvers, the fluid's rollouts) are built small by their own modules (test_unrolling,
 # test_navier_stokes); their contract check runs in the slow tier.
-HEAVY_DATA = ("kolmogorov", "ks", "navier_stokes")
+HEAVY_DATA = ("heat", "kolmogorov", "ks", "navier_stokes")
 
 
 @pytest.mark.parametrize(

@@ -242,7 +242,7 @@ def test_structured_footprint_is_far_below_the_gram_routes():
 
 
 @pytest.mark.skipif(jax.device_count() < 4, reason="needs 4 (forced host) devices")
-@pytest.mark.parametrize("case", ["mixed", "complex"])
+@pytest.mark.parametrize("case", ["mixed", pytest.param("complex", marks=pytest.mark.slow)])
 def test_structured_route_sharded_over_4_devices_equals_one_device(case):
     if case == "mixed":
         objective, params, batch = _mixed()

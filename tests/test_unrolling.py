@@ -108,8 +108,19 @@ def hand_loop(problem, net_fn, batch, m, mode):
     return total
 
 
-@pytest.mark.parametrize("setup_name", ["correction", "prediction"])
-@pytest.mark.parametrize("method", ["one", "nog", "wig"])
+# make test checks every modality in the prediction setup and WIG (the full adjoint) in the
+# correction setup; ONE and NOG with the solver in the loop run in the slow tier.
+@pytest.mark.parametrize(
+    "setup_name,method",
+    [
+        ("prediction", "one"),
+        ("prediction", "nog"),
+        ("prediction", "wig"),
+        ("correction", "wig"),
+        pytest.param("correction", "one", marks=pytest.mark.slow),
+        pytest.param("correction", "nog", marks=pytest.mark.slow),
+    ],
+)
 def test_modalities_on_ks_equal_hand_written_loops(setup_name, method):
     settings = {"frames": 40, "warmup_frames": 20, "n_ics": 1, "n_test": 1, "long_horizon": 12, "width": 4,
                 "blocks": 1, "dataset_fraction": 1.0, "setup": setup_name}  # fmt: skip
@@ -235,6 +246,7 @@ def test_nondifferentiable_solver_raises_only_when_differentiated():
         jax.grad(lambda v: jnp.sum(solver(v, 0.0)))(u)
 
 
+@pytest.mark.slow  # trains through the engine
 def test_nondifferentiable_solver_trains_under_nog_and_one_and_is_refused_by_wig(tmp_path):
     for method in ("nog", "one"):
         opaque = train(adv_config(method, steps=30, differentiable_solver=False), tmp_path / method)
@@ -597,6 +609,7 @@ def test_prdp_controller_refines_on_plateaus_and_stops_when_refining_stops_helpi
     assert feed(prdp.initial_state(8), [1.0] * 10)["K"] == 9  # capped at full fidelity
 
 
+@pytest.mark.slow  # trains through the engine
 def test_prdp_training_raises_the_iteration_count_and_counts_iterations(tmp_path):
     config = adv_config("wig", steps=300, setup="correction", prdp=True, eval_every=10, iterations=10)
     summary = train(config, tmp_path / "prdp")
@@ -676,6 +689,7 @@ def test_nondifferentiable_wrapper_keeps_the_solver_failure_flag():
     assert not bool(ok)
 
 
+@pytest.mark.slow  # trains through the engine
 def test_prdp_rebuild_trains_with_the_new_iteration_count(tmp_path):
     """After a refinement the compiled step uses the new K: its loss equals a fresh setup's at K."""
     import dataclasses
@@ -700,7 +714,11 @@ def test_too_short_trajectories_are_a_one_line_error(capsys, tmp_path):
 
 
 @pytest.mark.parametrize(
-    "make", [lambda z: Kolmogorov(n=16, forcing_mode=4, zero_init=z), lambda z: Advection1d(zero_init=z)]
+    "make",
+    [
+        pytest.param(lambda z: Kolmogorov(n=16, forcing_mode=4, zero_init=z), marks=pytest.mark.slow),
+        lambda z: Advection1d(zero_init=z),
+    ],
 )
 def test_zero_init_starts_the_corrector_at_the_bare_solver(make):
     """zero_init zeroes the output layer (weights and bias): the corrected step is the solver's;

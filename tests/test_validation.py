@@ -227,7 +227,12 @@ def test_training_settings_are_defined_once():
     "problem,method,says",
     [
         ("cartpole", "hig", "hig on cartpole: the Jacobian routes need predict(params, sample) to return one array"),
-        ("ks", "khig", "khig on ks: khig: 33125 parameters are outside the dense layers it sees"),
+        pytest.param(  # builds the KS data (exponax's reference solver): the slow tier
+            "ks",
+            "khig",
+            "khig on ks: khig: 33125 parameters are outside the dense layers it sees",
+            marks=pytest.mark.slow,
+        ),
     ],
 )
 def test_a_method_that_refuses_the_problem_in_the_memory_preflight_says_so_in_one_line(
