@@ -8,7 +8,8 @@ import pytest
 import physgrad
 from physgrad import Budget
 from physgrad.harness.config import make_config, phase_methods
-from physgrad.harness.registry import METHODS, PROBLEMS
+from physgrad.harness.papers import protocol
+from physgrad.harness.registry import METHODS, PROBLEMS, paper_defaults
 from physgrad.harness.train import build
 from physgrad.problems import HigToy
 
@@ -38,8 +39,8 @@ PAPER_SIZE = ["heat", "kolmogorov", "ks", "navier_stokes", "poisson"]
 
 def check_contract(name, settings):
     cls = PROBLEMS[name]
-    assert cls.name == name and cls.description and cls.source and cls.__doc__
-    for method in cls.default_methods:
+    assert cls.name == name and protocol(name).description and cls.source and cls.__doc__
+    for method in protocol(name).methods:
         assert set(phase_methods(method)) <= set(METHODS)
     b = str(min(8, cls.default_batch_size))  # toy2d optimises one x
     setup = build(make_config(name, "hig", budget=Budget(steps=1), settings={**settings, "batch_size": b}))
@@ -107,9 +108,9 @@ def test_paper_comparison_resolves_with_paper_defaults(name):
     from physgrad.harness.study import plan
 
     configs = plan(name, None, [0], Budget(seconds=1))
-    assert [c.method for c in configs] == list(PROBLEMS[name].default_methods)
+    assert [c.method for c in configs] == list(protocol(name).methods)
     for config in configs:
         for phase in config.phases:
-            paper = PROBLEMS[name].defaults_for(phase.method)
+            paper = paper_defaults(PROBLEMS[name], phase.method)
             assert phase.batch_size == paper["batch_size"]
             assert all(phase.hyperparameters[k] == v for k, v in paper.items() if k != "batch_size")

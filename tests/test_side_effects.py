@@ -128,7 +128,9 @@ def hig_step(problem, batch_size=8):
     """One HIG step of ``problem`` from its initial network, written with the problem object
     and :func:`half_inverse` alone: per-sample Jacobians (vmap of jacrev), g = ∂L/∂y of the
     batch-mean loss, θ ← θ − η·J^{−1/2} g with the problem's HIG learning rate and τ."""
-    hig = problem.defaults_for("hig")
+    from physgrad.harness.registry import paper_defaults
+
+    hig = paper_defaults(type(problem), "hig")
     data = problem.make_data(jax.random.key(0))
     network = problem.make_network(jax.random.key(1))
     params, static = eqx.partition(network, eqx.is_inexact_array)

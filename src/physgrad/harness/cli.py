@@ -47,13 +47,15 @@ def _files(*paths) -> str:
 
 def cmd_list(args, console):
     from ..extras import method_extra, missing_note
+    from .papers import protocol
     from .registry import METHODS, PROBLEMS, describe
 
     console.print("[bold]problems[/bold]")
     for name, cls in PROBLEMS.items():
         note = missing_note(cls.extra)  # a problem whose optional extra is not installed
-        console.print(f"  {name:<19} {cls.description}" + (f" {note}" if note else ""), markup=False)
-        console.print(f"  {'':<19} paper comparison: {', '.join(cls.default_methods)}", markup=False)
+        paper = protocol(name)
+        console.print(f"  {name:<19} {paper.description}" + (f" {note}" if note else ""), markup=False)
+        console.print(f"  {'':<19} paper comparison: {', '.join(paper.methods)}", markup=False)
     console.print("[bold]methods[/bold]")
     for name in METHODS:
         note = missing_note(method_extra(name))

@@ -37,6 +37,7 @@ from ..methods.kfac import kfac
 from ..methods.kronecker_hig import KroneckerPower
 from ..methods.sip import L1Proxy, L2Proxy
 from ..rollout import Combined, M, R, S
+from .papers import protocol
 
 # `# isort: skip`: isort would split this compact `# fmt: skip` import into one name a line
 from ..problems import (  # isort: skip
@@ -401,18 +402,24 @@ METHODS: dict[str, Callable[..., AbstractMethod]] = _Methods({
 
 
 def paper_defaults(problem: type[AbstractProblem], method: str) -> dict[str, Any]:
-    """The problem's hyperparameters for ``method`` (batch size included); ``lm`` takes
-    Gauss–Newton's where the problem has none of its own, ``khig`` HIG's, ``kfac`` Adam's batch size; an
-    optax zoo entry takes Adam's batch size, and Adam's learning rate when optax asks for one."""
-    if method == "lm" and method not in problem.method_defaults:  # damped GN: GN's η, batch and τ
-        return problem.defaults_for("gn")
-    if method == "khig" and method not in problem.method_defaults:  # HIG's η, batch and τ (the same meaning)
-        return problem.defaults_for("hig")
-    if method == "kfac" and method not in problem.method_defaults:  # its own adaptive step; Adam's batch
-        return {"batch_size": problem.defaults_for("adam")["batch_size"]}
+    """The paper's hyperparameters for ``method`` on ``problem`` (batch size included; the
+    table is :data:`physgrad.harness.papers.PROTOCOLS`); ``lm`` takes Gauss–Newton's where
+    the problem has none of its own, ``khig`` HIG's, ``kfac`` Adam's batch size; an optax zoo
+    entry takes Adam's batch size, and Adam's learning rate when optax asks for one."""
+    table = protocol(problem.name).defaults
+
+    def defaults_for(name: str) -> dict[str, Any]:
+        return {"batch_size": problem.default_batch_size, **table.get(name, {})}
+
+    if method == "lm" and method not in table:  # damped GN: GN's η, batch and τ
+        return defaults_for("gn")
+    if method == "khig" and method not in table:  # HIG's η, batch and τ (the same meaning)
+        return defaults_for("hig")
+    if method == "kfac" and method not in table:  # its own adaptive step; Adam's batch
+        return {"batch_size": defaults_for("adam")["batch_size"]}
     if not is_optax_name(method):
-        return problem.defaults_for(method)
-    adam = problem.defaults_for("adam")
+        return defaults_for(method)
+    adam = defaults_for("adam")
     out = {"batch_size": adam["batch_size"]}
     if METHODS[method].lr_required and "lr" in adam:
         out["lr"] = adam["lr"]

@@ -26,7 +26,7 @@ from ..errors import ConfigError
 from ..progress import AbstractProgressMeter
 from .config import Budget, RunConfig, choose, make_config, method_slug, parse_method, phase_methods, valid_settings
 from .failures import FailureLog, recordable
-from .registry import PROBLEMS
+from .registry import PROBLEMS, protocol  # the paper protocols (papers.py), as the registry reads them
 from .train import is_complete, read_metrics, read_summary, train
 
 SUMMARY_COLUMNS = (
@@ -71,7 +71,7 @@ def plan(
 ) -> list[RunConfig]:
     """The run configurations of a study, validated before anything runs (``methods`` None: its defaults)."""
     choose("problem", problem, PROBLEMS)
-    methods = list(PROBLEMS[problem].default_methods if methods is None else methods)
+    methods = list(protocol(problem).methods if methods is None else methods)
     for m in methods:
         parse_method(m)
     settings = settings or {}
@@ -422,7 +422,7 @@ def compare_grid(
     out = Path(out)
     with rundir.one_writer(out, "sweep"):  # one writer per sweep directory, for the whole sweep
         rundir.atomic_write(out / "grid.json", json.dumps({
-            "problem": problem, "methods": list(methods or PROBLEMS[problem].default_methods), "seeds": list(seeds),
+            "problem": problem, "methods": list(methods or protocol(problem).methods), "seeds": list(seeds),
             "budget": budget.to_dict(), "settings": fixed, "grid": grid,
         }, indent=2) + "\n")  # fmt: skip
         for i, cell in enumerate(cells, 1):

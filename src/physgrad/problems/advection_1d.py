@@ -56,12 +56,8 @@ def fou_distance(network, cfl: float = -0.75) -> float:
 
 class Advection1d(TimeStepperProblem):
     name: ClassVar[str] = "advection_1d"
-    description: ClassVar[str] = (
-        "1D advection at CFL -0.75: a 2-tap linear stencil (trainax quick-start), PRDP smoke test"
-    )
     source: ClassVar[str] = "trainax README; List et al. 2025; Bhatia et al. ICLR 2025"
     extra: ClassVar[str | None] = "pde"  # exponax (the reference)
-    method_defaults: ClassVar[dict] = {name: {"lr": 1e-2, "batch_size": 32} for name in ("one", "nog", "wig", "adam")}
     default_eval_samples: ClassVar[int] = 0
 
     m: int = eqx.field(static=True, default=5)

@@ -26,10 +26,9 @@ class AbstractProblem(eqx.Module):
     Subclasses are Equinox modules whose fields are the problem's *settings* (sizes,
     physical constants), each with the paper's value as default. They define:
 
-    - ``name``, ``description`` (one line) and ``source`` (paper and section);
-    - ``method_defaults``: the paper's hyperparameters per method name, e.g.
-      ``{"adam": {"lr": 3e-4, "batch_size": 512}}``; ``default_batch_size`` otherwise;
-    - ``default_methods``: the paper's comparison, used by ``physgrad compare``;
+    - ``name`` and ``source`` (paper and section); ``default_batch_size``, the batch a run
+      takes when none is given (the command line's per-method paper settings and
+      comparisons are its own table, :mod:`physgrad.harness.papers`);
     - ``make_data(key) -> {"train": batch, "test": batch}``: deterministic per key;
     - ``make_network(key)``: the paper's default network;
     - ``network_output(network, sample) -> x``: per sample (unbatched);
@@ -54,11 +53,8 @@ class AbstractProblem(eqx.Module):
     """
 
     name: ClassVar[str]
-    description: ClassVar[str]
     source: ClassVar[str]
-    method_defaults: ClassVar[dict[str, dict[str, Any]]] = {}
     default_batch_size: ClassVar[int] = 128
-    default_methods: ClassVar[tuple[str, ...]] = ("adam", "gn", "hig")
     extra: ClassVar[str | None] = None  # the optional extra it needs (physgrad.extras), e.g. "pde"
 
     @abc.abstractmethod
@@ -145,11 +141,6 @@ class AbstractProblem(eqx.Module):
         labels' batches follow each other at random (the KS code batches each domain size
         by itself). None (the default): batches are cut from one permutation of all samples."""
         return None
-
-    @classmethod
-    def defaults_for(cls, method: str) -> dict[str, Any]:
-        """The paper's hyperparameters for ``method`` on this problem (batch size included)."""
-        return {"batch_size": cls.default_batch_size, **cls.method_defaults.get(method, {})}
 
     @classmethod
     def settings(cls) -> dict[str, Any]:

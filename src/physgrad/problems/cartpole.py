@@ -47,10 +47,6 @@ class CartPole(ClosedLoopProblem):
     zero_init: bool = eqx.field(static=True, default=True)
 
     name: ClassVar[str] = "cartpole"
-    description: ClassVar[str] = (
-        "StableBPTT: swing up 1-4 poles (setting poles) on one cart with one unbounded force, "
-        "semi-implicit Euler 0.01 x 100, final loss 1 - cos(theta)"
-    )
     source: ClassVar[str] = "Schnell & Thuerey, ICLR 2024, cart-pole"
 
     def __check_init__(self):

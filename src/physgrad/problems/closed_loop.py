@@ -38,7 +38,6 @@ class ClosedLoopProblem(AbstractProblem):
     """Base class: subclasses define the physics, the controller and the per-step loss."""
 
     default_batch_size: ClassVar[int] = 8
-    default_methods: ClassVar[tuple[str, ...]] = ("bptt", "sbptt_m", "sbptt_c", "no_temporal")
 
     # The protocol's data (§2.1): 256 train + 256 test initial states from one fixed seed.
     n_train: int = eqx.field(static=True, default=256)

@@ -39,15 +39,8 @@ class ExpInverse(AbstractProblem):
     name: ClassVar[str] = "exp_inverse"
     # the authors generate every batch on the fly: every epoch a new training set
     default_fresh_samples: ClassVar[bool] = True
-    description: ClassVar[str] = "SIP paper Fig. 2: learn x from y = exp(x), x* ~ U[-12, 0], sigmoid 16-64-16 network"
     source: ClassVar[str] = "Holl et al., NeurIPS 2022, Fig. 2"
     default_batch_size: ClassVar[int] = 100
-    method_defaults: ClassVar[dict] = {
-        "sgd": {"lr": 1.0},
-        "adam": {"lr": 1e-3},
-        "sip": {"optimizer": "sgd", "lr": 0.1, "solver": "analytic", "precision": "float64"},
-    }
-    default_methods: ClassVar[tuple[str, ...]] = ("sgd", "adam", "sip")
 
     def make_data(self, key):
         def draw(k, n):

@@ -71,10 +71,6 @@ class Guidance(ClosedLoopProblem):
     zero_init: bool = eqx.field(static=True, default=True)
 
     name: ClassVar[str] = "guidance"
-    description: ClassVar[str] = (
-        "StableBPTT: 2 drivers herd 4 evaders by repulsion, explicit Euler 4/60 x 60, "
-        "loss mean |x_e|^2 + rc mean c^2 (setting rc)"
-    )
     source: ClassVar[str] = "Schnell & Thuerey, ICLR 2024, guidance by repulsion"
 
     def __check_init__(self):

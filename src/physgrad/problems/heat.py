@@ -117,17 +117,8 @@ class Heat(AbstractProblem):
     name: ClassVar[str] = "heat"
     # the authors draw a fresh batch of boxes every step: every epoch a new training set
     default_fresh_samples: ClassVar[bool] = True
-    description: ClassVar[str] = (
-        "SIP paper: recover box-shaped heat from its 64x64 periodic diffusion (nu t = 8), U-Net"
-    )
     source: ClassVar[str] = "Holl et al., NeurIPS 2022, Fig. 6c,d"
     default_batch_size: ClassVar[int] = 128
-    method_defaults: ClassVar[dict] = {
-        "adam": {"lr": 1e-3},
-        "sip": {"lr": 1e-3, "solver": "analytic", "precision": "float64"},
-        "sgd": {"lr": 2.56e-4},
-    }
-    default_methods: ClassVar[tuple[str, ...]] = ("adam", "sgd", "sip")
 
     @property
     def needs_float64(self) -> bool:

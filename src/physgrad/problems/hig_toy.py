@@ -40,14 +40,8 @@ class HigToy(AbstractProblem):
     dtype: str = eqx.field(static=True, default="float32")
 
     name: ClassVar[str] = "hig_toy"
-    description: ClassVar[str] = "HIG paper toy: fit (sin 6x, cos 9x) through P(y) = (y1, lam*y2), 7 tanh units"
     source: ClassVar[str] = "Schnell, Holl, Thuerey, ICLR 2022, toy example"
     default_batch_size: ClassVar[int] = 256
-    method_defaults: ClassVar[dict] = {
-        "adam": {"lr": 1e-3},
-        "gn": {"lr": 1.0, "truncation": 1e-6},
-        "hig": {"lr": 1.0, "truncation": 1e-6},
-    }
 
     @property
     def needs_float64(self) -> bool:

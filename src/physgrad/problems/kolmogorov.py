@@ -41,12 +41,8 @@ TEST_RE = (600, 1000)
 
 class Kolmogorov(TimeStepperProblem):
     name: ClassVar[str] = "kolmogorov"
-    description: ClassVar[str] = (
-        "2D Kolmogorov flow (vorticity): coarse ETDRK2 + conv ResNet vs a 4x finer reference, Re as input"
-    )
     source: ClassVar[str] = "List et al., CMAME 2025"
     extra: ClassVar[str | None] = "pde"  # exponax
-    method_defaults: ClassVar[dict] = {name: {"lr": 1e-4, "batch_size": 8} for name in ("one", "nog", "wig", "adam")}
     default_composition: ClassVar[str] = "bypass"
     default_eval_samples: ClassVar[int] = 64
 

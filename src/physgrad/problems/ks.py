@@ -59,15 +59,8 @@ def ks_stepper(factor: float, n: int, dt: float, order: int):
 
 class KuramotoSivashinsky(TimeStepperProblem):
     name: ClassVar[str] = "ks"
-    description: ClassVar[str] = (
-        "Kuramoto-Sivashinsky N=48: ETD1 + conv ResNet vs ETRK2 reference, domain size as input"
-    )
     source: ClassVar[str] = "List et al., CMAME 2025"
     extra: ClassVar[str | None] = "pde"  # exponax
-    # Adam 1e-4 with ExponentialLR γ = 0.9 every 2000 iterations, batch 16 (the KS code)
-    method_defaults: ClassVar[dict] = {
-        name: {"lr": 1e-4, "decay": 0.9, "decay_every": 2000} for name in ("one", "nog", "wig")
-    } | {"adam": {"lr": 1e-4}}
 
     n: int = eqx.field(static=True, default=48)
     dt: float = eqx.field(static=True, default=0.5)

@@ -46,15 +46,5 @@ class LinearOscillators(Oscillators):
     activation: str = eqx.field(static=True, default="tanh")
 
     name: ClassVar[str] = "linear_oscillators"
-    description: ClassVar[str] = (
-        "PBDL book: 2 linearly coupled oscillators, RK4 0.5 x 24, learn 24 controls to return to start"
-    )
     source: ClassVar[str] = "PBDL book, physgrad-hig-code.ipynb"
     default_batch_size: ClassVar[int] = 32
-    method_defaults: ClassVar[dict] = {
-        "adam": {"lr": 1e-3, "batch_size": 256},
-        "hig": {"lr": 1.0, "batch_size": 32, "truncation": 1e-10},
-        "gn": {"lr": 1.0, "batch_size": 32, "truncation": 1e-10},
-        "sip": {"lr": 1e-3, "batch_size": 256, "solver": "gauss_newton", "rcond": 1e-5},
-    }
-    default_methods: ClassVar[tuple[str, ...]] = ("adam", "sip", "hig")

@@ -152,13 +152,8 @@ class NavierStokes(AbstractProblem):
     # The authors simulate fresh examples every step; here each split is simulated once and
     # cached on disk (a 4,096-example training set takes minutes to simulate), so training
     # cycles over it: fresh_samples=true draws a new set every epoch at that cost.
-    description: ClassVar[str] = (
-        "SIP paper: initial velocity of a 64x64 periodic incompressible flow from a marker's start and end, U-Net"
-    )
     source: ClassVar[str] = "Holl et al., NeurIPS 2022, Fig. 7"
     default_batch_size: ClassVar[int] = 64
-    method_defaults: ClassVar[dict] = {"adam": {"lr": 5e-3}, "sip": {"lr": 5e-3, "solver": "analytic"}}
-    default_methods: ClassVar[tuple[str, ...]] = ("adam", "sip")
 
     def __check_init__(self):
         choices = (("projection", self.projection, PROJECTIONS), ("simulator", self.simulator, SIMULATORS),

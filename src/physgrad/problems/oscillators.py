@@ -46,25 +46,8 @@ class Oscillators(AbstractProblem):
     dtype: str = eqx.field(static=True, default="float32")
 
     name: ClassVar[str] = "oscillators"
-    description: ClassVar[str] = (
-        "HIG paper: 2 cubically coupled oscillators, RK4 0.125 x 96, learn 96 controls to return to start"
-    )
     source: ClassVar[str] = "Schnell, Holl, Thuerey, ICLR 2022, Fig. 2b"
     default_batch_size: ClassVar[int] = 128
-    # The authors' submit_{Adam,GN,HIG}.py. The other optimizers' settings are not in the
-    # released code; physgrad's choice at Adam's batch of 512: SGD 1e-2 and RMSprop 1e-3 (the
-    # tf.keras defaults), Adagrad 1e-2 and Adadelta 1.0 (older standalone-Keras defaults;
-    # tf.keras, as in the authors' TensorFlow 2.5, has 1e-3 for both).
-    method_defaults: ClassVar[dict] = {
-        "adam": {"lr": 3e-4, "batch_size": 512},
-        "gn": {"lr": 1.0, "batch_size": 128, "truncation": 1e-6},
-        "hig": {"lr": 1.0, "batch_size": 128, "truncation": 1e-6},
-        "sgd": {"lr": 1e-2, "batch_size": 512},
-        "rmsprop": {"lr": 1e-3, "batch_size": 512},
-        "adagrad": {"lr": 1e-2, "batch_size": 512},
-        "adadelta": {"lr": 1.0, "batch_size": 512},
-    }
-    default_methods: ClassVar[tuple[str, ...]] = ("adam", "gn", "hig", "sgd", "rmsprop", "adagrad", "adadelta")
 
     @property
     def needs_float64(self) -> bool:

@@ -76,17 +76,8 @@ class Poisson(AbstractProblem):
     name: ClassVar[str] = "poisson"
     # the authors draw fresh noise every step: every epoch a new training set
     default_fresh_samples: ClassVar[bool] = True
-    description: ClassVar[str] = (
-        "SIP paper: recover x from the solution of laplace(y) = x on 64x64 (zero padding), U-Net"
-    )
     source: ClassVar[str] = "Holl et al., NeurIPS 2022, Fig. 6a,b"
     default_batch_size: ClassVar[int] = 128
-    method_defaults: ClassVar[dict] = {
-        "adam": {"lr": 1e-3},
-        "sip": {"lr": 1e-3, "solver": "analytic"},
-        "sgd": {"lr": 3.84e-10, "momentum": 0.9},
-    }
-    default_methods: ClassVar[tuple[str, ...]] = ("adam", "sip")
 
     @property
     def needs_float64(self) -> bool:

@@ -78,17 +78,8 @@ class PoissonHig(AbstractProblem):
     name: ClassVar[str] = "poisson_hig"
     # the authors draw a fresh Noise batch every iteration: every epoch a new training set
     default_fresh_samples: ClassVar[bool] = True
-    description: ClassVar[str] = "HIG paper: invert the 8x8 zero-boundary Laplacian, tanh 64-128-64 network"
     source: ClassVar[str] = "Schnell, Holl, Thuerey, ICLR 2022, Poisson problem"
     default_batch_size: ClassVar[int] = 64
-    method_defaults: ClassVar[dict] = {
-        "adam": {"lr": 3e-4, "batch_size": 64},
-        "hig": {"lr": 0.64, "batch_size": 64, "truncation": 1e-5},
-        "gn": {"lr": 0.64, "batch_size": 64, "truncation": 1e-5},
-    }
-    # The paper's protocol: Adam, HIG, and HIG continuing an Adam-pretrained network (the
-    # authors' README loads a network saved after 1,413 Adam iterations).
-    default_methods: ClassVar[tuple[str, ...]] = ("adam", "hig", "adam:1413,hig")
 
     @property
     def needs_float64(self) -> bool:

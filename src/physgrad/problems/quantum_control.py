@@ -93,10 +93,6 @@ class QuantumControl(ClosedLoopProblem):
     width: int = eqx.field(static=True, default=60)
 
     name: ClassVar[str] = "quantum_control"
-    description: ClassVar[str] = (
-        "StableBPTT: closed-loop CNN control of the 1-D Schroedinger equation, Crank-Nicolson Nx 32, "
-        "0.0625 x 128, to eigenstate 3-5 (setting eigenstate), summed infidelity"
-    )
     source: ClassVar[str] = "Schnell & Thuerey, ICLR 2024, quantum control"
 
     def __check_init__(self):

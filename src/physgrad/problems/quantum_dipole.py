@@ -55,19 +55,8 @@ class QuantumDipole(AbstractProblem):
     dtype: str = eqx.field(static=True, default="float32")
 
     name: ClassVar[str] = "quantum_dipole"
-    description: ClassVar[str] = (
-        "HIG paper: 1-D Schroedinger equation, Crank-Nicolson 0.05 x 384, learn 384 dipole controls "
-        "from the ground state to a target state"
-    )
     source: ClassVar[str] = "Schnell, Holl, Thuerey, ICLR 2022, quantum dipole"
     default_batch_size: ClassVar[int] = 16
-    # The authors' submit_{Adam,HIG}.py; there is no GN script for this problem.
-    method_defaults: ClassVar[dict] = {
-        "adam": {"lr": 5e-4, "batch_size": 256},
-        "hig": {"lr": 0.5, "batch_size": 16, "truncation": 1e-5},
-        "gn": {"lr": 0.5, "batch_size": 16, "truncation": 1e-5},
-    }
-    default_methods: ClassVar[tuple[str, ...]] = ("adam", "hig")
 
     @property
     def needs_float64(self) -> bool:

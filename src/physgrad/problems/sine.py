@@ -43,26 +43,8 @@ class Sine(AbstractProblem):
     name: ClassVar[str] = "sine"
     # the authors generate every batch on the fly: every epoch a new training set
     default_fresh_samples: ClassVar[bool] = True
-    description: ClassVar[str] = (
-        "SIP paper Fig. 5: invert the rotated ill-conditioned sine (settings xi, phi), relu 32-64-32"
-    )
     source: ClassVar[str] = "Holl et al., NeurIPS 2022, Fig. 5"
     default_batch_size: ClassVar[int] = 100
-    method_defaults: ClassVar[dict] = {
-        "adam": {"lr": 1e-3},
-        "sip": {
-            "lr": 1e-3,
-            "solver": "saddle_free_newton",
-            "max_loss_change": 0.2,
-            "proxy": "l1",
-            "precision": "float64",
-        },
-        "sgd": {"lr": 1e-4},
-        "adadelta": {"lr": 3e-3},
-        "adagrad": {"lr": 3e-3},
-        "rmsprop": {"lr": 3e-5},
-    }
-    default_methods: ClassVar[tuple[str, ...]] = ("adam", "sip")
 
     def _scale(self):
         return jnp.array([self.gamma / self.xi, self.gamma * self.xi])

@@ -88,7 +88,6 @@ class TimeStepperProblem(AbstractProblem):
     """Base class: subclasses define the reference data, the coarse solver and the network."""
 
     default_batch_size: ClassVar[int] = 16
-    default_methods: ClassVar[tuple[str, ...]] = ("one", "nog", "wig")
     default_eval_samples: ClassVar[int] = 512
     # Windows are stored trajectory by trajectory, so a fixed order would make every batch
     # consecutive, overlapping windows of one trajectory; the authors' code permutes every

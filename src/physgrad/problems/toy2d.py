@@ -41,15 +41,8 @@ class Toy2d(AbstractProblem):
     start: tuple[float, float] = eqx.field(static=True, default=(3.0, 3.0))
 
     name: ClassVar[str] = "toy2d"
-    description: ClassVar[str] = "PBDL book 2D toy: y = (x0, x1^2), L = |y|^2 from (3, 3), x optimised directly"
     source: ClassVar[str] = "PBDL book physgrad-comparison.ipynb"
     default_batch_size: ClassVar[int] = 1
-    method_defaults: ClassVar[dict] = {
-        "sgd": {"lr": 0.01},
-        "newton": {"lr": 1.0 / 3.0},
-        "sip": {"eta": 0.3, "optimizer": "sgd", "lr": 1.0, "solver": "analytic", "precision": "float64"},
-    }
-    default_methods: ClassVar[tuple[str, ...]] = ("sgd", "newton", "sip")
 
     @property
     def needs_float64(self) -> bool:
