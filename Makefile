@@ -4,14 +4,14 @@ VENV   ?= .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: demo test test-slow test-all lint format typecheck install bench clean
+.PHONY: demo test test-slow test-all lint format typecheck docs install bench clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
 
 $(STAMP): $(BIN)/python pyproject.toml
-	$(BIN)/python -m pip install --quiet -e ".[all,test,dev]"
+	$(BIN)/python -m pip install --quiet -e ".[all,test,dev,docs]"
 	touch $(STAMP)
 
 install: $(STAMP)
@@ -48,6 +48,11 @@ format: $(STAMP)  # rewrites files: ruff's safe fixes (import order, unused impo
 typecheck: $(STAMP)
 	PYRIGHT_PYTHON_IGNORE_WARNINGS=1 $(BIN)/pyright --pythonpath $(BIN)/python
 
+# The API reference site (mkdocs.yml: docs/ and the docstrings) into site/; --strict: any
+# warning (a broken link, an unknown cross-reference) fails. Open site/index.html.
+docs: $(STAMP)
+	NO_MKDOCS_2_WARNING=1 $(BIN)/mkdocs build --strict --site-dir site
+
 bench: $(STAMP)
 	$(BIN)/python benchmarks/hig_step.py
 
@@ -68,4 +73,4 @@ test-floors:
 	$(FLOORS_VENV)/bin/python -m pytest -n auto --dist loadfile -m "not slow"
 
 clean:
-	rm -rf $(VENV) $(FLOORS_VENV) runs studies
+	rm -rf $(VENV) $(FLOORS_VENV) runs studies site
