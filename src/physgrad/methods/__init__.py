@@ -16,10 +16,13 @@ entry point            rule                             direction
 :func:`unrolled`       :class:`UnrolledGradient`        ONE / NOG / WIG gradients
 =====================  ===============================  =====================================
 
-The registry of names for the command line is :mod:`physgrad.harness.registry`.
+What the engine runs is a rule with an optax transformation and, optionally, an acceptance
+test that may refuse a step (:class:`Method`, :mod:`physgrad.acceptance`);
+:func:`LossAwareDP` is a constructor of one. The registry of names for the
+command line is :mod:`physgrad.harness.registry`.
 """
 
-from .base import AbstractMethod, AbstractRule, Estimator, Method, Objective, trainable
+from .base import AbstractMethod, AbstractRule, Estimator, Method, MethodState, Objective, trainable
 from .dp import Gradient, LossAwareDP, dp
 from .hig import JacobianPower, gauss_newton, hig
 from .kronecker_hig import KroneckerPower, kronecker_hig
@@ -42,6 +45,7 @@ __all__ = [
     "LevenbergMarquardt",
     "LossAwareDP",
     "Method",
+    "MethodState",
     "Newton",
     "Objective",
     "RolloutGradient",
