@@ -18,7 +18,8 @@ entry point            rule                             direction
 
 What the engine runs is a rule with an optax transformation and, optionally, an acceptance
 test that may refuse a step (:class:`Method`, :mod:`physgrad.acceptance`);
-:func:`LossAwareDP` is a constructor of one. The registry of names for the
+:class:`LevenbergMarquardt` (with :class:`GainRatio`) and :class:`Unrolled` are such
+compositions, :func:`LossAwareDP` a constructor of one. The registry of names for the
 command line is :mod:`physgrad.harness.registry`.
 """
 
@@ -26,7 +27,7 @@ from .base import AbstractMethod, AbstractRule, Estimator, Method, MethodState, 
 from .dp import Gradient, LossAwareDP, dp
 from .hig import JacobianPower, gauss_newton, hig
 from .kronecker_hig import KroneckerPower, kronecker_hig
-from .lm import LevenbergMarquardt, adapt_damping, predicted_decrease
+from .lm import GainRatio, LevenbergMarquardt, adapt_damping, predicted_decrease
 from .newton import Newton, newton
 from .sip import AbstractProxy, L1Proxy, L2Proxy, ScaleInvariantPhysics, sip
 from .stable_bptt import RolloutGradient, bptt, stabilised_bptt
@@ -37,6 +38,7 @@ __all__ = [
     "AbstractProxy",
     "AbstractRule",
     "Estimator",
+    "GainRatio",
     "Gradient",
     "JacobianPower",
     "KroneckerPower",
