@@ -109,8 +109,9 @@ class GainRatio(AbstractAcceptance):
     accepted ⇔ ρ > 0 (:func:`adapt_damping`; a ρ that is not finite, or a model that
     predicts no decrease, counts as a rejection). The damping is this test's state
     (:class:`DampingState`) because Nielsen's rule adapts it from the verdict, on refused
-    steps too; the method reads μ from it for the next direction. With ``reject=False``
-    every step is taken and μ is still adapted.
+    steps too; :class:`LevenbergMarquardt` reads μ from it for the next direction (in a
+    plain :class:`Method` the rule does not see μ, and the test only accepts or refuses).
+    With ``reject=False`` every step is taken and μ is still adapted.
 
     Stats: ``damping`` (μ used by the step), ``gain_ratio`` (ρ) and ``accepted`` (1 or 0,
     Nielsen's verdict, also with ``reject=False``).
