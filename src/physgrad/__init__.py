@@ -10,7 +10,7 @@ Importing physgrad changes nothing in JAX's configuration: float64 is scoped to 
 computations that need it (the Gram route's eigendecomposition, float64 problems).
 """
 
-from . import distributed, inverse, routes, transforms
+from . import acceptance, distributed, inverse, routes, transforms
 from .engine import Budget, Phase, TrainSettings, TrainState, fit
 from .errors import ConfigError
 from .harness.train import load_network
@@ -53,6 +53,7 @@ __all__ = [
     "TrainSettings",
     "TrainState",
     "UNet",
+    "acceptance",
     "blockgram_half_inverse",
     "bptt",
     "closed_loop",

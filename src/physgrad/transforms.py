@@ -12,6 +12,8 @@ import jax
 import jax.numpy as jnp
 import optax
 
+from .acceptance import keep_where, running_bound
+
 
 class NormGuardState(NamedTuple):
     """``inner_state`` of the wrapped transformation and the running bound (0: not set)."""
@@ -32,6 +34,11 @@ def norm_guard(
     above the recent gradients is dropped (the inner state and the bound stay, the update
     is zero), as the unrolling study of List et al. (CMAME 2025, §5.4) does for the
     Kolmogorov flow. Extra keyword arguments are passed on to ``inner``.
+
+    The same rule as an acceptance test of a method (its bound in the test's own state,
+    the parameters and the whole optimizer state kept on a skip) is
+    :class:`physgrad.acceptance.NormBound`; this transformation is for optax chains of
+    one's own.
     """
     inner = optax.with_extra_args_support(inner)
 
@@ -39,12 +46,9 @@ def norm_guard(
         return NormGuardState(inner.init(params), jnp.zeros((), jnp.float32))
 
     def update(updates, state, params=None, **extra_args):
-        norm = optax.tree.norm(updates)
-        within = (state.bound == 0) | (norm <= state.bound)
+        within, bound = running_bound(state.bound, optax.tree.norm(updates), factor, decay, first)
         new_updates, new_inner = inner.update(updates, state.inner_state, params, **extra_args)
-        bound = jnp.where(state.bound == 0, first * norm, decay * state.bound + factor * norm).astype(state.bound.dtype)
-        keep = lambda new, old: jax.tree.map(lambda a, b: jnp.where(within, a, b), new, old)  # noqa: E731
-        new_updates = jax.tree.map(lambda u: jnp.where(within, u, jnp.zeros_like(u)), new_updates)
-        return new_updates, NormGuardState(keep(new_inner, state.inner_state), jnp.where(within, bound, state.bound))
+        new_updates = keep_where(within, new_updates, optax.tree.zeros_like(new_updates))
+        return new_updates, keep_where(within, NormGuardState(new_inner, bound), state)
 
     return optax.GradientTransformationExtraArgs(init, update)

@@ -33,6 +33,7 @@ import jax
 import numpy as np
 
 from .. import checks, distributed, rundir
+from ..acceptance import SKIPPED
 from ..errors import ConfigError
 from ..methods import AbstractMethod
 from ..precision import float64_scope
@@ -159,7 +160,9 @@ def loop(state: TrainState, *, setup: Setup, compiled: Any, strategies: Strategi
             params, opt_state, stats = compiled(state.params, state.opt_state, steps.data, order, np.int32(batch))
             loss = float(stats["loss"])  # waits for the step: the timing is honest
             train_time = placement.clock(state.train_time + time.perf_counter() - t_start)
-            if not math.isfinite(loss) and not float(stats.get("skipped", 0.0)):
+            # A step its method's acceptance refused (physgrad.acceptance) left the parameters as they
+            # were: its non-finite loss is not a divergence.
+            if not math.isfinite(loss) and not float(stats.get(SKIPPED, 0.0)):
                 return Ending(state, setup, "diverged", state.step)
             last_finite = loss if math.isfinite(loss) else state.last_finite_loss
             state = recorder.accumulate(state, stats)._replace(params=params, opt_state=opt_state, step=state.step + 1,

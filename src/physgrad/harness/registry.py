@@ -4,7 +4,9 @@ This is the only place where update rules and their strategies are strings. A fa
 takes the method's hyperparameters as keyword-only arguments with defaults (the command
 line reads them with ``inspect.signature``) and returns an engine method
 (:class:`physgrad.methods.AbstractMethod`) built from the library's objects; its
-docstring's first line describes it. The batch size is a training setting (per-method
+docstring's first line describes it. The factories are private and named by the table
+:data:`METHODS` alone, so a name such as ``hig`` means one thing in the library (the
+estimator :func:`physgrad.hig`). The batch size is a training setting (per-method
 defaults come from the problem).
 """
 
@@ -49,34 +51,35 @@ from ..problems import (  # isort: skip
 # ε = 1e-7 is the Keras default that the HIG and StableBPTT papers' baselines used.
 
 
-def adam(*, lr: float = 1e-3, b1: float = 0.9, b2: float = 0.999, eps: float = 1e-7):
+def _adam(*, lr: float = 1e-3, b1: float = 0.9, b2: float = 0.999, eps: float = 1e-7):
     """Adam on DP gradients (Kingma & Ba 2015; Keras ε = 1e-7)."""
     return Method(Gradient(), optax.adam(lr, b1=b1, b2=b2, eps=eps))
 
 
-def sgd(*, lr: float = 1e-2, momentum: float = 0.0):
+def _sgd(*, lr: float = 1e-2, momentum: float = 0.0):
     """Plain (or momentum) SGD on DP gradients: θ ← θ − η ∇L."""
     return Method(Gradient(), optax.sgd(lr, momentum=momentum or None))
 
 
-def rmsprop(*, lr: float = 1e-3, decay: float = 0.9, eps: float = 1e-7):
+def _rmsprop(*, lr: float = 1e-3, decay: float = 0.9, eps: float = 1e-7):
     """RMSprop on DP gradients (Tieleman & Hinton 2012; Keras defaults)."""
     return Method(Gradient(), optax.rmsprop(lr, decay=decay, eps=eps))
 
 
-def adagrad(*, lr: float = 1e-2, initial_accumulator: float = 0.1, eps: float = 1e-7):
+def _adagrad(*, lr: float = 1e-2, initial_accumulator: float = 0.1, eps: float = 1e-7):
     """Adagrad on DP gradients (Duchi et al. 2011; lr 1e-2 and accumulator 0.1: physgrad's choice)."""
     return Method(Gradient(), optax.adagrad(lr, initial_accumulator_value=initial_accumulator, eps=eps))
 
 
-def adadelta(*, lr: float = 1.0, rho: float = 0.95, eps: float = 1e-7):
+def _adadelta(*, lr: float = 1.0, rho: float = 0.95, eps: float = 1e-7):
     """Adadelta on DP gradients (Zeiler 2012: η = 1, ρ = 0.95)."""
     return Method(Gradient(), optax.adadelta(lr, rho=rho, eps=eps))
 
 
 # The DP optimizers with their defaults above, by name, for methods that apply an optax
 # optimizer to some other direction (SIP's proxy gradient): name -> (lr -> transformation).
-OPTIMIZERS = {f.__name__: (lambda lr, f=f: f(lr=lr).optimizer) for f in (adam, sgd, rmsprop, adagrad, adadelta)}
+_DP = {"adam": _adam, "sgd": _sgd, "rmsprop": _rmsprop, "adagrad": _adagrad, "adadelta": _adadelta}
+OPTIMIZERS = {name: (lambda lr, f=f: f(lr=lr).optimizer) for name, f in _DP.items()}
 
 # --- Gauss–Newton and HIG ---------------------------------------------------------------
 # The route names of the command line and the route objects they stand for: the one table
@@ -99,7 +102,7 @@ def make_route(name: str, *, blocks: int = 8, lanczos_steps: int = 64) -> routes
     return _ROUTES[name](blocks, lanczos_steps)
 
 
-def hig(*, lr: float = 1.0, truncation: float = 1e-6, route: str = "auto", blocks: int = 8, lanczos_steps: int = 64):
+def _hig(*, lr: float = 1.0, truncation: float = 1e-6, route: str = "auto", blocks: int = 8, lanczos_steps: int = 64):
     """Half-inverse gradients: −η V Σ^{-1/2} Uᵀ g, applied by SGD (Schnell et al. 2022).
 
     ``route``: ``svd``/``gram`` hold J; ``structured`` (exact, from each dense layer's
@@ -110,14 +113,14 @@ def hig(*, lr: float = 1.0, truncation: float = 1e-6, route: str = "auto", block
     return Method(rule, optax.sgd(lr))
 
 
-def gn(*, lr: float = 1.0, truncation: float = 1e-6, route: str = "auto", blocks: int = 8, lanczos_steps: int = 64):
+def _gn(*, lr: float = 1.0, truncation: float = 1e-6, route: str = "auto", blocks: int = 8, lanczos_steps: int = 64):
     """Gauss–Newton: −η J⁺ g (pseudo-inverse, κ = −1) with the same truncation, by SGD."""
     _check_route_sizes(blocks, lanczos_steps)
     rule = JacobianPower(-1.0, truncation, make_route(route, blocks=blocks, lanczos_steps=lanczos_steps))
     return Method(rule, optax.sgd(lr))
 
 
-def lm(*, lr: float = 1.0, damping: float = 1e-3, truncation: float = 1e-6, route: str = "auto", blocks: int = 8,
+def _lm(*, lr: float = 1.0, damping: float = 1e-3, truncation: float = 1e-6, route: str = "auto", blocks: int = 8,
        lanczos_steps: int = 64, reject: bool = True):  # fmt: skip
     """Levenberg–Marquardt: −η Jᵀ(J Jᵀ + λI)⁻¹ g, λ = μ σ_max², μ by Nielsen's gain-ratio rule (rejects bad steps)."""
     _check_route_sizes(blocks, lanczos_steps)
@@ -125,7 +128,7 @@ def lm(*, lr: float = 1.0, damping: float = 1e-3, truncation: float = 1e-6, rout
     return LevenbergMarquardt(rule, optax.sgd(lr), damping, reject)
 
 
-def khig(*, lr: float = 1.0, power: float = -0.75, truncation: float = 1e-6, damping: float = 1e-4,
+def _khig(*, lr: float = 1.0, power: float = -0.75, truncation: float = 1e-6, damping: float = 1e-4,
          explicit_max: int = 1024):  # fmt: skip
     """Kronecker-factored HIG: −η b^{−p} G^p ∇W A^p per dense layer (K-FAC's factors, HIG's power p = −3/4), by SGD.
 
@@ -143,7 +146,7 @@ def _check_route_sizes(blocks, lanczos_steps):
         raise ValueError(f"blocks and lanczos_steps must be >= 1, got {blocks} and {lanczos_steps}")
 
 
-def newton(*, lr: float = 1.0, damping: float = 0.0):
+def _newton(*, lr: float = 1.0, damping: float = 0.0):
     """Newton's method with the dense Hessian of the batch loss: −η (H + λI)⁻¹ ∇L (small problems)."""
     return Method(Newton(damping), optax.sgd(lr))
 
@@ -175,7 +178,7 @@ def make_solver(name: str, *, analytic=None, rcond=1e-5, max_loss_change=0.2, ma
 SIP_PROXIES = {"l2": L2Proxy(), "l1": L1Proxy()}
 
 
-def sip(
+def _sip(
     *,
     lr: float = 1e-3,
     optimizer: str = "adam",
@@ -223,25 +226,25 @@ def _rollout_method(policy, clip, clip_threshold, lr, eps, checkpoint):
     )
 
 
-def bptt(*, clip: str = "value", clip_threshold: float = 1.0, lr: float = 1e-3, eps: float = 1e-7,
+def _bptt(*, clip: str = "value", clip_threshold: float = 1.0, lr: float = 1e-3, eps: float = 1e-7,
          truncate: int = 0, warmup: int = 0, checkpoint: bool = False):  # fmt: skip
     """Full BPTT (R): the true rollout gradient, clipped, Adam; truncate=k cuts every k steps."""
     return _rollout_method(R(truncate=truncate, warmup=warmup), clip, clip_threshold, lr, eps, checkpoint)
 
 
-def sbptt_m(*, clip: str = "value", clip_threshold: float = 1.0, lr: float = 1e-3, eps: float = 1e-7,
+def _sbptt_m(*, clip: str = "value", clip_threshold: float = 1.0, lr: float = 1e-3, eps: float = 1e-7,
             truncate: int = 0, warmup: int = 0, checkpoint: bool = False):  # fmt: skip
     """Stabilised BPTT's modified gradient (M): stop-gradient on the network's input only."""
     return _rollout_method(M(truncate=truncate, warmup=warmup), clip, clip_threshold, lr, eps, checkpoint)
 
 
-def no_temporal(*, clip: str = "value", clip_threshold: float = 1.0, lr: float = 1e-3, eps: float = 1e-7,
+def _no_temporal(*, clip: str = "value", clip_threshold: float = 1.0, lr: float = 1e-3, eps: float = 1e-7,
                 warmup: int = 0, checkpoint: bool = False):  # fmt: skip
     """No temporal gradient (S): stop-gradient on network and physics inputs (one-step gradients)."""
     return _rollout_method(S(warmup=warmup), clip, clip_threshold, lr, eps, checkpoint)
 
 
-def sbptt_c(*, clip: str = "value", clip_threshold: float = 1.0, lr: float = 1e-3, eps: float = 1e-7,
+def _sbptt_c(*, clip: str = "value", clip_threshold: float = 1.0, lr: float = 1e-3, eps: float = 1e-7,
             one_pass: bool = True, checkpoint: bool = False):  # fmt: skip
     """Stabilised BPTT (C, Schnell & Thuerey 2024): M's gradient masked by the signs of R's."""
     return _rollout_method(Combined(M(), R(), one_pass=one_pass), clip, clip_threshold, lr, eps, checkpoint)
@@ -267,14 +270,14 @@ def _unrolled(policy, teacher_forcing, *, m, checkpoint=False, curriculum="", st
     )
 
 
-def one(*, lr: float = 1e-3, lr_warmup: int = 0, decay: float = 1.0, decay_every: int = 0, clip: float = 0.0,
+def _one(*, lr: float = 1e-3, lr_warmup: int = 0, decay: float = 1.0, decay_every: int = 0, clip: float = 0.0,
         skip_nan: bool = True, norm_guard: bool = False, skip_solver_failure: bool = True, m: int = 0):  # fmt: skip
     """One-step training (ONE): every step from the reference frame; B·m targets per update."""
     return _unrolled(S(), True, m=m, lr=lr, lr_warmup=lr_warmup, decay=decay, decay_every=decay_every, clip=clip,
                      skip_nan=skip_nan, norm_guard=norm_guard, skip_solver_failure=skip_solver_failure)  # fmt: skip
 
 
-def nog(*, lr: float = 1e-3, lr_warmup: int = 0, decay: float = 1.0, decay_every: int = 0, clip: float = 0.0,
+def _nog(*, lr: float = 1e-3, lr_warmup: int = 0, decay: float = 1.0, decay_every: int = 0, clip: float = 0.0,
         skip_nan: bool = True, norm_guard: bool = False, skip_solver_failure: bool = True, m: int = 0,
         curriculum: str = "", stage_epochs: float = 1.0, stage_lr: str = "", checkpoint: bool = False):  # fmt: skip
     """No-gradient unrolling (NOG): m-step rollout, stop-gradient on each state after its loss."""
@@ -283,7 +286,7 @@ def nog(*, lr: float = 1e-3, lr_warmup: int = 0, decay: float = 1.0, decay_every
                      curriculum=curriculum, stage_epochs=stage_epochs, stage_lr=stage_lr, checkpoint=checkpoint)  # fmt: skip
 
 
-def wig(*, lr: float = 1e-3, lr_warmup: int = 0, decay: float = 1.0, decay_every: int = 0, clip: float = 0.0,
+def _wig(*, lr: float = 1e-3, lr_warmup: int = 0, decay: float = 1.0, decay_every: int = 0, clip: float = 0.0,
         skip_nan: bool = True, norm_guard: bool = False, skip_solver_failure: bool = True, m: int = 0,
         truncate: int = 0, warmup: int = 0, curriculum: str = "", stage_epochs: float = 1.0, stage_lr: str = "",
         checkpoint: bool = False):  # fmt: skip
@@ -394,10 +397,12 @@ PROBLEMS: dict[str, type[AbstractProblem]] = {
     )  # fmt: skip
 }
 
+# The command line's method names and their factories: the one table of them. The factories
+# are private (`_hig`), so `hig` means the library's estimator (physgrad.hig) alone.
 METHODS: dict[str, Callable[..., AbstractMethod]] = _Methods({
-    f.__name__: f
-    for f in (adam, sgd, rmsprop, adagrad, adadelta, gn, hig, khig, lm, kfac, sip, newton, bptt, sbptt_m, sbptt_c,
-              no_temporal, one, nog, wig)
+    **_DP, "gn": _gn, "hig": _hig, "khig": _khig, "lm": _lm, "kfac": kfac, "sip": _sip, "newton": _newton,
+    "bptt": _bptt, "sbptt_m": _sbptt_m, "sbptt_c": _sbptt_c, "no_temporal": _no_temporal, "one": _one, "nog": _nog,
+    "wig": _wig,
 })  # fmt: skip
 
 

@@ -22,7 +22,11 @@ Each rule declares the part of a problem's :class:`Objective` it uses (:class:`P
 :data:`ROLLOUT` (a rollout system: BPTT and its variants) or :data:`UNROLLED` (a
 time-stepper's windows: ONE / NOG / WIG); its ``check`` refuses a problem without it.
 
-The registry of names for the command line is :mod:`physgrad.harness.registry`.
+What the engine runs is a rule with an optax transformation and, optionally, an acceptance
+test that may refuse a step (:class:`Method`, :mod:`physgrad.acceptance`);
+:class:`LevenbergMarquardt` (with :class:`GainRatio`) and :class:`Unrolled` are such
+compositions, :func:`LossAwareDP` a constructor of one. The registry of names for the
+command line is :mod:`physgrad.harness.registry`.
 """
 
 from .base import (
@@ -34,6 +38,7 @@ from .base import (
     AbstractRule,
     Estimator,
     Method,
+    MethodState,
     Objective,
     Part,
     trainable,
@@ -41,7 +46,7 @@ from .base import (
 from .dp import Gradient, LossAwareDP, dp
 from .hig import JacobianPower, gauss_newton, hig
 from .kronecker_hig import KroneckerPower, kronecker_hig
-from .lm import LevenbergMarquardt, adapt_damping, predicted_decrease
+from .lm import GainRatio, LevenbergMarquardt, adapt_damping, predicted_decrease
 from .newton import Newton, newton
 from .sip import AbstractProxy, L1Proxy, L2Proxy, ScaleInvariantPhysics, sip
 from .stable_bptt import RolloutGradient, bptt, stabilised_bptt
@@ -52,6 +57,7 @@ __all__ = [
     "AbstractProxy",
     "AbstractRule",
     "Estimator",
+    "GainRatio",
     "Gradient",
     "JacobianPower",
     "KroneckerPower",
@@ -60,6 +66,7 @@ __all__ = [
     "LevenbergMarquardt",
     "LossAwareDP",
     "Method",
+    "MethodState",
     "Newton",
     "Objective",
     "OPEN_LOOP",

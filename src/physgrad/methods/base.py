@@ -23,7 +23,10 @@ Three layers of objects:
 - :class:`Estimator`: a rule bound to a user's functions (what ``physgrad.hig(...)`` and
   friends return): ``estimate(params, batch) -> (direction, stats)``.
 - :class:`AbstractMethod`: what the training engine runs: a rule and an optax
-  transformation, ``init`` and one pure ``step``; :class:`Method` is the plain pairing.
+  transformation, ``init`` and one pure ``step``; :class:`Method` is the pairing, with an
+  optional acceptance test that may refuse a step (:mod:`physgrad.acceptance`).
+  Levenberg–Marquardt, unrolled training and the optax zoo's optimizers that need the
+  loss function are compositions of these parts, not subclasses of :class:`Method`.
 
 Parameters may be a whole Equinox module (an ``eqx.nn.MLP`` with its activation
 functions, a convolution with its settings): estimators and methods differentiate its
@@ -59,6 +62,8 @@ import jax
 import jax.numpy as jnp
 import optax
 from jaxtyping import Array, PyTree
+
+from ..acceptance import AbstractAcceptance, Proposal, keep_where
 
 Stats = dict[str, Array]
 _T = TypeVar("_T")
@@ -337,19 +342,54 @@ class AbstractMethod(eqx.Module):
         return ""
 
 
-class Method(AbstractMethod):
-    """A rule applied by an optax transformation: ``θ ← θ + optimizer(d)``, d = rule(θ).
+class MethodState(NamedTuple):
+    """A :class:`Method`'s state when it has an acceptance: the optimizer's and the acceptance's."""
 
-    The optimizer receives the batch loss as ``value=`` (ignored unless the chain uses it).
+    optimizer: PyTree
+    acceptance: Any
+
+
+_EXTRAS = ("value", "grad", "value_fn", "obj_fn")
+
+
+class Method(AbstractMethod):
+    """A rule applied by an optax transformation: ``θ ← θ + optimizer(d)``, d = rule(θ),
+    the step taken if ``acceptance`` accepts it.
+
     ``params`` may be a whole Equinox module: the optimizer's state and updates cover its
     inexact-array leaves (:func:`trainable`); the other leaves come back unchanged.
+
+    Fields:
+        rule: the direction (:class:`AbstractRule`).
+        optimizer: the optax transformation that turns it into updates.
+        acceptance: a :class:`physgrad.acceptance.AbstractAcceptance` that may refuse a
+            step (parameters and optimizer state then stay as they were) and adds its
+            statistics; None (the default) takes every step. The state is then
+            :class:`MethodState` ``(optimizer, acceptance)``, else the optimizer's alone.
+        extras: the keyword extras the optimizer's update receives, from ``value`` (the
+            batch loss), ``grad`` (the direction), ``value_fn`` and ``obj_fn`` (the batch
+            loss as a function of the parameters on this batch) — what optax's
+            line-search L-BFGS (``optax.lbfgs``: value, grad, value_fn) and Sophia's
+            Hessian estimate (``optax.contrib.sophia``: obj_fn) ask for. Only the named ones
+            are passed because some optax transformations refuse extras they do not
+            consume; the default ``("value",)`` is ignored by chains that do not use it.
     """
 
     rule: AbstractRule
     optimizer: optax.GradientTransformation = eqx.field(static=True)
+    acceptance: AbstractAcceptance | None = None
+    extras: tuple[str, ...] = eqx.field(static=True, default=("value",))
+
+    def __check_init__(self):
+        unknown = set(self.extras) - set(_EXTRAS)
+        if unknown:
+            raise ValueError(f"unknown optimizer extras {sorted(unknown)}; valid choices: {', '.join(sorted(_EXTRAS))}")
 
     def init(self, params):
-        return self.optimizer.init(trainable(params)[0])
+        arrays = trainable(params)[0]
+        if self.acceptance is None:
+            return self.optimizer.init(arrays)
+        return MethodState(self.optimizer.init(arrays), self.acceptance.init(arrays))
 
     def check(self, objective):
         self.rule.check(objective)
@@ -372,6 +412,31 @@ class Method(AbstractMethod):
 
     def step(self, objective, params, state, batch):
         arrays, static = trainable(params)
-        direction, stats = self.rule(objective.bind_static(static), arrays, batch)
-        updates, state = with_extra_args(self.optimizer).update(direction, state, arrays, value=stats["loss"])
-        return eqx.combine(optax.apply_updates(arrays, updates), static), state, stats
+        objective = objective.bind_static(static)
+        direction, stats = self.rule(objective, arrays, batch)
+        arrays, state, stats = self.apply(objective, arrays, batch, direction, stats, state)
+        return eqx.combine(arrays, static), state, stats
+
+    def apply(
+        self, objective: Objective, params: PyTree, batch: PyTree, direction: PyTree, stats: Stats, state: Any
+    ) -> tuple[PyTree, Any, Stats]:
+        """The step along a given ``direction`` (with the rule's ``stats``): the optimizer's
+        update and the acceptance's verdict, ``(params, state, stats)``. ``objective`` and
+        ``params`` are the trainable arrays' (:func:`trainable`, :meth:`Objective.bind_static`);
+        :meth:`step` is the rule followed by this, and a method whose direction depends on
+        the acceptance's state (Levenberg–Marquardt's damping) calls it with its own."""
+        opt_state, accept_state = (state, None) if self.acceptance is None else state
+
+        def batch_loss(p):
+            return objective.batch_loss(p, batch)
+
+        available = {"value": stats["loss"], "grad": direction, "value_fn": batch_loss, "obj_fn": batch_loss}
+        extras = {name: available[name] for name in self.extras}
+        updates, new_opt_state = with_extra_args(self.optimizer).update(direction, opt_state, params, **extras)
+        candidate = optax.apply_updates(params, updates)
+        if self.acceptance is None:
+            return candidate, new_opt_state, stats
+        proposal = Proposal(objective, params, batch, direction, updates, candidate, stats)
+        accepted, verdict, accept_state = self.acceptance(proposal, accept_state)
+        params, opt_state = keep_where(accepted, (candidate, new_opt_state), (params, opt_state))
+        return params, MethodState(opt_state, accept_state), {**stats, **verdict}

@@ -13,22 +13,21 @@ from __future__ import annotations
 
 from typing import ClassVar
 
-import equinox as eqx
 import jax
 import optax
 
-from .base import OPEN_LOOP, AbstractRule, Estimator, Method, Objective, Part, trainable, with_extra_args
+from .base import OPEN_LOOP, AbstractRule, Estimator, Method, Objective, Part
 
 
 class Gradient(AbstractRule):
     """``d = ∇_θ L`` with ``L`` the batch-mean loss (plain back-propagation)."""
 
+    part: ClassVar[Part] = OPEN_LOOP
+    name: ClassVar[str] = "the DP gradient"
+
     def __call__(self, objective, params, batch):
         loss, grads = jax.value_and_grad(objective.batch_loss)(params, batch)
         return grads, {"loss": loss}
-
-    part: ClassVar[Part] = OPEN_LOOP
-    name: ClassVar[str] = "the DP gradient"
 
 
 def dp(predict, loss) -> Estimator:
@@ -41,8 +40,11 @@ def dp(predict, loss) -> Estimator:
     return Estimator(Gradient(), Objective(predict, loss))
 
 
-class LossAwareDP(Method):
-    """DP gradients applied by an optax optimizer that may also need the loss function.
+def LossAwareDP(  # a preset is a constructor; it keeps the name of the class it was
+    rule: AbstractRule, optimizer: optax.GradientTransformation, extras: tuple[str, ...] = ("value",)
+) -> Method:
+    """DP gradients (or another ``rule``'s direction) applied by an optax optimizer that may
+    also need the loss function: ``Method(rule, optimizer, extras=extras)``.
 
     The optimizer's update receives the keyword extras named in ``extras``, from:
     ``value`` (the batch loss), ``grad`` (the DP gradient), ``value_fn`` and ``obj_fn``
@@ -51,25 +53,4 @@ class LossAwareDP(Method):
     estimate (``optax.contrib.sophia``: obj_fn) ask for. Only the named ones are passed
     because some optax transformations refuse extras they do not consume.
     """
-
-    extras: tuple[str, ...] = eqx.field(static=True, default=("value",))
-
-    def __check_init__(self):
-        unknown = set(self.extras) - {"value", "grad", "value_fn", "obj_fn"}
-        if unknown:
-            raise ValueError(
-                f"unknown optimizer extras {sorted(unknown)}; valid choices: grad, obj_fn, value, value_fn"
-            )
-
-    def step(self, objective, params, state, batch):
-        params, static = trainable(params)  # the array leaves (a whole module's others come back unchanged)
-        objective = objective.bind_static(static)
-        direction, stats = self.rule(objective, params, batch)
-
-        def batch_loss(p):
-            return objective.batch_loss(p, batch)
-
-        available = {"value": stats["loss"], "grad": direction, "value_fn": batch_loss, "obj_fn": batch_loss}
-        extras = {name: available[name] for name in self.extras}
-        updates, state = with_extra_args(self.optimizer).update(direction, state, params, **extras)
-        return eqx.combine(optax.apply_updates(params, updates), static), state, stats
+    return Method(rule, optimizer, extras=tuple(extras))

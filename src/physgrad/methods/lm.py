@@ -31,6 +31,7 @@ adapts μ.
 
 from __future__ import annotations
 
+import dataclasses
 from typing import NamedTuple
 
 import equinox as eqx
@@ -39,9 +40,10 @@ import jax.numpy as jnp
 import optax
 from jaxtyping import Array, PyTree
 
+from ..acceptance import AbstractAcceptance
 from ..jacobian import require_forward_mode
 from ..routes import Damped
-from .base import Method, Objective, required, trainable, with_extra_args
+from .base import AbstractMethod, Method, MethodState, Objective, required, trainable
 from .hig import JacobianPower
 
 
@@ -49,6 +51,13 @@ class LMState(NamedTuple):
     """The optimizer's state, the relative damping μ and Nielsen's growth factor ν."""
 
     optimizer: PyTree
+    damping: Array
+    growth: Array
+
+
+class DampingState(NamedTuple):
+    """:class:`GainRatio`'s state: the relative damping μ and Nielsen's growth factor ν."""
+
     damping: Array
     growth: Array
 
@@ -90,7 +99,51 @@ def predicted_decrease(objective: Objective, params: PyTree, batch: PyTree, delt
     return -(first + 0.5 * second)
 
 
-class LevenbergMarquardt(Method):
+class GainRatio(AbstractAcceptance):
+    """Levenberg–Marquardt's acceptance: the gain ratio ρ of the step and Nielsen's rule.
+
+    With the step's updates Δ and its loss measured on the batch that made it,
+
+        ρ = (L(θ) − L(θ + Δ)) / predicted_decrease(Δ),
+
+    accepted ⇔ ρ > 0 (:func:`adapt_damping`; a ρ that is not finite, or a model that
+    predicts no decrease, counts as a rejection). The damping is this test's state
+    (:class:`DampingState`) because Nielsen's rule adapts it from the verdict, on refused
+    steps too; :class:`LevenbergMarquardt` reads μ from it for the next direction (in a
+    plain :class:`Method` the rule does not see μ, and the test only accepts or refuses).
+    With ``reject=False`` every step is taken and μ is still adapted.
+
+    Stats: ``damping`` (μ used by the step), ``gain_ratio`` (ρ) and ``accepted`` (1 or 0,
+    Nielsen's verdict, also with ``reject=False``).
+    """
+
+    damping: float = eqx.field(static=True, default=1e-3)
+    reject: bool = eqx.field(static=True, default=True)
+    min_damping: float = eqx.field(static=True, default=1e-12)
+    max_damping: float = eqx.field(static=True, default=1e12)
+
+    def __check_init__(self):
+        if not 0 < self.min_damping <= self.damping <= self.max_damping:
+            raise ValueError(f"damping must be positive and within [{self.min_damping:g}, {self.max_damping:g}], "
+                             f"got {self.damping}")  # fmt: skip
+
+    def init(self, params):
+        dtype = jnp.result_type(*jax.tree.leaves(params)) if jax.tree.leaves(params) else jnp.float32
+        real = jnp.real(jnp.zeros((), dtype)).dtype
+        return DampingState(jnp.asarray(self.damping, real), jnp.asarray(2.0, real))
+
+    def __call__(self, proposal, state):
+        loss = proposal.stats["loss"]
+        predicted = predicted_decrease(proposal.objective, proposal.params, proposal.batch, proposal.updates)
+        actual = loss - proposal.objective.batch_loss(proposal.candidate, proposal.batch)
+        gain_ratio = jnp.where(predicted > 0, actual / jnp.where(predicted > 0, predicted, 1.0), -jnp.inf)
+        damping, growth, accepted = adapt_damping(state.damping, state.growth, gain_ratio)
+        damping = jnp.clip(damping, self.min_damping, self.max_damping)
+        stats = {"damping": state.damping, "gain_ratio": gain_ratio, "accepted": accepted.astype(loss.dtype)}
+        return (accepted if self.reject else jnp.asarray(True)), stats, DampingState(damping, growth)
+
+
+class LevenbergMarquardt(AbstractMethod):
     """Levenberg–Marquardt on the joint Jacobian with Nielsen's damping rule.
 
     Use it in a training loop of your own like any engine method::
@@ -99,9 +152,11 @@ class LevenbergMarquardt(Method):
         state = lm.init(params)
         params, state, stats = jax.jit(lm.step, static_argnums=0)(Objective(predict, loss), params, state, batch)
 
-    The checks, memory footprint and lighter variants are :class:`Method`'s (the rule's).
-    ``stats`` holds ``loss`` (before the step), ``damping`` (μ used by the step),
-    ``gain_ratio`` (ρ) and ``accepted`` (1 or 0).
+    A composition, not a kind of :class:`Method`: the rule's damped direction (μ from the
+    state) applied by ``Method(rule, optimizer, acceptance=GainRatio(...))``
+    (:meth:`Method.apply`); checks, memory footprint and lighter variants are the rule's.
+    The state is :class:`LMState`. ``stats`` holds ``loss`` (before the step), the rule's
+    spectrum, ``damping`` (μ used by the step), ``gain_ratio`` (ρ) and ``accepted`` (1 or 0).
 
     Fields:
         rule: the Gauss–Newton rule whose route and truncation compute the damped direction.
@@ -120,35 +175,44 @@ class LevenbergMarquardt(Method):
     max_damping: float = eqx.field(static=True, default=1e12)
 
     def __check_init__(self):
-        if not 0 < self.min_damping <= self.damping <= self.max_damping:
-            raise ValueError(f"damping must be positive and within [{self.min_damping:g}, {self.max_damping:g}], "
-                             f"got {self.damping}")  # fmt: skip
+        _ = self.acceptance  # GainRatio checks μ's bounds
+
+    @property
+    def acceptance(self) -> GainRatio:
+        return GainRatio(self.damping, self.reject, self.min_damping, self.max_damping)
+
+    @property
+    def method(self) -> Method:
+        """The rule, the optimizer and :class:`GainRatio` as a :class:`Method`."""
+        return Method(self.rule, self.optimizer, self.acceptance)
 
     def init(self, params):
         params = trainable(params)[0]
-        dtype = jnp.result_type(*jax.tree.leaves(params)) if jax.tree.leaves(params) else jnp.float32
-        real = jnp.real(jnp.zeros((), dtype)).dtype
-        return LMState(self.optimizer.init(params), jnp.asarray(self.damping, real), jnp.asarray(2.0, real))
+        return LMState(self.optimizer.init(params), *self.acceptance.init(params))
+
+    def check(self, objective):
+        self.method.check(objective)
+
+    def check_batch_size(self, batch_size):
+        self.method.check_batch_size(batch_size)
+
+    def footprint(self, objective, params, batch, devices=1):
+        return self.method.footprint(objective, params, batch, devices)
+
+    def footprint_note(self, objective, params, batch):
+        return self.method.footprint_note(objective, params, batch)
+
+    def lighter(self, batch_size):
+        return [dataclasses.replace(self, rule=rule) for rule in self.rule.lighter(batch_size)]
 
     def step(self, objective, params, state, batch):
         params, static = trainable(params)  # the array leaves (a whole module's others come back unchanged)
         objective = objective.bind_static(static)
         sample = jax.tree.map(lambda a: a[0], batch)
-        require_forward_mode(objective.predict, params, sample, what="Levenberg–Marquardt's gain ratio (J Δ)",
+        predict = required(objective.predict, "predict")
+        require_forward_mode(predict, params, sample, what="Levenberg–Marquardt's gain ratio (J Δ)",
                              alternative="use gn or hig")  # fmt: skip
         direction, stats = self.rule.filtered(objective, params, batch, Damped(state.damping))
-        loss = stats["loss"]
-        updates, opt_state = with_extra_args(self.optimizer).update(direction, state.optimizer, params, value=loss)
-        candidate = optax.apply_updates(params, updates)
-        predicted = predicted_decrease(objective, params, batch, updates)
-        actual = loss - objective.batch_loss(candidate, batch)
-        gain_ratio = jnp.where(predicted > 0, actual / jnp.where(predicted > 0, predicted, 1.0), -jnp.inf)
-        damping, growth, accepted = adapt_damping(state.damping, state.growth, gain_ratio)
-        damping = jnp.clip(damping, self.min_damping, self.max_damping)
-        if self.reject:
-            params = jax.tree.map(lambda new, old: jnp.where(accepted, new, old), candidate, params)
-            opt_state = jax.tree.map(lambda new, old: jnp.where(accepted, new, old), opt_state, state.optimizer)
-        else:
-            params = candidate
-        stats = {**stats, "damping": state.damping, "gain_ratio": gain_ratio, "accepted": accepted.astype(loss.dtype)}
-        return eqx.combine(params, static), LMState(opt_state, damping, growth), stats
+        inner = MethodState(state.optimizer, DampingState(state.damping, state.growth))
+        params, (opt_state, damping), stats = self.method.apply(objective, params, batch, direction, stats, inner)
+        return eqx.combine(params, static), LMState(opt_state, *damping), stats

@@ -17,15 +17,18 @@ uᵏ = S_θ(uᵏ⁻¹) and L = (1/m) Σ_k MSE(uᵏ, ũᵏ):
   gradient and without loss: the pushforward trick). Refuses a non-differentiable solver.
 
 The direction is :class:`UnrolledGradient` (and :func:`physgrad.unrolled` for a user's own
-rollout system). The engine's :class:`Unrolled` applies it with the paper's stabilisers,
-all built from optax: a learning-rate schedule (``optax.linear_schedule`` warm-up times
-``optax.exponential_decay``: lr ← decay·lr every ``decay_every`` steps), global-norm
-clipping, and update skipping — ``optax.apply_if_finite`` on a non-finite gradient,
-:func:`physgrad.transforms.norm_guard` on a norm above a running bound, and no update when
-the solver reports a failure. Skips are counted in the step statistics ``skipped``,
-``skip_nan``, ``skip_norm`` and ``skip_solver``. A curriculum (stages of increasing m, each
-``stage_epochs`` long with its own learning rate and a fresh Adam) is declared by
-``stages()``.
+rollout system). The engine's :class:`Unrolled` applies it with the paper's stabilisers:
+a learning-rate schedule (``optax.linear_schedule`` warm-up times
+``optax.exponential_decay``: lr ← decay·lr every ``decay_every`` steps) and global-norm
+clipping in Adam's optax chain, and update skipping by acceptance tests
+(:mod:`physgrad.acceptance`) — :class:`~physgrad.acceptance.FiniteGradient` on a
+non-finite gradient (``optax.apply_if_finite``'s test), :class:`~physgrad.acceptance.NormBound`
+on a norm above a running bound (the rule of :func:`physgrad.transforms.norm_guard`), and
+:class:`~physgrad.acceptance.SolverSuccess` when the solver reports a failure; a skipped
+step leaves parameters and optimizer state as they were. Skips are counted in the step
+statistics ``skipped``, ``skip_nan``, ``skip_norm`` and ``skip_solver``. A curriculum
+(stages of increasing m, each ``stage_epochs`` long with its own learning rate and a fresh
+Adam) is declared by ``stages()``.
 """
 
 from __future__ import annotations
@@ -34,23 +37,12 @@ import dataclasses
 from typing import ClassVar
 
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 import optax
 
+from ..acceptance import All, FiniteGradient, NormBound, SolverSuccess
 from ..rollout import GradientFlow, R, S, value_and_grad
-from ..transforms import norm_guard
-from .base import (
-    UNROLLED,
-    AbstractMethod,
-    AbstractRule,
-    Estimator,
-    Objective,
-    Part,
-    required,
-    trainable,
-    with_extra_args,
-)
+from .base import UNROLLED, AbstractMethod, AbstractRule, Estimator, Method, Objective, Part, required
 
 
 class UnrolledGradient(AbstractRule):
@@ -120,7 +112,19 @@ def schedule(lr: float, warmup: int = 0, decay: float = 1.0, every: int = 0) -> 
 
 
 class Unrolled(AbstractMethod):
-    """The unrolled gradient applied by Adam with the stabilisers of the module docstring."""
+    """The unrolled gradient applied by Adam with the stabilisers of the module docstring.
+
+    A composition, not a kind of :class:`Method`: ``Method(rule, optimizer, acceptance)``
+    (:attr:`method`) with the schedule and clipping in ``optimizer`` and the skipping in
+    ``acceptance``, plus the curriculum's stages. The state is that method's
+    (:class:`physgrad.methods.base.MethodState`; the running norm bound is its acceptance
+    state's ``bound``).
+
+    Fields: ``rule``; ``lr``, ``lr_warmup``, ``decay``, ``decay_every`` (:func:`schedule`);
+    ``clip`` (global norm, 0: off); ``skip_nan``, ``norm_guard``, ``skip_solver_failure``
+    (which skips are enforced: an unenforced finite or solver test still reports, a norm
+    bound that is off reports 0); ``curriculum``, ``stage_epochs``, ``stage_lr``.
+    """
 
     rule: UnrolledGradient
     lr: float = eqx.field(static=True, default=1e-3)
@@ -175,16 +179,24 @@ class Unrolled(AbstractMethod):
 
     @property
     def optimizer(self) -> optax.GradientTransformation:
+        """Adam on the schedule, after global-norm clipping when ``clip`` > 0."""
         chain = [optax.clip_by_global_norm(self.clip)] if self.clip > 0 else []
-        opt = optax.chain(*chain, optax.adam(schedule(self.lr, self.lr_warmup, self.decay, self.decay_every)))
-        if self.norm_guard:
-            opt = norm_guard(opt)
-        if self.skip_nan:  # never give up skipping: a diverged run is the engine's call
-            opt = optax.apply_if_finite(opt, max_consecutive_errors=2**30)
-        return opt
+        return optax.chain(*chain, optax.adam(schedule(self.lr, self.lr_warmup, self.decay, self.decay_every)))
+
+    @property
+    def acceptance(self) -> All:
+        """The skips as acceptance tests; a finite-gradient or solver test that is off is
+        still judged, so its statistic says why a step skipped for another reason failed."""
+        norm = (NormBound(),) if self.norm_guard else ()
+        return All(FiniteGradient(enforce=self.skip_nan), *norm, SolverSuccess(enforce=self.skip_solver_failure))
+
+    @property
+    def method(self) -> Method:
+        """The rule, :attr:`optimizer` and :attr:`acceptance` as a :class:`Method`."""
+        return Method(self.rule, self.optimizer, self.acceptance)
 
     def init(self, params):
-        return self.optimizer.init(trainable(params)[0])
+        return self.method.init(params)
 
     def check(self, objective):
         self.rule.check(objective)
@@ -192,29 +204,8 @@ class Unrolled(AbstractMethod):
             required(objective.unrolled, "unrolled")(m, self.rule.teacher_forcing)  # raises if m exceeds the windows
 
     def step(self, objective, params, state, batch):
-        params, static = trainable(params)  # the array leaves (a whole module's others come back unchanged)
-        grads, stats = self.rule(objective.bind_static(static), params, batch)
-        norm, solver_ok = stats["grad_norm"], stats.pop("solver_ok")
-        finite = jnp.isfinite(norm)
-        within = jnp.asarray(True)
-        if self.norm_guard:
-            bound = optax.tree_utils.tree_get(state, "bound")
-            within = (bound == 0) | (norm <= bound)
-        updates, new_state = with_extra_args(self.optimizer).update(grads, state, params, value=stats["loss"])
-        new_params = optax.apply_updates(params, updates)
-        if self.skip_solver_failure:  # no update at all where the solver failed
-            keep = lambda new, old: jax.tree.map(lambda a, b: jnp.where(solver_ok, a, b), new, old)  # noqa: E731
-            new_params, new_state = keep(new_params, params), keep(new_state, state)
-        accept = (
-            (finite | (not self.skip_nan))
-            & (within | (not self.norm_guard))
-            & (solver_ok | (not self.skip_solver_failure))
-        )
-        skipped = ~accept
-        stats.update(
-            skipped=skipped.astype(jnp.float32),
-            skip_nan=(skipped & ~finite).astype(jnp.float32),
-            skip_norm=(skipped & finite & ~within & self.norm_guard).astype(jnp.float32),
-            skip_solver=(skipped & ~solver_ok).astype(jnp.float32),
-        )
-        return eqx.combine(new_params, static), new_state, stats
+        params, state, stats = self.method.step(objective, params, state, batch)
+        del stats["solver_ok"]  # SolverSuccess's input, reported as skip_solver
+        if not self.norm_guard:  # the same statistics with the bound off (the recorder sorts them)
+            stats["skip_norm"] = jnp.zeros((), jnp.float32)
+        return params, state, stats
