@@ -11,12 +11,14 @@
                    [--quick] [--set ...]   (every applicable method on every problem, ranked; physgrad.harness.bench)
     physgrad demo
 
+train, compare, bench and demo take --threads N|default (default 1: physgrad.cpu.process_threads).
 Bad input (an unknown problem, method or setting) prints one line with the valid choices
 and exits with status 2.
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
@@ -27,7 +29,7 @@ from pathlib import Path
 from rich.console import Console
 from rich.table import Table
 
-from .arguments import DEMO, UsageError, budget_of, build_parser, output_dir, run_settings
+from .arguments import DEMO, UsageError, budget_of, build_parser, output_dir, run_settings, threads_of
 from .words import command_line_words
 
 
@@ -318,6 +320,7 @@ def main(argv=None) -> int:
     # JAX's configuration is left as the user set it (x64 off by default), as physgrad.fit
     # leaves it: a run from the command line and the same run through fit are one computation
     # (fit scopes float64 to the problems that declare needs_float64).
+    from ..cpu import process_threads
     from .config import ConfigError
 
     # Outside a terminal (CI, pipes) rich would wrap at 80 columns; tables need more.
@@ -335,7 +338,10 @@ def main(argv=None) -> int:
             from ..programs import use_compilation_cache
 
             use_compilation_cache(cache)
-        with warnings.catch_warnings():  # a figure that cannot be drawn: one line, the tables stand
+        # The thread pools for the command (physgrad.cpu): set before the first JAX
+        # computation, so that XLA's pool is sized too; restored when the command returns.
+        threads = process_threads(threads_of(args)) if hasattr(args, "threads") else contextlib.nullcontext()
+        with warnings.catch_warnings(), threads:  # a figure that cannot be drawn: one line, the tables stand
             warnings.showwarning = _one_line_warnings(err, warnings.showwarning)
             return COMMANDS[args.command](args, console)
     except (UsageError, ConfigError) as e:  # the library's line in the command line's words where it has them
