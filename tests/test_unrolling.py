@@ -649,7 +649,7 @@ def test_paired_tests_pair_by_seed(tmp_path):
     # paired by seed: 2 seeds, both lower; no p-value (2 seeds cannot go below 2/2^2 = 0.5),
     # the ratio is the median of the per-seed ratios of the means over the cases (1/2, 2/3)
     assert test["seeds"] == 2 and test["seeds_a_lower"] == 2 and math.isnan(test["p_value"])
-    assert test["ratio"] == pytest.approx((1 / 2 + 2 / 3) / 2)
+    assert test["ratio"] == pytest.approx(math.sqrt(1 / 2 * 2 / 3))  # two seeds: the median of the log-ratios
     means = seed_means(tmp_path)
     assert means["a"][0] == pytest.approx(1.5) and means["a"][1] == pytest.approx(math.sqrt(0.5))
 

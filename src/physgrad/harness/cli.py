@@ -28,17 +28,19 @@ from pathlib import Path
 
 from rich.console import Console
 from rich.table import Table
+from rich.text import Text
 
 from .arguments import DEMO, UsageError, budget_of, build_parser, output_dir, run_settings, threads_of
 from .words import command_line_words
 
 
-def _print_table(console: Console, lines: list[list[str]], title: str = ""):
-    table = Table(title=title or None)
+def _print_table(console: Console, lines: list[list[str]], title: str = "", caption: str = ""):
+    """A table of plain text (cells such as ``[n/a: 2 seeds]`` are not rich markup)."""
+    table = Table(title=title or None, caption=caption or None)
     for i, name in enumerate(lines[0]):
-        table.add_column(name, justify="left" if i == 0 else "right")
+        table.add_column(Text(name), justify="left" if i == 0 else "right")
     for line in lines[1:]:
-        table.add_row(*line)
+        table.add_row(*(Text(cell) for cell in line))
     console.print(table)
 
 
@@ -140,8 +142,10 @@ def _run_compare(console, problem, methods, seeds, budget, settings, out, quiet=
     compare(
         problem, methods, seeds, budget, out, settings=settings, progress=meter, echo=console.print, devices=devices
     )
+    from .seeds import TABLE_NOTE
+
     result = report(out)
-    _print_table(console, result.lines, title=f"{problem}: {budget} per run")
+    _print_table(console, result.lines, title=f"{problem}: {budget} per run", caption=TABLE_NOTE)
     _print_paired_tests(console, out)
     console.print(f"wrote {_files(Path(out) / 'results.csv', Path(out) / 'summary.csv', result.figure)}")
     return result
@@ -204,12 +208,10 @@ def _print_paired_tests(console, out):
         table = format_tests(rows, cell=name or "")
         lines += table if not lines else table[1:]
     if len(lines) > 1:
-        _print_table(
-            console,
-            lines,
-            title="paired by seed (a diverged seed is the worse value; two-sided Wilcoxon "
-            f"signed-rank over seeds from {MIN_SEEDS_P} seeds on)",
-        )
+        _print_table(console, lines, title="methods paired by seed",
+                     caption=f"a diverged seed is the worse value; ratio: median of the per-seed ratios; "
+                             f"two-sided Wilcoxon signed-rank test over seeds, from {MIN_SEEDS_P} seeds that differ "
+                             "(below, its smallest p-value 2/2^n cannot reach 0.05)")  # fmt: skip
 
 
 def cmd_report(args, console):
@@ -221,8 +223,10 @@ def cmd_report(args, console):
         _print_paired_tests(console, args.dir)
         console.print(f"wrote {_files(Path(args.dir) / 'grid_summary.csv', result.figure)}")
         return 0
+    from .seeds import TABLE_NOTE
+
     result = report(args.dir)
-    _print_table(console, result.lines, title=str(args.dir))
+    _print_table(console, result.lines, title=str(args.dir), caption=TABLE_NOTE)
     _print_paired_tests(console, args.dir)
     if result.figure:
         console.print(f"wrote {result.figure}")
@@ -304,9 +308,11 @@ def cmd_demo(args, console):
     elif r == 0:
         console.print(f"HIG diverged on at least half the seeds where Adam did not ({seeds}: 0; see the table).")
     elif r >= 1:
-        console.print(f"HIG's final test loss is {r:.1f}x below Adam's at equal wall-clock ({seeds}; {spread}).")
+        console.print(f"HIG's final test loss is {r:.1f}x below Adam's at equal wall-clock ({seeds}; {spread}).",
+                      markup=False)  # fmt: skip
     else:
-        console.print(f"HIG's final test loss is {1 / r:.1f}x above Adam's at equal wall-clock ({seeds}; {spread}).")
+        console.print(f"HIG's final test loss is {1 / r:.1f}x above Adam's at equal wall-clock ({seeds}; {spread}).",
+                      markup=False)  # fmt: skip
     return 0
 
 

@@ -91,17 +91,19 @@ def _mark_legend(ax) -> None:
     ax.legend(handles, labels, fontsize=8)
 
 
-def upper_median(logs: np.ndarray) -> np.ndarray:
-    """The median over seeds (axis 0); for an even count the higher of the two middle values,
-    so that half the seeds diverged reads as diverged, as the tables' median (+∞) does."""
-    return np.quantile(logs, 0.5, axis=0, method="higher")
+def failure_median(logs: np.ndarray, upper: float) -> np.ndarray:
+    """The median over seeds (axis 0) of log values in which a diverged seed is +∞ from its
+    end on, as in the tables: for an even count the mean of the two middle values, which is
+    +∞ (drawn at ``upper``, the axis's top) once a middle seed diverged, never a value
+    between the survivor and the failure."""
+    return np.minimum(np.median(logs, axis=0), math.log10(upper))
 
 
 def seed_median(curves: Sequence[tuple[np.ndarray, np.ndarray, bool]], upper: float):
-    """(grid, median) over seeds (:func:`upper_median`) of curves (t, v, diverged) already on
-    the axis range: a diverged seed counts as ``upper`` (the worst value shown) from its end
-    on, so the median never averages over a divergence, and is at the top once half the
-    seeds diverged.
+    """(grid, median) over seeds (:func:`failure_median`) of curves (t, v, diverged) already
+    on the axis range: a diverged seed counts as +∞ from its end on (drawn at ``upper``, the
+    top of the axis), so the median never averages over a divergence and is at the top once
+    half the seeds diverged.
     The grid runs to the end of the shortest finished seed (the longest diverged one if all
     diverged); None if no curve."""
     if not curves:
@@ -113,9 +115,9 @@ def seed_median(curves: Sequence[tuple[np.ndarray, np.ndarray, bool]], upper: fl
     for t, v, failed in curves:
         log = np.interp(grid, t, np.log10(v))
         if failed:
-            log = np.where(grid > t[-1], math.log10(upper), log)
+            log = np.where(grid > t[-1], math.inf, log)
         logs.append(log)
-    return grid, 10 ** upper_median(np.stack(logs))
+    return grid, 10 ** failure_median(np.stack(logs), upper)
 
 
 def loss_vs_time(
@@ -216,7 +218,7 @@ def grid_panels(
 ) -> Path:
     """One panel per value of the ``panel`` setting (the StableBPTT figure layout): the
     ``metric`` against epochs, log y; colour = method, line style = the cell's other swept
-    settings. Each line is the median over seeds (:func:`upper_median`; on the epochs every finished seed reached;
+    settings. Each line is the median over seeds (:func:`failure_median`; on the epochs every finished seed reached;
     a seed whose rows say ``diverged`` counts as the top edge from its end on, marked with an
     ``x`` where it diverged), after a ``smooth``-point moving average left-padded with the
     first value (as the authors' plots). ``curves`` holds (cell, metric rows with an ``epoch`` field) per cell."""
@@ -263,19 +265,21 @@ def grid_panels(
                 colour = colours[i % len(colours)]
                 logs = []
                 for s, f in zip(series, lost_seed):  # NaN, infinite and off-scale values at the axis edge, marked
-                    values = s[1][:n]
+                    values, end = s[1][:n], s[1][:n].size
                     if f and values.size < n:
                         values = np.concatenate([values, np.full(n - values.size, math.inf)])
                     high = ~np.isfinite(values) | (values > upper)
                     clipped = np.clip(np.where(high, upper, values), lower, upper)
-                    logs.append(np.log10(np.clip(_moving_average(clipped, smooth), lower, upper)))
+                    log = np.log10(np.clip(_moving_average(clipped, smooth), lower, upper))
+                    log[end:] = math.inf  # a diverged seed from its end on: a failure in the median
+                    logs.append(log)
                     if high.any():
                         first = int(np.argmax(high)) if f and s[1].size < n else None
                         at = epochs[high] if first is None else epochs[first : first + 1]
                         ax.plot(at, np.full(at.size, upper), "x", color=colour, ms=6, clip_on=False)
                         marked = True
                 label = method + (f" ({', '.join(f'{k}={v}' for k, v in rest)})" if rest else "")
-                ax.plot(epochs, 10 ** upper_median(np.stack(logs)), style, color=colour, lw=1.2, label=label)
+                ax.plot(epochs, 10 ** failure_median(np.stack(logs), upper), style, color=colour, lw=1.2, label=label)
         ax.set_ylim(lower / 1.5, upper * 1.5)
         ax.set_yscale("log")
         ax.set_title(f"{panel} = {value}", fontsize=9)

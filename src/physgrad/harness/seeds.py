@@ -62,26 +62,26 @@ def bootstrap_interval(values: Sequence[float] | np.ndarray, statistic=_median, 
     seeds' ``values`` (``scipy.stats.bootstrap``, ``method="percentile"``); (NaN, NaN) with
     fewer than :data:`MIN_SEEDS_INTERVAL` values or a NaN among them.
 
-    Failures enter as +∞. The resampling itself runs on a finite stand-in far above every
-    finite value (the statistic is an order statistic or a mean of two, so the stand-in
-    changes nothing else), and an interval end above the largest finite value, which only
-    the stand-in can produce, is reported as +∞."""
+    Failures enter as +∞ (and, in a log-ratio, −∞). The resampling itself runs on finite
+    stand-ins far beyond every finite value (the statistic is an order statistic or a mean of
+    two, so the stand-ins change nothing else), and an interval end beyond the finite values,
+    which only a stand-in can produce, is reported as ±∞."""
     from scipy.stats import bootstrap
 
     x = np.asarray(values, dtype=float)
-    if x.size < MIN_SEEDS_INTERVAL or np.isnan(x).any() or np.isneginf(x).any():
+    if x.size < MIN_SEEDS_INTERVAL or np.isnan(x).any():
         return math.nan, math.nan
     finite = x[np.isfinite(x)]
     if finite.size == 0:
-        return math.inf, math.inf
+        return float(x.min()), float(x.max())
     top, bottom = float(finite.max()), float(finite.min())
-    stand_in = top + 1e12 * (top - bottom + abs(top) + 1.0)
-    data = np.where(np.isposinf(x), stand_in, x)
+    beyond = 1e12 * (top - bottom + max(abs(top), abs(bottom)) + 1.0)
+    data = np.where(np.isposinf(x), top + beyond, np.where(np.isneginf(x), bottom - beyond, x))
     # random_state: the name every supported SciPy takes (>= 1.15 passes it on as rng)
     result = bootstrap((data,), statistic, n_resamples=resamples, confidence_level=confidence, method="percentile",
                        random_state=np.random.default_rng(seed))  # pyright: ignore[reportCallIssue]  # fmt: skip
     ends = [float(e) for e in (result.confidence_interval.low, result.confidence_interval.high)]
-    low, high = (math.inf if e > top else e for e in ends)
+    low, high = (math.inf if e > top else -math.inf if e < bottom else e for e in ends)
     return low, high
 
 
@@ -118,6 +118,24 @@ def seed_ratio(a: float, b: float) -> float:
     if b == 0:
         return 1.0 if a == 0 else math.inf
     return a / b
+
+
+def ratio_summary(ratios: Sequence[float] | np.ndarray) -> dict[str, Any]:
+    """Per-seed ratios over seeds: ``n``, the ``median`` and its bootstrap interval
+    ``low``/``high``, taken on the logarithms. So a ratio and its inverse agree (for an even
+    count the median is the geometric mean of the two middle ratios), and a failure in a
+    middle seed decides the median (a ratio of +∞ or 0 is ±∞ there, never averaged into a
+    finite value); failures on both sides of the middle leave it undefined (NaN). NaN
+    ratios are left out."""
+    r = np.asarray(ratios, dtype=float)
+    r = r[~np.isnan(r)]
+    if r.size == 0:
+        return {"n": 0, "median": math.nan, "low": math.nan, "high": math.nan}
+    with np.errstate(divide="ignore", invalid="ignore"):
+        logs = np.log(r)
+        median = float(np.exp(np.median(logs)))
+    low, high = bootstrap_interval(logs)
+    return {"n": int(r.size), "median": median, "low": math.exp(low), "high": math.exp(high)}
 
 
 def seed_ratios(a: Mapping[Any, float], b: Mapping[Any, float]) -> np.ndarray:
@@ -165,6 +183,9 @@ def runs_cell(runs: int, diverged: int) -> str:
 
 # --- a study's table: one row per method -----------------------------------------------------
 
+TABLE_NOTE = ("over seeds: medians [95% bootstrap CI, from 3 seeds], a diverged seed counts as ∞; ratios: median "
+              "of the per-seed ratios; test-case spread: median over seeds of each seed's std over the test cases")  # fmt: skip
+
 
 def seed_values(rows: Sequence[Mapping[str, Any]], method: str, key: str) -> dict[str, float]:
     """{seed: value of ``key``} of one method's runs, +∞ for a diverged run (a finished run
@@ -207,21 +228,21 @@ def aggregate(rows: list[dict[str, Any]], order: Sequence[str], spread: Mapping[
 
 def paired_ratio(row: Mapping[str, Any], reference: Mapping[str, Any]) -> dict[str, Any]:
     """A method's final loss over the reference's, paired by seed: the median over their
-    common seeds of the per-seed ratios and its bootstrap interval (:func:`summarize`)."""
-    ratios = seed_ratios(row["seeds"], reference["seeds"])
-    return summarize(ratios[~np.isnan(ratios)])
+    common seeds of the per-seed ratios and its bootstrap interval (:func:`ratio_summary`)."""
+    return ratio_summary(seed_ratios(row["seeds"], reference["seeds"]))
 
 
 def format_table(table: list[dict[str, Any]], reference: str | None = None) -> list[list[str]]:
     """Rows of strings for printing, header first: runs (``k of n diverged``), the final test
-    loss as median [95 % interval] over seeds and as mean ± std (``∞`` once a seed diverged),
-    the test-case spread, the best test loss (median), steps and ms/step; ``reference`` adds
-    the median over seeds of the per-seed ratio to that method."""
+    loss as median [95 % interval] over seeds and as mean ± std over seeds (``∞`` once a seed
+    diverged), the test-case spread, the best test loss (median over seeds), steps and
+    ms/step (medians); ``reference`` adds the median over seeds of the per-seed ratio to that
+    method (:func:`ratio_summary`). :data:`TABLE_NOTE` says so under a table."""
     ref = next((t for t in table if t["method"] == reference), None)
-    header = ["method", "runs", "final test loss: median [95% CI] over seeds", "mean ± std over seeds",
-              "test-case spread", "best test loss", "steps", "ms/step"]  # fmt: skip
+    header = ["method", "runs", "final test loss, median [95% CI]", "mean ± std", "test-case spread",
+              "best test loss", "steps", "ms/step"]  # fmt: skip
     if ref is not None:
-        header.append(f"final / {reference} (median of per-seed ratios)")
+        header.append(f"final / {reference}")
     lines = [header]
     for t in table:
         line = [t["method"], runs_cell(t["runs"], t["diverged"]), median_cell(t["final"]), mean_cell(t["final"]),

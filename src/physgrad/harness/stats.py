@@ -143,7 +143,7 @@ def paired_tests(out: str | Path, metric: str | None = None, order: list[str] | 
     docstring); also written to ``OUT/paired_tests.csv``. A pair without a common seed keeps
     its row, with no seeds and NaN statistics, so the table can say why. Empty if fewer than
     two methods ran."""
-    from .seeds import seed_ratio, summarize
+    from .seeds import ratio_summary, seed_ratio
 
     out = Path(out)
     metric, values = case_values(out, metric)
@@ -178,7 +178,7 @@ def paired_tests(out: str | Path, metric: str | None = None, order: list[str] | 
             xs.append(x)
             ys.append(y)
             lower.append(x < y)
-        ratios = summarize([seed_ratio(x, y) for x, y in zip(xs, ys)])
+        ratios = ratio_summary([seed_ratio(x, y) for x, y in zip(xs, ys)])
         p, tested = signed_rank_p(np.array([_difference(x, y) for x, y in zip(xs, ys)]))
         n_pairs = sum(n for _, n in pairs)
         rows.append({
@@ -259,16 +259,16 @@ def _missing_reason(row: dict[str, Any]) -> str:
 
 
 def p_cell(row: dict[str, Any]) -> str:
-    """The Wilcoxon p-value over seeds, or why there is none: ``n/a (2 seeds differ: needs
-    6; 2/2^2 = 0.5 is the smallest p)``."""
+    """The Wilcoxon p-value over seeds, or why there is none: ``n/a: 2 seeds (min p 0.5)``
+    (below :data:`MIN_SEEDS_P` seeds that differ, the exact test's smallest p-value 2/2^n)."""
     p = float(row["p_value"])
     if math.isfinite(p):
         return format_p(p)
     tested = row.get("tested")
     n = int(row["seeds"] if tested is None or tested == "" else tested)
     if n == 0:
-        return "n/a (no seed differs)"
-    return f"n/a ({n} seed{'s' if n != 1 else ''} differ{'s' if n == 1 else ''}: needs {MIN_SEEDS_P}; smallest p 2/2^{n} = {2 / 2**n:.2g})"
+        return "n/a: no seed differs"
+    return f"n/a: {n} seed{'s' if n != 1 else ''} (min p {2 / 2**n:.2g})"
 
 
 def ratio_cell(row: dict[str, Any]) -> str:
@@ -285,11 +285,10 @@ def format_tests(rows: list[dict[str, Any]], cell: str = "") -> list[list[str]]:
     """Table lines: header, then one line per pair, paired by seed: the methods' diverged
     seeds (``gn 1 of 3``: failures, counted as the worse value), the seeds compared, on how
     many the first was lower (and tied), the median per-seed ratio with its interval and the
-    Wilcoxon p-value over seeds, or why there is none. A pair with no seed to compare shows
+    Wilcoxon p-value over seeds, or why there is none (:func:`p_cell`). A pair with no seed to compare shows
     ``n/a (no common seeds)`` instead of numbers; dropped non-finite test cases are counted."""
     head = (["cell"] if cell else []) + [
-        "pair", "metric", "diverged", "seeds", "seeds first lower", "ratio: median [95% CI] over seeds",
-        "Wilcoxon p over seeds",
+        "pair", "metric", "diverged", "seeds", "first lower", "ratio, median [95% CI]", "Wilcoxon p",
     ]  # fmt: skip
     lines = [head]
     for r in rows:

@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from ..seeds import as_float, number, seed_ratios, summarize
+from ..seeds import as_float, number, ratio_summary, seed_ratios, summarize
 from .applicability import Verdict
 
 REFERENCE = "adam"  # the ratio column and the heat map are relative to this method
@@ -95,8 +95,7 @@ def method_rows(
         elif paired:
             ratios = seed_ratios({k: x for k, x in t["seeds"].items() if not k.startswith("failed")},
                                  {k: x for k, x in ref["seeds"].items() if not k.startswith("failed")})  # fmt: skip
-            ratios = ratios[~np.isnan(ratios)]
-            t["ratio"] = float(np.median(ratios)) if ratios.size else math.nan
+            t["ratio"] = ratio_summary(ratios)["median"]
         else:
             t["ratio"] = t["median"] / base
     return table
