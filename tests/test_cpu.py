@@ -62,6 +62,10 @@ def test_the_command_line_sizes_xla_before_its_backend_starts(tmp_path):
     run's env.json records the setting and one thread per BLAS pool."""
     env = {k: v for k, v in os.environ.items() if k not in (*cpu.THREAD_VARIABLES, "XLA_FLAGS", "PHYSGRAD_THREADS")}
     env["JAX_PLATFORMS"] = "cpu"
+    cache = os.environ.get("PHYSGRAD_TEST_XLA_CACHE", os.path.expanduser("~/.cache/physgrad/test-xla"))
+    if cache:  # the suite's persistent compilation cache (conftest.py), also for this interpreter's programs
+        env.update(JAX_COMPILATION_CACHE_DIR=cache, JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0",
+                   JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES="0")  # fmt: skip
     code = textwrap.dedent(f"""
         import os
         from physgrad.harness.cli import main
