@@ -54,6 +54,7 @@ def main():
 
         os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} {xla_thread_flags(args.xla_threads)}".strip()
 
+    os.environ.pop("PHYSGRAD_THREADS", None)  # common.py must leave the pools alone: both modes are set here
     import jax
     from common import training_step
     from threadpoolctl import threadpool_info, threadpool_limits
