@@ -17,9 +17,10 @@ included), the ratio default / limited and each mode's ratio to its idle time. A
 
 ``--default-threads N`` sets the "default" mode's BLAS pools to N (e.g. 2, a 2-core
 machine's default, when the script is pinned to one core with ``taskset -c 0``: OpenBLAS
-then sizes its pool from the one core it sees). ``--xla-threads N`` sizes XLA's own
-intra-op pool through ``XLA_FLAGS`` before JAX's backend starts (``physgrad.threads``
-cannot change it later; the ``physgrad`` command line sets both, ``--threads``).
+then sizes its pool from the one core it sees). ``--xla-threads 1`` makes XLA's own Eigen
+kernels single-threaded through ``XLA_FLAGS`` before JAX's backend starts
+(``physgrad.threads`` cannot change them later; the ``physgrad`` command line sets both,
+``--threads``).
 """
 
 from __future__ import annotations

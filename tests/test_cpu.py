@@ -1,5 +1,6 @@
 """Thread pools (physgrad.cpu): the scoped opt-in limits and restores the BLAS/LAPACK pools,
-the command line's process setting sizes XLA's pool too when it comes first, restores what
+the command line's process setting makes XLA's Eigen kernels single-threaded too when it
+comes first (the only XLA thread setting XLA has), restores what
 it can, and every run records its threads in env.json. Importing physgrad changes nothing
 (tests/test_side_effects.py)."""
 
@@ -77,7 +78,7 @@ def test_the_command_line_sizes_xla_before_its_backend_starts(tmp_path):
     assert result.returncode == 0, result.stderr[-3000:]
     threads = json.loads((tmp_path / "run" / "env.json").read_text())["threads"]
     assert threads["setting"] == {"requested": 1, "blas": 1, "xla": "1 (XLA_FLAGS set before JAX's backend started)"}
-    assert "intra_op_parallelism_threads=1" in threads["environment"]["XLA_FLAGS"]
+    assert threads["environment"]["XLA_FLAGS"] == "--xla_cpu_multi_thread_eigen=false"
     assert threads["environment"]["OPENBLAS_NUM_THREADS"] == "1"
     pools = [p for p in threads["pools"] if p["internal_api"] == "openblas"]
     assert pools and all(p["num_threads"] == 1 for p in pools)

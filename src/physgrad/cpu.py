@@ -12,15 +12,16 @@ pool. Two explicit levels:
 * :func:`threads` — ``with physgrad.threads(1): ...`` around a user's own training loop. It
   limits the BLAS/LAPACK and OpenMP pools of the libraries loaded in this process
   (``threadpoolctl.threadpool_limits``; SciPy's LAPACK is loaded first, so the ``eigh``
-  that jaxlib runs on it is covered) and restores them on exit. It cannot limit XLA's own
-  intra-op thread pool (its matrix products and convolutions on CPU): XLA reads that
-  setting once, from ``XLA_FLAGS``, when JAX's CPU backend starts.
+  that jaxlib runs on it is covered) and restores them on exit. It cannot make XLA's own
+  Eigen kernels (its matrix products and convolutions on CPU) single-threaded: XLA reads
+  that setting once, from ``XLA_FLAGS``, when JAX's CPU backend starts.
 * :func:`process_threads` — what physgrad's own processes do (``physgrad --threads N``,
   default 1 for ``train``, ``compare``, ``bench`` and ``demo``): the same limit, the
   environment variables that libraries loaded later read (``OPENBLAS_NUM_THREADS``,
-  ``OMP_NUM_THREADS``, ``MKL_NUM_THREADS``) and, where JAX's backend has not started yet,
-  ``XLA_FLAGS`` for XLA's intra-op pool. Everything but XLA's pool (fixed once the backend
-  starts) is restored on exit.
+  ``OMP_NUM_THREADS``, ``MKL_NUM_THREADS``) and, for one thread where JAX's backend has not
+  started yet, ``XLA_FLAGS=--xla_cpu_multi_thread_eigen=false`` (XLA has no flag that sizes
+  its pool to another count). Everything but XLA's setting (fixed once the backend starts)
+  is restored on exit.
 
 :func:`report` is what a run records in ``env.json`` under ``threads``.
 """
@@ -58,10 +59,10 @@ def threads(n: int) -> Iterator[None]:
 
     Covers jaxlib's CPU LAPACK kernels (the Jacobian methods' float64 ``eigh``: they run on
     SciPy's OpenBLAS, loaded here first), NumPy's OpenBLAS and any OpenMP runtime loaded.
-    Does not cover XLA's intra-op thread pool, which XLA sizes once from ``XLA_FLAGS`` when
-    JAX's CPU backend starts (``--xla_cpu_multi_thread_eigen=false
-    intra_op_parallelism_threads=1`` before the first JAX computation; the ``physgrad``
-    command line does this itself, :func:`process_threads`)::
+    Does not cover XLA's own multi-threaded Eigen kernels (matrix products, convolutions),
+    which XLA sets up once from ``XLA_FLAGS`` when JAX's CPU backend starts
+    (``--xla_cpu_multi_thread_eigen=false`` before the first JAX computation; the
+    ``physgrad`` command line does this itself, :func:`process_threads`)::
 
         with physgrad.threads(1):
             for batch in batches:
@@ -86,10 +87,12 @@ def backend_started() -> bool:
 
 
 def xla_thread_flags(n: int) -> str:
-    """The ``XLA_FLAGS`` words that size XLA's CPU intra-op pool to ``n`` threads (one:
-    Eigen's single-threaded kernels)."""
-    multi = "false" if _check(n) == 1 else "true"
-    return f"--xla_cpu_multi_thread_eigen={multi} intra_op_parallelism_threads={n}"
+    """The ``XLA_FLAGS`` words for ``n`` threads: for one, ``--xla_cpu_multi_thread_eigen=false``
+    (XLA's Eigen kernels, its matrix products and convolutions, run on the calling thread);
+    for more, none (XLA has no flag that sizes its pool to a count: it keeps its default, one
+    thread per core. ``intra_op_parallelism_threads=N``, a TensorFlow setting often quoted
+    for this, is no XLA flag: XLA skips it without a word)."""
+    return "--xla_cpu_multi_thread_eigen=false" if _check(n) == 1 else ""
 
 
 @contextlib.contextmanager
@@ -100,7 +103,7 @@ def process_threads(n: int | None) -> Iterator[dict[str, Any]]:
     Sets :data:`THREAD_VARIABLES` (for libraries loaded later), ``XLA_FLAGS`` if JAX's
     backend has not started and the caller's ``XLA_FLAGS`` does not size the pool itself,
     and limits the pools already loaded (:func:`threads`). On exit the variables and the
-    loaded pools are restored; XLA's pool, once started, keeps its size for the process."""
+    loaded pools are restored; XLA's setting, once its backend started, stays for the process."""
     global _process_setting
     if n is None:
         setting = {"requested": None, "blas": "library default", "xla": "XLA default"}
@@ -113,13 +116,15 @@ def process_threads(n: int | None) -> Iterator[dict[str, Any]]:
     _check(n)
     saved = {k: os.environ.get(k) for k in (*THREAD_VARIABLES, "XLA_FLAGS")}
     flags = saved["XLA_FLAGS"] or ""
-    if "multi_thread_eigen" in flags or "intra_op_parallelism_threads" in flags:
+    if "multi_thread_eigen" in flags:
         xla = "the caller's XLA_FLAGS"
+    elif n > 1:
+        xla = "XLA default (no XLA flag sizes its pool to a count)"
     elif backend_started():
         xla = "not limited: JAX's backend had started before the setting"
     else:
         os.environ["XLA_FLAGS"] = f"{flags} {xla_thread_flags(n)}".strip()
-        xla = f"{n} (XLA_FLAGS set before JAX's backend started)"
+        xla = "1 (XLA_FLAGS set before JAX's backend started)"
     setting = {"requested": n, "blas": n, "xla": xla}
     for k in THREAD_VARIABLES:
         os.environ[k] = str(n)
