@@ -8,7 +8,9 @@ script compiles one training step (default: HIG on the oscillators at the paper'
 inside ``physgrad.threads(1)``, back to back: the two modes alternate in rounds, so a
 change of the machine's load hits both. Prints the median per condition and mode (wall
 time, and in brackets the process's CPU time: what the step's threads burned, spinning
-included), the ratio default / limited and each mode's ratio to its idle time. A cell stops after
+included), the ratio default / limited and each mode's ratio to its idle time, beside the
+same ratio for a single-threaded pure-Python loop (what one thread gets on this machine
+beside the neighbours: the floor for any one-thread step). A cell stops after
 ``--cell-seconds`` (a collapsed default step can take seconds).
 
     python benchmarks/threads.py [--problem oscillators] [--method hig] [--neighbours 0,1,2]
@@ -34,6 +36,19 @@ import sys
 import time
 
 BUSY = "while True: pass"
+
+
+def python_loop_seconds(repeats: int = 7) -> float:
+    """Median seconds of a fixed single-threaded pure-Python loop (~50 ms idle): what the
+    machine gives one thread beside the neighbours, the reference for a one-thread step."""
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        total = 0
+        for i in range(1_000_000):
+            total += i
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times)
 
 
 def main():
@@ -102,6 +117,7 @@ def main():
                 times["limited"] += wall
                 times["limited cpu"] += cpu
             results[k] = {mode: statistics.median(t) for mode, t in times.items()}
+            results[k]["loop"] = python_loop_seconds()
             counts = {mode: len(t) for mode, t in times.items()}
             load = os.getloadavg()[0]
         finally:
@@ -113,10 +129,11 @@ def main():
               f"{1e3 * r['limited']:.1f} ms ({counts['limited']} steps) (load average {load:.2f})", flush=True)  # fmt: skip
     idle = results.get(0)
     print("\n| busy neighbours | default threads: ms/step (CPU ms) | physgrad.threads(1): ms/step (CPU ms) "
-          "| default / limited | default / its idle | limited / its idle |")  # fmt: skip
-    print("|---|---|---|---|---|---|")
+          "| default / limited | default / its idle | limited / its idle | Python loop / its idle |")  # fmt: skip
+    print("|---|---|---|---|---|---|---|")
     for k, r in results.items():
-        to_idle = f"{r['default'] / idle['default']:.2f} | {r['limited'] / idle['limited']:.2f}" if idle else "- | -"
+        to_idle = (f"{r['default'] / idle['default']:.2f} | {r['limited'] / idle['limited']:.2f} | "
+                   f"{r['loop'] / idle['loop']:.2f}" if idle else "- | - | -")  # fmt: skip
         print(f"| {k} | {1e3 * r['default']:.1f} ({1e3 * r['default cpu']:.0f}) | {1e3 * r['limited']:.1f} "
               f"({1e3 * r['limited cpu']:.0f}) | {r['default'] / r['limited']:.2f} | {to_idle} |")  # fmt: skip
     if default is not None:
