@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
+import os
 import statistics
 import time
 
@@ -13,6 +15,17 @@ import physgrad  # noqa: F401
 from physgrad import Budget
 from physgrad.harness.config import make_config
 from physgrad.harness.train import build, make_step
+
+# The step benchmarks' thread pools: $PHYSGRAD_THREADS (N or ``default``), as the command
+# line's --threads, applied here before JAX's backend starts (so XLA's pool too) and kept
+# for the process. Unset: the libraries' own pools, as the numbers in docs/performance.md
+# were measured (threads.py sets its pools itself). physgrad.cpu.report() says what is in force.
+if os.environ.get("PHYSGRAD_THREADS"):
+    from physgrad.cpu import process_threads
+    from physgrad.harness.arguments import threads_of
+
+    _THREADS = contextlib.ExitStack()
+    _THREADS.enter_context(process_threads(threads_of(argparse.Namespace(threads=None))))
 
 
 def benchmark_parser(description: str, default_problem: str) -> argparse.ArgumentParser:

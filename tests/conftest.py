@@ -13,7 +13,7 @@ for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
 _flags = os.environ.get("XLA_FLAGS", "")
 _flags += " --xla_force_host_platform_device_count=4"
 if "multi_thread_eigen" not in _flags:
-    _flags += " --xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1"
+    _flags += " --xla_cpu_multi_thread_eigen=false"  # XLA's one CPU thread flag
 # Compilation is most of the suite's time (small programs, each run a few times): LLVM's
 # optimisation passes off cut it by about a quarter. XLA's numerics stay IEEE either way (no
 # fast-math); the benchmarks and reproductions run with XLA's defaults.

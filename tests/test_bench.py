@@ -57,19 +57,20 @@ def test_method_lists_keep_colon_names_apart_from_sequences():
 
 
 def fake_study():
-    """Two problems, hand-computed: p1 adam {1, 3} (mean 2, std √2), hig {0.5, 1.5} (mean 1),
-    sgd {0.1 finished, one diverged} (mean 0.1); p2 adam {4}, hig failed (refused), sgd {1}."""
+    """Two problems, hand-computed: p1 adam {1, 3} (median 2, std √2), hig {0.5, 1.5}
+    (median 1), sgd {0.1 finished, one diverged: +∞} (median ∞); p2 adam {4}, hig failed
+    (refused), sgd {1}. Seeds 0 and 1, in that order."""
     p1 = [
-        {"method": "adam", "status": "finished", "final_test_loss": "1.0"},
-        {"method": "adam", "status": "finished", "final_test_loss": "3.0"},
-        {"method": "hig", "status": "finished", "final_test_loss": "0.5"},
-        {"method": "hig", "status": "finished", "final_test_loss": "1.5"},
-        {"method": "sgd", "status": "finished", "final_test_loss": "0.1"},
-        {"method": "sgd", "status": "diverged", "final_test_loss": ""},
+        {"method": "adam", "seed": "0", "status": "finished", "final_test_loss": "1.0"},
+        {"method": "adam", "seed": "1", "status": "finished", "final_test_loss": "3.0"},
+        {"method": "hig", "seed": "0", "status": "finished", "final_test_loss": "0.5"},
+        {"method": "hig", "seed": "1", "status": "finished", "final_test_loss": "1.5"},
+        {"method": "sgd", "seed": "0", "status": "finished", "final_test_loss": "0.1"},
+        {"method": "sgd", "seed": "1", "status": "diverged", "final_test_loss": ""},
     ]
     p2 = [
-        {"method": "adam", "status": "finished", "final_test_loss": "4.0"},
-        {"method": "sgd", "status": "finished", "final_test_loss": "1.0"},
+        {"method": "adam", "seed": "0", "status": "finished", "final_test_loss": "4.0"},
+        {"method": "sgd", "seed": "0", "status": "finished", "final_test_loss": "1.0"},
     ]
     v = lambda *names: [Verdict(n, "applicable") for n in names]  # noqa: E731
     t1 = method_rows(p1, v("adam", "hig", "sgd") + [Verdict("bptt", "not applicable", "no rollout")])
@@ -82,39 +83,47 @@ def fake_study():
 def test_ranks_ratios_and_leaderboard_against_hand_computed_numbers():
     tables = fake_study()
     t1 = {t["method"]: t for t in tables["p1"]}
-    assert t1["adam"]["mean"] == 2.0 and t1["adam"]["std"] == pytest.approx(math.sqrt(2))
-    assert t1["hig"]["mean"] == 1.0 and t1["hig"]["ratio"] == 0.5
-    # sgd's finished seed is the lowest, but half its runs diverged: it ranks after the reliable methods
-    assert t1["sgd"]["mean"] == 0.1 and t1["sgd"]["diverged"] == 1 and t1["sgd"]["ratio"] == pytest.approx(0.05)
+    assert (
+        t1["adam"]["median"] == 2.0 and t1["adam"]["mean"] == 2.0 and t1["adam"]["std"] == pytest.approx(math.sqrt(2))
+    )
+    assert t1["hig"]["median"] == 1.0 and t1["hig"]["ratio"] == 0.5  # median of the per-seed ratios 0.5, 0.5
+    # sgd's finished seed is the lowest, but its other seed diverged: a failure, +∞, never the survivor's 0.1
+    assert t1["sgd"]["median"] == math.inf and t1["sgd"]["mean"] == math.inf and t1["sgd"]["diverged"] == 1
+    assert t1["sgd"]["ratio"] == math.inf  # median of the per-seed ratios 0.1 and ∞
     assert (t1["hig"]["rank"], t1["adam"]["rank"], t1["sgd"]["rank"]) == (1, 2, 3)
     assert t1["bptt"]["status"] == "not applicable" and t1["bptt"]["rank"] is None and math.isnan(t1["bptt"]["ratio"])
     t2 = {t["method"]: t for t in tables["p2"]}
     assert t2["hig"]["status"] == "failed" and t2["hig"]["failed"] == 1 and t2["hig"]["rank"] is None
     assert (t2["sgd"]["rank"], t2["adam"]["rank"], t2["sgd"]["ratio"]) == (1, 2, 0.25)
     board = {b["method"]: b for b in leaderboard(tables)}
-    assert board["sgd"]["geomean_ratio"] == pytest.approx(math.sqrt(0.05 * 0.25))
+    # sgd's ∞ on p1 enters as the clipped worst ratio
+    assert board["sgd"]["geomean_ratio"] == pytest.approx(math.sqrt(1e6 * 0.25))
     assert board["hig"]["geomean_ratio"] == 0.5 and board["hig"]["ratio_problems"] == 1  # p2 failed: no ratio
     assert board["adam"]["geomean_ratio"] == 1.0
     tables["p2"][2]["ratio"] = 0.0  # a loss of exactly 0: clipped in the logarithm, not -inf
-    assert {b["method"]: b for b in leaderboard(tables)}["sgd"]["geomean_ratio"] == pytest.approx(
-        math.sqrt(0.05 * 1e-6)
-    )
+    assert {b["method"]: b for b in leaderboard(tables)}["sgd"]["geomean_ratio"] == pytest.approx(1.0)
     assert (board["hig"]["wins"], board["sgd"]["wins"], board["adam"]["wins"]) == (1, 1, 0)
     assert (board["sgd"]["divergences"], board["hig"]["failures"], board["hig"]["problems"]) == (1, 1, 2)
     assert "bptt" not in board  # never applicable: not on the leaderboard
-    # the score counts hig's failed problem as the worst ratio: √(0.5 · 1e6); sgd kept a finished seed on p1
+    # the score counts hig's failed problem as the worst ratio: √(0.5 · 1e6)
     assert board["hig"]["score"] == pytest.approx(math.sqrt(0.5 * 1e6))
     assert board["sgd"]["score"] == board["sgd"]["geomean_ratio"] and board["adam"]["score"] == 1.0
-    assert [b["method"] for b in leaderboard(tables)] == ["sgd", "adam", "hig"]
+    assert [b["method"] for b in leaderboard(fake_study())] == ["adam", "sgd", "hig"]
+    lines = {line[1]: line for line in bench.table_lines(tables["p1"])[1:]}
+    assert lines["sgd"][3] == "∞ [n/a: 2 seeds]" and lines["sgd"][4] == "∞" and "1 of 2 diverged" in lines["sgd"][6]
+    assert lines["adam"][3] == "2.000e+00 [n/a: 2 seeds]"
 
 
 def test_paired_test_rows_are_read_against_the_best():
     table = fake_study()["p1"]
-    tests = [{"method_a": "hig", "method_b": "adam", "pairs": 8, "seeds": 2, "seeds_a_lower": 2, "p_value": 0.0078}]
+    tests = [{"method_a": "hig", "method_b": "adam", "pairs": 8, "seeds": 2, "seeds_a_lower": 2,
+              "p_value": math.nan}]  # fmt: skip
     table = {t["method"]: t for t in bench.add_paired_tests(table, tests)}
-    assert table["adam"]["best"] == "hig" and table["adam"]["p_vs_best"] == 0.0078
+    assert table["adam"]["best"] == "hig" and math.isnan(table["adam"]["p_vs_best"])  # 2 seeds: no p-value
     assert table["adam"]["seeds_best_lower"] == 2 and table["adam"]["seeds_compared"] == 2
     assert math.isnan(table["hig"]["p_vs_best"]) and table["sgd"]["pairs"] == 0
+    lines = {line[1]: line for line in bench.table_lines(list(table.values()))[1:]}
+    assert lines["adam"][5] == "n/a: 2 seeds (2/2)" and lines["hig"][5] == "best"
 
 
 def test_heatmap_marks_failed_and_blank_cells(tmp_path):

@@ -105,6 +105,26 @@ def test_cli_report_prints_the_table_and_draws_the_figure(tmp_path, capsys):
     write_study(tmp_path / "s")
     assert main(["report", str(tmp_path / "s")]) == 0
     captured = capsys.readouterr()
-    assert "all diverged" in captured.out and "newton" in captured.out
+    assert "1 (1 of 1 diverged)" in captured.out and "newton" in captured.out
     assert (tmp_path / "s" / "loss_vs_time.png").exists()
     assert "warning" not in captured.err
+
+
+def test_the_median_over_seeds_never_averages_over_a_divergence():
+    """Two seeds, one diverged at t = 0.5: from there on the median is the top of the axis
+    (the table's median is +∞ too), not a mean of the survivor and the failure."""
+    t = np.linspace(0.0, 1.0, 11)
+    survivor = (t, 10.0 ** -(1 + 2 * t), False)
+    diverged = (t[:6], 10.0 ** -(1 + 2 * t[:6]) * 1.5, True)
+    grid, median = plots.seed_median([survivor, diverged], upper=100.0)
+    late = grid > 0.5
+    assert np.allclose(median[late], 100.0) and np.all(median[~late] < 1.0)
+    grid, median = plots.seed_median([survivor, survivor, diverged], upper=100.0)  # 1 of 3: the survivors' median
+    assert np.all(median < 1.0)
+
+
+def test_each_seed_is_drawn_and_a_divergence_marked(tmp_path):
+    rows = metric_rows("hig", HEALTHY) + metric_rows("hig", HEALTHY[:3], seed=1) + metric_rows("adam", HEALTHY)
+    path = plots.loss_vs_time(rows, tmp_path / "seeds.png", order=["adam", "hig"], notes={"hig": "1 of 2 diverged"},
+                              diverged={"hig": {"1"}})  # fmt: skip
+    assert path.exists() and path.stat().st_size > 1000

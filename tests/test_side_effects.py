@@ -1,10 +1,12 @@
-"""Importing physgrad changes nothing in JAX's configuration, and physgrad works with x64 off.
+"""Importing physgrad changes nothing in JAX's configuration (nor the environment or a thread
+pool), and physgrad works with x64 off.
 
 The test session itself runs with x64 on (conftest.py), so the x64-off side runs in fresh
 interpreters (``sys.executable``, no conftest): they import this module and call the same
 functions as the test process, so both sides compute the same thing. What is checked:
 
-* every physgrad module imports without touching JAX's configuration;
+* every physgrad module imports without touching JAX's configuration, an environment
+  variable or the size of a BLAS/LAPACK thread pool;
 * the half-inverse (Gram, block-Gram, Lanczos, jitted), L-BFGS and one HIG training step
   of the oscillators give the same arrays with x64 off as with x64 on (the update physgrad
   always computed), and the Gram route equals a NumPy float64 SVD formula;
@@ -71,17 +73,24 @@ def save_in_fresh(function: str, tmp_path: Path) -> dict[str, np.ndarray]:
 def test_importing_every_physgrad_module_leaves_jax_configuration_alone(tmp_path):
     info = run_fresh(
         """
-        import importlib, json, pkgutil
+        import importlib, json, os, pkgutil
         import equinox as eqx, jax, jax.numpy as jnp
+        import scipy.linalg.cython_lapack  # the LAPACK jaxlib runs on: its thread pool is loaded
+        from threadpoolctl import threadpool_info
         before = {k: repr(v) for k, v in jax.config.values.items()}
+        environ = dict(os.environ)
+        pools = {p["filepath"]: p["num_threads"] for p in threadpool_info()}
         import physgrad
         modules = [m.name for m in pkgutil.walk_packages(physgrad.__path__, "physgrad.")
                    if m.name != "physgrad.__main__"]  # __main__ runs the command line
         for name in modules:
             importlib.import_module(name)
         after = {k: repr(v) for k, v in jax.config.values.items()}
+        pools_after = {p["filepath"]: p["num_threads"] for p in threadpool_info()}
         print(json.dumps({
             "modules": modules,
+            "environ": sorted(k for k in set(environ) | set(os.environ) if environ.get(k) != os.environ.get(k)),
+            "pools": [f for f in pools if pools_after.get(f) != pools[f]], "n_pools": len(pools),
             "changed": sorted(k for k in before if before[k] != after.get(k)),
             "x64": bool(jax.config.jax_enable_x64),
             "zeros": str(jnp.zeros(()).dtype),
@@ -94,6 +103,7 @@ def test_importing_every_physgrad_module_leaves_jax_configuration_alone(tmp_path
     )
     assert "physgrad.precision" in info["modules"] and "physgrad.problems.heat" in info["modules"]
     assert info["changed"] == []
+    assert info["environ"] == [] and info["pools"] == [] and info["n_pools"] >= 1  # no variable, no thread pool
     assert info["x64"] is False
     assert (info["zeros"], info["arange"], info["normal"], info["linear"]) == ("float32", "int32", "float32", "float32")
 

@@ -645,7 +645,7 @@ def csv_rows(path):
         yield from csv.DictReader(f)
 
 
-def test_paired_tests_pair_by_seed_and_case(tmp_path):
+def test_paired_tests_pair_by_seed(tmp_path):
     from physgrad.harness.stats import paired_tests, seed_means
 
     rows = ["problem,method,seed,run_dir"]
@@ -659,7 +659,10 @@ def test_paired_tests_pair_by_seed_and_case(tmp_path):
     (tmp_path / "summary.csv").write_text("\n".join(rows) + "\n")
     (test,) = paired_tests(tmp_path)
     assert test["pairs"] == 6 and test["a_lower"] == 1.0
-    assert test["p_value"] == pytest.approx(2 / 2**6)  # exact two-sided signed-rank, all 6 negative
+    # paired by seed: 2 seeds, both lower; no p-value (2 seeds cannot go below 2/2^2 = 0.5),
+    # the ratio is the median of the per-seed ratios of the means over the cases (1/2, 2/3)
+    assert test["seeds"] == 2 and test["seeds_a_lower"] == 2 and math.isnan(test["p_value"])
+    assert test["ratio"] == pytest.approx(math.sqrt(1 / 2 * 2 / 3))  # two seeds: the median of the log-ratios
     means = seed_means(tmp_path)
     assert means["a"][0] == pytest.approx(1.5) and means["a"][1] == pytest.approx(math.sqrt(0.5))
 

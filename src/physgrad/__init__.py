@@ -7,10 +7,13 @@ The update rules are direction estimators that compose with any optax chain::
 
 and :func:`fit` trains a problem object with a method object into a run directory.
 Importing physgrad changes nothing in JAX's configuration: float64 is scoped to the
-computations that need it (the Gram route's eigendecomposition, float64 problems).
+computations that need it (the Gram route's eigendecomposition, float64 problems), and
+no thread pool: ``with physgrad.threads(1):`` limits the BLAS/LAPACK pools around a loop
+(:mod:`physgrad.cpu`; the ``physgrad`` command line does it for its own runs).
 """
 
-from . import acceptance, distributed, inverse, routes, transforms
+from . import acceptance, cpu, distributed, inverse, routes, transforms
+from .cpu import threads
 from .engine import Budget, Phase, TrainSettings, TrainState, fit
 from .errors import ConfigError
 from .harness.train import load_network
@@ -57,6 +60,7 @@ __all__ = [
     "blockgram_half_inverse",
     "bptt",
     "closed_loop",
+    "cpu",
     "distributed",
     "dp",
     "fit",
@@ -73,6 +77,7 @@ __all__ = [
     "sip",
     "stabilised_bptt",
     "stacked_jacobian",
+    "threads",
     "transforms",
     "unrolled",
 ]

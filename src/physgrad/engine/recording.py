@@ -26,7 +26,7 @@ from typing import Any
 import equinox as eqx
 import jax
 
-from .. import distributed, rundir
+from .. import cpu, distributed, rundir
 from ..errors import ConfigError
 from ..nets import parameter_count
 from ..precision import x64_enabled
@@ -270,7 +270,8 @@ ENV_PACKAGES = ("physgrad", "jax", "jaxlib", "equinox", "optax", "numpy", "scipy
 
 
 def environment() -> dict[str, Any]:
-    """Versions and devices, written as ``env.json``."""
+    """Versions, devices and thread pools (:func:`physgrad.cpu.report`: the command line's
+    ``--threads`` setting and each pool's size), written as ``env.json``."""
     from importlib.metadata import PackageNotFoundError, version
 
     versions = {}
@@ -287,6 +288,7 @@ def environment() -> dict[str, Any]:
         "backend": jax.default_backend(),
         "x64": x64_enabled(),
         "versions": versions,
+        "threads": cpu.report(),
         "time": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
     }
 

@@ -90,6 +90,38 @@ def _add_budget(p):
     p.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
                    help="a problem setting, method hyperparameter or training setting; repeatable")  # fmt: skip
     _add_compilation_cache(p)
+    _add_threads(p)
+
+
+# The command line's thread setting (physgrad.cpu.process_threads): one thread per pool by
+# default, so that a study's timings do not depend on what else runs on the machine.
+DEFAULT_THREADS = "1"
+
+
+def threads_of(args) -> int | None:
+    """``--threads`` (default ``$PHYSGRAD_THREADS``, else 1) as a count; None for ``default``
+    (every pool at its library's default); no ``--threads`` for this command: None."""
+    import os
+
+    if not hasattr(args, "threads"):
+        return None
+    text = str(args.threads or os.environ.get("PHYSGRAD_THREADS") or DEFAULT_THREADS).strip()
+    if text == "default":
+        return None
+    try:
+        n = int(text)
+    except ValueError:
+        n = 0
+    if n < 1:
+        raise UsageError(f"--threads expects a positive integer or 'default', got {text!r}")
+    return n
+
+
+def _add_threads(p):
+    p.add_argument("--threads", metavar="N|default", default=None,
+                   help="threads of the BLAS/LAPACK, OpenMP and XLA CPU pools (default $PHYSGRAD_THREADS, else 1: "
+                        "timings that do not depend on the machine's load; 'default': the libraries' own, usually "
+                        "one per core). Recorded in each run's env.json")  # fmt: skip
 
 
 def _add_compilation_cache(p):
@@ -185,4 +217,5 @@ def build_parser() -> Parser:
     p.add_argument("--out", default="studies/demo")
     p.add_argument("--seconds", type=float, default=DEMO["seconds"], help="training seconds per method")
     _add_compilation_cache(p)
+    _add_threads(p)
     return parser

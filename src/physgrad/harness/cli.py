@@ -11,12 +11,14 @@
                    [--quick] [--set ...]   (every applicable method on every problem, ranked; physgrad.harness.bench)
     physgrad demo
 
+train, compare, bench and demo take --threads N|default (default 1: physgrad.cpu.process_threads).
 Bad input (an unknown problem, method or setting) prints one line with the valid choices
 and exits with status 2.
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
@@ -26,17 +28,19 @@ from pathlib import Path
 
 from rich.console import Console
 from rich.table import Table
+from rich.text import Text
 
-from .arguments import DEMO, UsageError, budget_of, build_parser, output_dir, run_settings
+from .arguments import DEMO, UsageError, budget_of, build_parser, output_dir, run_settings, threads_of
 from .words import command_line_words
 
 
-def _print_table(console: Console, lines: list[list[str]], title: str = ""):
-    table = Table(title=title or None)
+def _print_table(console: Console, lines: list[list[str]], title: str = "", caption: str = ""):
+    """A table of plain text (cells such as ``[n/a: 2 seeds]`` are not rich markup)."""
+    table = Table(title=title or None, caption=caption or None)
     for i, name in enumerate(lines[0]):
-        table.add_column(name, justify="left" if i == 0 else "right")
+        table.add_column(Text(name), justify="left" if i == 0 else "right")
     for line in lines[1:]:
-        table.add_row(*line)
+        table.add_row(*(Text(cell) for cell in line))
     console.print(table)
 
 
@@ -140,8 +144,10 @@ def _run_compare(console, problem, methods, seeds, budget, settings, out, quiet=
     compare(
         problem, methods, seeds, budget, out, settings=settings, progress=meter, echo=console.print, devices=devices
     )
+    from .seeds import TABLE_NOTE
+
     result = report(out)
-    _print_table(console, result.lines, title=f"{problem}: {budget} per run")
+    _print_table(console, result.lines, title=f"{problem}: {budget} per run", caption=TABLE_NOTE)
     _print_paired_tests(console, out)
     console.print(f"wrote {_files(Path(out) / 'results.csv', Path(out) / 'summary.csv', result.figure)}")
     return result
@@ -187,8 +193,9 @@ def _run_grid(console, problem, methods, seeds, budget, settings, out, quiet=Fal
 
 
 def _print_paired_tests(console, out):
-    """Paired Wilcoxon tests between the methods of a study or of each cell of a sweep."""
-    from .stats import format_tests, paired_tests
+    """Paired comparisons between the methods of a study or of each cell of a sweep, by seed
+    (:func:`physgrad.harness.stats.paired_tests`)."""
+    from .stats import MIN_SEEDS_P, format_tests, paired_tests
 
     out = Path(out)
     cells = (
@@ -203,7 +210,10 @@ def _print_paired_tests(console, out):
         table = format_tests(rows, cell=name or "")
         lines += table if not lines else table[1:]
     if len(lines) > 1:
-        _print_table(console, lines, title="paired tests over seeds x test cases (two-sided Wilcoxon signed-rank)")
+        _print_table(console, lines, title="methods paired by seed",
+                     caption=f"a diverged seed is the worse value; ratio: median of the per-seed ratios; "
+                             f"two-sided Wilcoxon signed-rank test over seeds, from {MIN_SEEDS_P} seeds that differ "
+                             "(below, its smallest p-value 2/2^n cannot reach 0.05)")  # fmt: skip
 
 
 def cmd_report(args, console):
@@ -215,8 +225,10 @@ def cmd_report(args, console):
         _print_paired_tests(console, args.dir)
         console.print(f"wrote {_files(Path(args.dir) / 'grid_summary.csv', result.figure)}")
         return 0
+    from .seeds import TABLE_NOTE
+
     result = report(args.dir)
-    _print_table(console, result.lines, title=str(args.dir))
+    _print_table(console, result.lines, title=str(args.dir), caption=TABLE_NOTE)
     _print_paired_tests(console, args.dir)
     if result.figure:
         console.print(f"wrote {result.figure}")
@@ -273,7 +285,9 @@ def cmd_demo(args, console):
         f"  adam: paper settings (lr 3e-4, batch 512); gn, hig: eta 1, truncation 1e-6, batch 32 (PBDL book) "
         f"instead of the paper's 128, because a 512x512 eigendecomposition dominates a batch-128 step on a few CPU cores.\n"
         f"  {args.seconds:g} s of training per method and seed, {DEMO['seeds']} seeds, full test loss every 64 steps; "
-        f"settings {DEMO['settings']}"
+        f"settings {DEMO['settings']}\n"
+        f"  The seeds are the replicates: with {DEMO['seeds']} seeds the table gives medians without intervals and no "
+        "p-values (an interval needs 3 seeds, a Wilcoxon test over seeds 6: physgrad compare oscillators --seeds 6)."
     )
     result = _run_compare(
         console,
@@ -284,11 +298,23 @@ def cmd_demo(args, console):
         DEMO["settings"],
         args.out,
     )
-    adam, hig = result.final_test_loss("adam"), result.final_test_loss("hig")
-    if math.isfinite(adam) and math.isfinite(hig) and hig > 0:
-        console.print(f"HIG's mean final test loss is {adam / hig:.1f}x below Adam's at equal wall-clock.")
+    from .seeds import interval
+
+    ratio = result.ratio("adam", "hig")  # Adam's final test loss over HIG's, per seed
+    r, seeds = ratio["median"], f"median over {ratio['n']} seed{'s' if ratio['n'] != 1 else ''} of the per-seed ratio"
+    spread = f"95% CI {interval(ratio, '.3g')}"
+    if ratio["n"] == 0 or math.isnan(r):
+        console.print("No HIG/Adam ratio: the two have no seed in common (see the table).")
+    elif math.isinf(r):
+        console.print(f"Adam diverged on at least half the seeds where HIG did not ({seeds}: ∞; see the table).")
+    elif r == 0:
+        console.print(f"HIG diverged on at least half the seeds where Adam did not ({seeds}: 0; see the table).")
+    elif r >= 1:
+        console.print(f"HIG's final test loss is {r:.1f}x below Adam's at equal wall-clock ({seeds}; {spread}).",
+                      markup=False)  # fmt: skip
     else:
-        console.print("No HIG/Adam ratio: every seed of one of them diverged (see the table).")
+        console.print(f"HIG's final test loss is {1 / r:.1f}x above Adam's at equal wall-clock ({seeds}; {spread}).",
+                      markup=False)  # fmt: skip
     return 0
 
 
@@ -320,6 +346,7 @@ def main(argv=None) -> int:
     # JAX's configuration is left as the user set it (x64 off by default), as physgrad.fit
     # leaves it: a run from the command line and the same run through fit are one computation
     # (fit scopes float64 to the problems that declare needs_float64).
+    from ..cpu import process_threads
     from .config import ConfigError
 
     # Outside a terminal (CI, pipes) rich would wrap at 80 columns; tables need more.
@@ -337,7 +364,10 @@ def main(argv=None) -> int:
             from ..programs import use_compilation_cache
 
             use_compilation_cache(cache)
-        with warnings.catch_warnings():  # a figure that cannot be drawn: one line, the tables stand
+        # The thread pools for the command (physgrad.cpu): set before the first JAX
+        # computation, so that XLA's pool is sized too; restored when the command returns.
+        threads = process_threads(threads_of(args)) if hasattr(args, "threads") else contextlib.nullcontext()
+        with warnings.catch_warnings(), threads:  # a figure that cannot be drawn: one line, the tables stand
             warnings.showwarning = _one_line_warnings(err, warnings.showwarning)
             return COMMANDS[args.command](args, console)
     except (UsageError, ConfigError) as e:  # the library's line in the command line's words where it has them

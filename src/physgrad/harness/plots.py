@@ -73,13 +73,13 @@ def clip_marks(t: np.ndarray, v: np.ndarray, lower: float, upper: float):
 
 
 def _series(results: list[dict[str, Any]], method: str, split: str, metric: str):
-    """Per seed: (wall_time, value) arrays of one method's metric, sorted by time (every
+    """Per seed: (seed, wall_time, value) of one method's metric, sorted by time (every
     value, NaN and infinities included)."""
     by_seed: dict[str, list[tuple[float, float]]] = {}
     for r in results:
         if r["method"] == method and r["split"] == split and r["metric"] == metric:
             by_seed.setdefault(str(r["seed"]), []).append((float(r["wall_time"]), float(r["value"])))
-    return [tuple(np.array(sorted(points, key=lambda p: p[0])).T) for points in by_seed.values() if points]
+    return [(seed, *np.array(sorted(points, key=lambda p: p[0])).T) for seed, points in by_seed.items() if points]
 
 
 def _mark_legend(ax) -> None:
@@ -88,7 +88,36 @@ def _mark_legend(ax) -> None:
     handles, labels = ax.get_legend_handles_labels()
     handles.append(Line2D([], [], ls="", marker="x", color="0.3"))
     labels.append(MARK_LABEL)
-    ax.legend(handles, labels)
+    ax.legend(handles, labels, fontsize=8)
+
+
+def failure_median(logs: np.ndarray, upper: float) -> np.ndarray:
+    """The median over seeds (axis 0) of log values in which a diverged seed is +∞ from its
+    end on, as in the tables: for an even count the mean of the two middle values, which is
+    +∞ (drawn at ``upper``, the axis's top) once a middle seed diverged, never a value
+    between the survivor and the failure."""
+    return np.minimum(np.median(logs, axis=0), math.log10(upper))
+
+
+def seed_median(curves: Sequence[tuple[np.ndarray, np.ndarray, bool]], upper: float):
+    """(grid, median) over seeds (:func:`failure_median`) of curves (t, v, diverged) already
+    on the axis range: a diverged seed counts as +∞ from its end on (drawn at ``upper``, the
+    top of the axis), so the median never averages over a divergence and is at the top once
+    half the seeds diverged.
+    The grid runs to the end of the shortest finished seed (the longest diverged one if all
+    diverged); None if no curve."""
+    if not curves:
+        return None
+    finished = [t[-1] for t, _, failed in curves if not failed]
+    end = min(finished) if finished else max(t[-1] for t, _, _ in curves)
+    grid = np.linspace(0.0, end, 200)
+    logs = []
+    for t, v, failed in curves:
+        log = np.interp(grid, t, np.log10(v))
+        if failed:
+            log = np.where(grid > t[-1], math.inf, log)
+        logs.append(log)
+    return grid, 10 ** failure_median(np.stack(logs), upper)
 
 
 def loss_vs_time(
@@ -100,13 +129,15 @@ def loss_vs_time(
     split: str = "test",
     metric: str = "loss",
     notes: dict[str, str] | None = None,
+    diverged: dict[str, set[str]] | None = None,
 ) -> Path:
     """Test loss vs training wall-clock, log y, one colour per method.
 
-    The line is the geometric mean over seeds (mean of log10 loss, interpolated on a
-    common time grid up to the shortest seed's end) and the band spans the seeds' minimum
-    and maximum; a single seed is drawn as its own curve. ``notes`` adds text to a method's
-    legend entry (e.g. how many of its runs diverged; their curves end where they diverged).
+    Each seed is drawn as its own thin curve; with several seeds the thick line is the
+    median over seeds (:func:`seed_median`: a diverged seed counts as the top of the axis
+    from where it diverged, never averaged away). A seed in ``diverged`` (``{method:
+    seeds}``) ends with an ``x`` at the top edge, as do its non-finite and off-scale values.
+    ``notes`` adds text to a method's legend entry (e.g. how many of its runs diverged).
     """
     from matplotlib import rcParams
     from matplotlib.figure import Figure  # its own canvas: no pyplot, no backend switch
@@ -115,15 +146,20 @@ def loss_vs_time(
     ax = fig.subplots()
     colours = rcParams["axes.prop_cycle"].by_key()["color"]
     series = {method: _series(results, method, split, metric) for method in order}
-    lower, upper = log_range([v for runs in series.values() for _, v in runs])
+    lower, upper = log_range([v for runs in series.values() for _, _, v in runs])
+    failed = diverged or {}
     marked = False
     for i, method in enumerate(order):
         curves, marks = [], []
-        for t, v in series[method]:
+        for seed, t, v in series[method]:
             t, v, mark = clip_marks(t, v, lower, upper)
-            if t.size:
-                curves.append((t, v))
-                marks.append(mark)
+            if not t.size:
+                continue
+            lost = seed in failed.get(method, ())
+            curves.append((t, v, lost))
+            marks.append(mark)
+            if lost:  # where it diverged: the end of its curve, at the top edge
+                marks.append((t[-1:], np.array([upper])))
         if not curves:
             continue
         colour = colours[i % len(colours)]
@@ -136,23 +172,23 @@ def loss_vs_time(
                 ax.plot(mt, mv, "x", color=colour, ms=7, mew=1.5, clip_on=False)
                 marked = True
         if len(curves) == 1:
-            ax.plot(*curves[0], color=colour, label=label, lw=1.5)
+            ax.plot(*curves[0][:2], color=colour, label=label, lw=1.5)
             continue
-        end = min(t[-1] for t, _ in curves)
-        grid = np.linspace(0.0, end, 200)
-        logs = np.stack([np.interp(grid, t, np.log10(v)) for t, v in curves])
-        ax.plot(grid, 10 ** logs.mean(0), color=colour, label=label, lw=1.5)
-        ax.fill_between(grid, 10 ** logs.min(0), 10 ** logs.max(0), color=colour, alpha=0.2, lw=0)
+        for t, v, _ in curves:
+            ax.plot(t, v, color=colour, lw=0.7, alpha=0.45)
+        median = seed_median(curves, upper)
+        if median is not None:
+            ax.plot(*median, color=colour, label=label, lw=1.8)
     ax.set_ylim(lower / 1.5, upper * 1.5)
     ax.set_yscale("log")
     ax.set_xlabel("training wall-clock time [s] (evaluation excluded)")
-    ax.set_ylabel(f"{split} {metric}")
+    ax.set_ylabel(f"{split} {metric} (thin: each seed; thick: median over seeds)")
     ax.set_title(title, fontsize=9)
     ax.grid(True, which="both", alpha=0.3)
     if marked:
         _mark_legend(ax)
     elif ax.get_legend_handles_labels()[0]:
-        ax.legend()
+        ax.legend(fontsize=8)
     fig.tight_layout()
     path = Path(path)
     fig.savefig(path)
@@ -182,9 +218,10 @@ def grid_panels(
 ) -> Path:
     """One panel per value of the ``panel`` setting (the StableBPTT figure layout): the
     ``metric`` against epochs, log y; colour = method, line style = the cell's other swept
-    settings. Each line is the geometric mean over seeds (on the epochs all seeds reached),
-    after a ``smooth``-point moving average left-padded with the first value (as the
-    authors' plots). ``curves`` holds (cell, metric rows with an ``epoch`` field) per cell."""
+    settings. Each line is the median over seeds (:func:`failure_median`; on the epochs every finished seed reached;
+    a seed whose rows say ``diverged`` counts as the top edge from its end on, marked with an
+    ``x`` where it diverged), after a ``smooth``-point moving average left-padded with the
+    first value (as the authors' plots). ``curves`` holds (cell, metric rows with an ``epoch`` field) per cell."""
     from matplotlib import rcParams
     from matplotlib.figure import Figure  # its own canvas: no pyplot, no backend switch
 
@@ -195,13 +232,18 @@ def grid_panels(
     axes = fig.subplots(1, max(len(values), 1), squeeze=False, sharey=True)
     # Per cell and method: each seed's (epochs, values), sorted by epoch.
     seeds: dict[tuple[int, str], list[np.ndarray]] = {}
+    failed: dict[tuple[int, str], list[bool]] = {}  # per seed: whether it diverged (its rows say "diverged")
+    lost: set[tuple[int, str, str]] = set()
     for c, (_, rows) in enumerate(curves):
         for method in methods:
             by_seed: dict[str, list[tuple[float, float]]] = {}
             for r in rows:
                 if r["method"] == method:
                     by_seed.setdefault(r["seed"], []).append((r["epoch"], float(r["value"])))
+                    if r.get("diverged"):
+                        lost.add((c, method, r["seed"]))
             seeds[c, method] = [np.array(sorted(p, key=lambda q: q[0])).T for p in by_seed.values() if p]
+            failed[c, method] = [(c, method, seed) in lost for seed, p in by_seed.items() if p]
     lower, upper = log_range([s[1] for series in seeds.values() for s in series])
     marked = False
     for ax, value in zip(axes[0], values):
@@ -211,22 +253,33 @@ def grid_panels(
             rest = tuple((k, v) for k, v in cell.items() if k != panel)
             style = LINE_STYLES[others.index(rest) % len(LINE_STYLES)]
             for i, method in enumerate(methods):
-                series = seeds[c, method]
+                series, lost_seed = seeds[c, method], failed[c, method]
                 if not series:
                     continue
-                n = min(s.shape[1] for s in series)
-                epochs = series[0][0][:n]
+                # to the shortest finished seed; a diverged seed counts as the top edge after its end
+                n = min(
+                    (s.shape[1] for s, f in zip(series, lost_seed) if not f), default=max(s.shape[1] for s in series)
+                )
+                longest = max(series, key=lambda s: s.shape[1])
+                epochs = longest[0][:n]
                 colour = colours[i % len(colours)]
                 logs = []
-                for s in series:  # NaN, infinite and off-scale values at the axis edge, marked
-                    high = ~np.isfinite(s[1][:n]) | (s[1][:n] > upper)
-                    clipped = np.clip(np.where(high, upper, s[1][:n]), lower, upper)
-                    logs.append(np.log10(np.clip(_moving_average(clipped, smooth), lower, upper)))
+                for s, f in zip(series, lost_seed):  # NaN, infinite and off-scale values at the axis edge, marked
+                    values, end = s[1][:n], s[1][:n].size
+                    if f and values.size < n:
+                        values = np.concatenate([values, np.full(n - values.size, math.inf)])
+                    high = ~np.isfinite(values) | (values > upper)
+                    clipped = np.clip(np.where(high, upper, values), lower, upper)
+                    log = np.log10(np.clip(_moving_average(clipped, smooth), lower, upper))
+                    log[end:] = math.inf  # a diverged seed from its end on: a failure in the median
+                    logs.append(log)
                     if high.any():
-                        ax.plot(epochs[high], np.full(int(high.sum()), upper), "x", color=colour, ms=6, clip_on=False)
+                        first = int(np.argmax(high)) if f and s[1].size < n else None
+                        at = epochs[high] if first is None else epochs[first : first + 1]
+                        ax.plot(at, np.full(at.size, upper), "x", color=colour, ms=6, clip_on=False)
                         marked = True
                 label = method + (f" ({', '.join(f'{k}={v}' for k, v in rest)})" if rest else "")
-                ax.plot(epochs, 10 ** np.mean(logs, axis=0), style, color=colour, lw=1.2, label=label)
+                ax.plot(epochs, 10 ** failure_median(np.stack(logs), upper), style, color=colour, lw=1.2, label=label)
         ax.set_ylim(lower / 1.5, upper * 1.5)
         ax.set_yscale("log")
         ax.set_title(f"{panel} = {value}", fontsize=9)
@@ -279,7 +332,7 @@ def heatmap(
     for i, m in enumerate(methods):
         for j, p in enumerate(problems):
             t = cell.get((p, m))
-            if t and math.isfinite(t["ratio"]):
+            if t and not math.isnan(t["ratio"]):  # +∞: a failure on at least half the seeds, saturated
                 values[i, j] = math.log10(min(max(t["ratio"], clip[0]), clip[1]))
     finite = values[np.isfinite(values)]
     limit = min(max(1.0, float(np.abs(finite).max()) if finite.size else 1.0), 4.0)  # beyond ±4: saturated

@@ -26,7 +26,9 @@ from ..errors import ConfigError
 from ..progress import AbstractProgressMeter
 from .config import Budget, RunConfig, choose, make_config, method_slug, parse_method, phase_methods, valid_settings
 from .failures import FailureLog, recordable
-from .registry import PROBLEMS, protocol  # the paper protocols (papers.py), as the registry reads them
+from .papers import protocol
+from .registry import PROBLEMS
+from .seeds import aggregate, as_float, format_table, mean_std, median_cell, paired_ratio, runs_cell, summarize
 from .train import is_complete, read_metrics, read_summary, train
 
 SUMMARY_COLUMNS = (
@@ -184,92 +186,47 @@ def read_csv(path: str | Path) -> list[dict[str, Any]]:  # str values; callers a
         return list(csv.DictReader(f))
 
 
-def as_float(text: Any) -> float:
-    """A number read from a CSV cell (str) or JSON; NaN for an empty or non-numeric cell."""
-    try:
-        return float(text)
-    except (TypeError, ValueError):
-        return math.nan
-
-
-def mean_std(values: Sequence[float]) -> tuple[float, float]:
-    """Mean ± sample standard deviation of the finite ``values`` (std 0 for a single value,
-    NaN, NaN for none): a diverged run's NaN or inf never enters a mean."""
-    finite = np.asarray(values, dtype=float)
-    finite = finite[np.isfinite(finite)]
-    if finite.size == 0:
-        return math.nan, math.nan
-    return float(finite.mean()), float(finite.std(ddof=1)) if finite.size > 1 else 0.0
-
-
 def method_order(rows: list[dict[str, Any]], study: dict[str, Any] | None = None) -> list[str]:
     """Methods in the study's order (or first appearance)."""
     listed = list((study or {}).get("methods", []))
     return listed + [m for m in dict.fromkeys(r["method"] for r in rows) if m not in listed]
 
 
-def aggregate(rows: list[dict[str, Any]], order: Sequence[str]) -> list[dict[str, Any]]:
-    """Per method: runs, diverged count, final/best test loss mean ± std, steps, time per step."""
-    table = []
-    for method in order:
-        runs = [r for r in rows if r["method"] == method]
-        if not runs:
-            continue
-        ok = [r for r in runs if r["status"] == "finished"]
-
-        def stat(key, pool=ok):
-            return mean_std([as_float(r[key]) for r in pool])
-
-        table.append({
-            "method": method, "runs": len(runs), "diverged": len(runs) - len(ok),
-            "final_test_loss": stat("final_test_loss"), "best_test_loss": stat("best_test_loss", runs),
-            "steps": stat("steps", runs)[0], "ms_per_step": 1e3 * stat("time_per_step", runs)[0],
-        })  # fmt: skip
-    return table
-
-
-def format_table(table: list[dict[str, Any]], reference: str | None = None) -> list[list[str]]:
-    """Rows of strings for printing: the header first. ``reference`` adds a ratio column."""
-    ref = next((t for t in table if t["method"] == reference), None)
-    header = ["method", "runs", "final test loss", "best test loss", "steps", "ms/step"]
-    if ref is not None:
-        header.append(f"final / {reference}")
-    lines = [header]
-    for t in table:
-        fm, fs = t["final_test_loss"]
-        bm, bs = t["best_test_loss"]
-        runs = f"{t['runs']}" + (f" ({t['diverged']} diverged)" if t["diverged"] else "")
-        final = f"{fm:.3e} ± {fs:.1e}" if math.isfinite(fm) else _no_loss(t)
-        line = [t["method"], runs, final, f"{bm:.3e} ± {bs:.1e}", f"{t['steps']:.0f}", f"{t['ms_per_step']:.2f}"]
-        if ref is not None:
-            base = ref["final_test_loss"][0]  # 0 or NaN (all diverged): no ratio to show
-            ratio = fm / base if math.isfinite(base) and base != 0 else math.nan
-            line.append(f"{ratio:.3g}" if math.isfinite(ratio) else "-")
-        lines.append(line)
-    return lines
-
-
-def _no_loss(row: dict[str, Any]) -> str:
-    """A table's cell for a method without a finite mean final loss ("all diverged": every run did)."""
-    return "all diverged" if row["diverged"] == row["runs"] else "no final loss"
-
-
 class Report(NamedTuple):
-    """A study's aggregated table (per method), its printable lines and the figure's path
-    (None: the figure could not be drawn, a :class:`~physgrad.harness.plots.FigureWarning` says why)."""
+    """A study's aggregated table (per method, :func:`physgrad.harness.seeds.aggregate`), its
+    printable lines and the figure's path (None: the figure could not be drawn, a
+    :class:`~physgrad.harness.plots.FigureWarning` says why)."""
 
     table: list[dict[str, Any]]
     lines: list[list[str]]
     figure: Path | None
 
     def final_test_loss(self, method: str) -> float:
-        """Mean final test loss of one method over its finished seeds (NaN if none)."""
-        return next((t["final_test_loss"][0] for t in self.table if t["method"] == method), math.nan)
+        """Median final test loss of one method over its seeds, a diverged seed counting as
+        +∞ (NaN if the method has no run)."""
+        return next((t["final"]["median"] for t in self.table if t["method"] == method), math.nan)
+
+    def ratio(self, method: str, reference: str) -> dict[str, Any]:
+        """``method``'s final test loss over ``reference``'s, paired by seed: the median of
+        the per-seed ratios with its interval (:func:`physgrad.harness.seeds.summarize`)."""
+        rows = {t["method"]: t for t in self.table}
+        return paired_ratio(rows[method], rows[reference])
+
+
+def diverged_seeds(rows: list[dict[str, Any]]) -> dict[str, set[str]]:
+    """{method: the seeds (as text) whose runs diverged}, for the figures' marks."""
+    out: dict[str, set[str]] = {}
+    for r in rows:
+        if r["status"] == "diverged":
+            out.setdefault(r["method"], set()).add(str(r["seed"]))
+    return out
 
 
 def report(out: str | Path) -> Report:
-    """Re-draw a study's table and figure from its files alone (``summary.csv``, ``results.csv``)."""
+    """Re-draw a study's table and figure from its files alone (``summary.csv``, ``results.csv``,
+    the runs' ``test_cases.json`` for the test-case spread)."""
     from .plots import draw, loss_vs_time
+    from .stats import case_spread
 
     out = Path(out)
     for name in ("summary.csv", "results.csv"):
@@ -278,12 +235,12 @@ def report(out: str | Path) -> Report:
     study = json.loads((out / "study.json").read_text()) if (out / "study.json").exists() else {}
     rows = read_csv(out / "summary.csv")
     order = method_order(rows, study)
-    table = aggregate(rows, order)
+    table = aggregate(rows, order, spread=case_spread(out, metric="loss"))
     reference = "adam" if "adam" in order else None
-    notes = {t["method"]: f"{t['diverged']}/{t['runs']} diverged" for t in table if t["diverged"]}
+    notes = {t["method"]: f"{t['diverged']} of {t['runs']} diverged" for t in table if t["diverged"]}
     figure = draw(  # the table does not depend on it: a failing figure is a warning
         loss_vs_time, read_csv(out / "results.csv"), out / "loss_vs_time.png", order=order, title=_title(study, rows),
-        notes=notes,
+        notes=notes, diverged=diverged_seeds(rows),
     )  # fmt: skip
     return Report(table, format_table(table, reference), figure)
 
@@ -315,20 +272,26 @@ def load_studies(root: str | Path, parts: Sequence[tuple[str, str]]):
     return rows, results, order
 
 
-def final_metric(results, method: str, metric: str, tail: float = 0.0) -> tuple[float, float]:
-    """Mean ± std over seeds of a method's last test value of ``metric``; with ``tail`` > 0,
-    each seed's value is the mean over its evaluations in the last ``tail`` fraction of its
-    training time (the SIP paper averages the last 10 %)."""
+def final_values(results, method: str, metric: str, tail: float = 0.0) -> dict[str, float]:
+    """{seed: a method's last test value of ``metric``}; with ``tail`` > 0, each seed's value
+    is the mean over its evaluations in the last ``tail`` fraction of its training time (the
+    SIP paper averages the last 10 %)."""
     by_seed: dict[str, list[tuple[float, float]]] = {}
     for r in results:
         if r["method"] == method and r["split"] == "test" and r["metric"] == metric:
-            by_seed.setdefault(r["seed"], []).append((float(r["wall_time"]), float(r["value"])))
-    values = []
-    for points in by_seed.values():
+            by_seed.setdefault(str(r["seed"]), []).append((float(r["wall_time"]), float(r["value"])))
+    values = {}
+    for seed, points in by_seed.items():
         points.sort()
         end = points[-1][0]
-        values.append(np.mean([v for t, v in points if t >= (1 - tail) * end]) if tail > 0 else points[-1][1])
-    return mean_std(values)
+        values[seed] = float(np.mean([v for t, v in points if t >= (1 - tail) * end]) if tail > 0 else points[-1][1])
+    return values
+
+
+def final_metric(results, method: str, metric: str, tail: float = 0.0) -> tuple[float, float]:
+    """Mean ± std over the finite per-seed values of :func:`final_values` (for seeds that all
+    finished; :func:`study_section` counts diverged seeds as failures)."""
+    return mean_std(list(final_values(results, method, metric, tail).values()))
 
 
 def markdown(lines: list[list[str]]) -> str:
@@ -340,8 +303,9 @@ def markdown(lines: list[list[str]]) -> str:
 
 def study_section(root: str | Path, title: str, parts, metrics: Sequence[str], figures: str | Path, name: str) -> str:
     """A reproduction report's Markdown section for one problem: the table (final test loss
-    and the extra ``metrics[1:]``, mean ± std over seeds) and one figure per metric, drawn
-    into ``figures/<name>[_<metric>].png``. ``parts`` as in :func:`load_studies`."""
+    and the extra ``metrics[1:]``, median [95 % interval] over seeds, a diverged seed counting
+    as +∞) and one figure per metric, drawn into ``figures/<name>[_<metric>].png``. ``parts``
+    as in :func:`load_studies`."""
     from .plots import draw, loss_vs_time
 
     rows, results, order = load_studies(root, parts)
@@ -349,19 +313,21 @@ def study_section(root: str | Path, title: str, parts, metrics: Sequence[str], f
         return f"## {title}: no results under {root} yet\n"
     table = aggregate(rows, order)
     lines = format_table(table, "adam" if "adam" in order else None)
+    failed = diverged_seeds(rows)
     for metric in metrics[1:]:
-        lines[0].append(f"final test {metric}")
+        lines[0].append(f"final test {metric}: median [95% CI]")
         for line in lines[1:]:
-            mean, std = final_metric(results, line[0], metric)
-            line.append(f"{mean:.3e} ± {std:.1e}")
+            values = final_values(results, line[0], metric)
+            values.update(dict.fromkeys(failed.get(line[0], ()), math.inf))
+            line.append(median_cell(summarize(list(values.values()))))
     seeds = len({r["seed"] for r in rows})
     out = [f"## {title} ({seeds} seeds)\n\n{markdown(lines)}\n"]
-    notes = {t["method"]: f"{t['diverged']}/{t['runs']} diverged" for t in table if t["diverged"]}
+    notes = {t["method"]: f"{t['diverged']} of {t['runs']} diverged" for t in table if t["diverged"]}
     for metric in metrics:
         figure = name if metric == "loss" else f"{name}_{metric}"
         path = draw(
             loss_vs_time, results, Path(figures) / f"{figure}.png", order=order, metric=metric, notes=notes,
-            title=f"{title}: test {metric}, {seeds} seeds (line: geometric mean, band: min-max)",
+            diverged=failed, title=f"{title}: test {metric}, {seeds} seeds (thin: each seed; line: median over seeds)",
         )  # fmt: skip
         if path is not None:  # else a FigureWarning said why
             out.append(f"![{title}](figures/{path.name})\n")
@@ -465,7 +431,8 @@ def grid_report(
     grid = info["grid"]
     panel = panel or next(iter(grid))
     choose("panel setting", panel, grid)
-    rows, curves, lines = [], [], [["cell", "method", "runs", "final test loss", "best test loss", "ms/step"]]
+    head = ["cell", "method", "runs", "final test loss: median [95% CI] over seeds", "best test loss", "ms/step"]
+    rows, curves, lines = [], [], [head]
     for cell in grid_cells(grid):
         study = out / cell_name(cell)
         if (study / "runs").exists():
@@ -477,24 +444,27 @@ def grid_report(
         results = [r for r in read_csv(study / "results.csv") if r["split"] == split and r["metric"] == metric]
         for r in results:
             r["epoch"] = float(r["step"]) * per_epoch.get((r["method"], r["seed"]), math.nan)
+        failed = diverged_seeds(summary)
+        for r in results:
+            r["diverged"] = str(r["seed"]) in failed.get(r["method"], ())
         for t in aggregate(summary, method_order(summary, info)):
-            fm, fs = t["final_test_loss"]
-            bm, bs = t["best_test_loss"]
-            label = ", ".join(f"{k}={v}" for k, v in cell.items())
+            final, label = t["final"], ", ".join(f"{k}={v}" for k, v in cell.items())
             rows.append({**cell, "method": t["method"], "runs": t["runs"], "diverged": t["diverged"],
-                         "final_test_loss": fm, "final_test_loss_std": fs, "best_test_loss": bm,
-                         "ms_per_step": t["ms_per_step"]})  # fmt: skip
-            runs = f"{t['runs']}" + (f" ({t['diverged']} diverged)" if t["diverged"] else "")
-            final = f"{fm:.3e} ± {fs:.1e}" if math.isfinite(fm) else _no_loss(t)
-            lines.append([label, t["method"], runs, final, f"{bm:.3e} ± {bs:.1e}", f"{t['ms_per_step']:.2f}"])
+                         "final_test_loss": final["mean"], "final_test_loss_std": final["std"],
+                         "best_test_loss": t["best"]["median"], "ms_per_step": t["ms_per_step"],
+                         "final_test_loss_median": final["median"], "final_test_loss_low": final["low"],
+                         "final_test_loss_high": final["high"]})  # fmt: skip
+            lines.append([label, t["method"], runs_cell(t["runs"], t["diverged"]), median_cell(final),
+                          f"{t['best']['median']:.3e}", f"{t['ms_per_step']:.2f}"])  # fmt: skip
         curves.append((cell, results))
     write_csv(out / "grid_summary.csv", [*grid, "method", "runs", "diverged", "final_test_loss", "final_test_loss_std",
-                                         "best_test_loss", "ms_per_step"], rows)  # fmt: skip
+                                         "best_test_loss", "ms_per_step", "final_test_loss_median",
+                                         "final_test_loss_low", "final_test_loss_high"], rows)  # fmt: skip
     suffix = "" if metric == "loss" else f"_{metric}"
     smoothing = f", {smooth}-epoch moving average" if smooth > 1 else ""
     figure = draw(  # after grid_summary.csv: a failing figure is a warning
         grid_panels, curves, figure or out / f"grid{suffix}.png", panel=panel, methods=methods or info["methods"], metric=f"{split} {metric}",
         smooth=smooth,
-        title=f"{info['problem']}: {split} {metric} per epoch ({len(info['seeds'])} seeds, line: geometric mean{smoothing})",
+        title=f"{info['problem']}: {split} {metric} per epoch ({len(info['seeds'])} seeds, line: median over seeds{smoothing})",
     )  # fmt: skip
     return GridReport(rows, lines, figure)

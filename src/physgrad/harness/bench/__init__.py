@@ -12,9 +12,9 @@ so ``physgrad report BENCH/<problem>`` works on it, and running the same bench a
 finished (or diverged) runs and resumes interrupted ones from their checkpoints. Next to
 them:
 
-- ``BENCH/<problem>/bench_table.csv`` / ``.md``: per method the final test loss (mean ± std
-  over the finished seeds), its rank, its ratio to Adam's mean and the paired test against
-  the problem's best method;
+- ``BENCH/<problem>/bench_table.csv`` / ``.md``: per method the final test loss over seeds
+  (median with a bootstrap interval; a diverged seed is +∞), its rank, its ratio to Adam
+  (paired by seed) and the comparison with the problem's best method, paired by seed;
 - ``BENCH/leaderboard.csv`` / ``.md``: per method the geometric-mean ratio to Adam over
   the problems it ran on, its wins (rank 1), divergences and failures;
 - ``BENCH/heatmap.png``: log₁₀(ratio to Adam), method × problem;
@@ -35,10 +35,10 @@ invocation (a refusal costs seconds; the cause may have been fixed).
 
 **The metric** is the one ``compare``'s table uses: each run's final test loss
 (``summary.csv``). A method ranks by the fraction of its seeds that diverged first (a method
-that diverges is less useful than any that does not), then by its mean final test loss
-over the finished seeds. The paired test is ``physgrad.harness.stats``' two-sided Wilcoxon
-signed-rank test on (seed, test case) pairs of the per-case final test loss, finished
-seeds only.
+that diverges is less useful than any that does not), then by its median final test loss
+over seeds, a diverged seed counting as +∞ (:mod:`physgrad.harness.seeds`). The comparison
+with the best method is ``physgrad.harness.stats``' pairing by seed, with the two-sided
+Wilcoxon signed-rank p-value over seeds from 6 seeds on.
 
 The package: :mod:`~physgrad.harness.bench.choices` (problems, candidates, the quick profile,
 ``--set`` scopes), :mod:`~physgrad.harness.bench.applicability` (which method runs where),

@@ -140,12 +140,13 @@ def bench_markdown(
         f"JAX {versions.get('jax')}, jaxlib {versions.get('jaxlib')}, physgrad {versions.get('physgrad')}, "
         f"Python {m.get('python')}, {m.get('platform')}; started {m.get('time')}.",
         "",
-        "The metric is each run's final test loss (as in `physgrad compare`); per method its mean ± std over the "
-        "finished seeds. Rank: by the fraction of runs that diverged or failed, then by that mean. "
-        f"Ratio: mean / {REFERENCE}'s mean. The paired test against each problem's best method is the two-sided "
-        "Wilcoxon signed-rank test on (seed, test case) pairs of the per-case final test loss, finished seeds of "
-        'both methods only (`physgrad.harness.stats`); "seeds lower" counts the seeds on which the best method\'s mean '
-        "over test cases is lower.",
+        "The metric is each run's final test loss (as in `physgrad compare`); the seeds are the replicates, and a "
+        "diverged or failed seed counts as +∞. Per method: the median over seeds with its 95 % bootstrap interval "
+        "(n/a below 3 seeds). Rank: by the fraction of runs that diverged or failed, then by that median. "
+        f"Ratio to {REFERENCE}: the median over seeds of the per-seed ratio. The comparison with each problem's best "
+        'method pairs them by seed (`physgrad.harness.stats`): "seeds lower" counts the seeds on which the best '
+        "method's mean over test cases is lower, and the two-sided Wilcoxon signed-rank p-value over seeds is given "
+        "from 6 seeds on (below that it cannot reach 0.05).",
         "",
         "## Leaderboard",
         "",

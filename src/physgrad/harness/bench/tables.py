@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from ..study import as_float, mean_std
+from ..seeds import as_float, number, ratio_summary, seed_ratios, summarize
 from .applicability import Verdict
 
 REFERENCE = "adam"  # the ratio column and the heat map are relative to this method
@@ -32,26 +32,32 @@ def method_rows(
     failures: dict[str, dict[str, Any]] | None = None,
     reference: str = REFERENCE,
 ) -> list[dict[str, Any]]:
-    """Per candidate method of one problem: status, counts, mean ± std of the final test
-    loss over its finished seeds, rank and ratio to ``reference``.
+    """Per candidate method of one problem: status, counts, the final test loss over its
+    seeds (a diverged or failed seed counting as +∞: ``median`` with its bootstrap interval
+    ``low``/``high``, ``mean`` ± ``std``, +∞ once a seed failed; :mod:`physgrad.harness.seeds`),
+    rank and ratio to ``reference``.
 
-    ``rows``: the study's ``summary.csv`` rows (``method``, ``status``, ``final_test_loss``);
-    ``failures``: ``failures.json``. ``status`` is ``ok`` (a finished seed),
-    ``diverged`` (every run diverged), ``failed`` (every run failed or the check crashed),
-    ``not applicable``, ``skipped`` or ``pending`` (applicable, not run yet).
-    The rank orders the methods with a mean by (fraction of runs diverged or failed, mean);
-    equal keys share the lower rank. The ratio is mean / reference mean where both are
-    finite and the reference's is positive."""
+    ``rows``: the study's ``summary.csv`` rows (``method``, ``seed``, ``status``,
+    ``final_test_loss``); ``failures``: ``failures.json``. ``status`` is ``ok`` (a finished
+    seed), ``diverged`` (every run diverged), ``failed`` (every run failed or the check
+    crashed), ``not applicable``, ``skipped`` or ``pending`` (applicable, not run yet).
+    The rank orders the ``ok`` methods by (fraction of runs diverged or failed, median);
+    equal keys share the lower rank. The ratio pairs the method with ``reference`` by seed:
+    the median of the per-seed ratios (a failure against a value: +∞), or the ratio of the
+    medians where the rows carry no seed."""
     failures = failures or {}
     table = []
     for v in verdicts:
         runs = [r for r in rows if r["method"] == v.method]
         finished = [r for r in runs if r["status"] == "finished"]
         diverged = sum(r["status"] == "diverged" for r in runs)
-        failed = sum(f["method"] == v.method for f in failures.values()) + (v.status == "error")
-        losses = [as_float(r["final_test_loss"]) for r in finished]
-        n_finite = sum(map(math.isfinite, losses))
-        mean, std = mean_std(losses)
+        failed_runs = [f for f in failures.values() if f["method"] == v.method]
+        failed = len(failed_runs) + (v.status == "error")
+        n_finite = sum(math.isfinite(as_float(r["final_test_loss"])) for r in finished)
+        seeds = {str(r.get("seed", i)): math.inf if r["status"] == "diverged" else as_float(r["final_test_loss"])
+                 for i, r in enumerate(runs)}  # fmt: skip
+        seeds.update({f"failed{f.get('seed', i)}": math.inf for i, f in enumerate(failed_runs)})
+        summary = summarize(list(seeds.values()))
         if v.status != "applicable" and v.status != "error":
             status = v.status
         elif n_finite:
@@ -64,22 +70,34 @@ def method_rows(
             status = "pending"
         table.append({
             "method": v.method, "status": status, "reason": v.reason, "runs": len(runs) + failed,
-            "finished": n_finite, "diverged": diverged, "failed": failed, "mean": mean, "std": std,
+            "finished": n_finite, "diverged": diverged, "failed": failed, "seeds": seeds,
+            "mean": summary["mean"] if status == "ok" else math.nan, "std": summary["std"] if status == "ok" else math.nan,
+            "median": summary["median"] if status == "ok" else math.nan, "low": summary["low"], "high": summary["high"],
+            "n": summary["n"],
         })  # fmt: skip
-    ranked = sorted(
-        (t for t in table if math.isfinite(t["mean"])),
-        key=lambda t: ((t["diverged"] + t["failed"]) / max(t["runs"], 1), t["mean"]),
-    )
+
+    def key(t):
+        return ((t["diverged"] + t["failed"]) / max(t["runs"], 1), t["median"])
+
+    ranked = sorted((t for t in table if t["status"] == "ok"), key=key)
     rank, previous = 0, None
     for i, t in enumerate(ranked, 1):
-        key = ((t["diverged"] + t["failed"]) / max(t["runs"], 1), t["mean"])
-        rank = rank if key == previous else i
-        t["rank"], previous = rank, key
-    base = next((t["mean"] for t in table if t["method"] == reference), math.nan)
+        rank = rank if key(t) == previous else i
+        t["rank"], previous = rank, key(t)
+    ref = next((t for t in table if t["method"] == reference), None)
+    base = ref["median"] if ref is not None else math.nan
+    paired = all("seed" in r for r in rows)
     for t in table:
         t.setdefault("rank", None)
         t["problem_has_reference"] = math.isfinite(base) and base > 0
-        t["ratio"] = t["mean"] / base if math.isfinite(t["mean"]) and t["problem_has_reference"] else math.nan
+        if not (t["status"] == "ok" and t["problem_has_reference"] and ref is not None):
+            t["ratio"] = math.nan
+        elif paired:
+            ratios = seed_ratios({k: x for k, x in t["seeds"].items() if not k.startswith("failed")},
+                                 {k: x for k, x in ref["seeds"].items() if not k.startswith("failed")})  # fmt: skip
+            t["ratio"] = ratio_summary(ratios)["median"]
+        else:
+            t["ratio"] = t["median"] / base
     return table
 
 
@@ -89,9 +107,10 @@ def best_method(table: Sequence[dict[str, Any]]) -> str | None:
 
 
 def add_paired_tests(table: list[dict[str, Any]], tests: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
-    """Each method's paired test against the best method (``stats.paired_tests`` rows):
-    ``p_vs_best`` (two-sided Wilcoxon signed-rank p-value), ``pairs``, ``seeds_best_lower``
-    (of ``seeds_compared``); NaN/None where there is nothing to pair."""
+    """Each method's paired comparison with the best method, by seed (``stats.paired_tests``
+    rows): ``p_vs_best`` (two-sided Wilcoxon signed-rank p-value over seeds; NaN below 6
+    seeds), ``pairs`` (test-case pairs in the seeds' means), ``seeds_best_lower`` (of
+    ``seeds_compared``); NaN/None where there is nothing to pair."""
     best = best_method(table)
     for t in table:
         row = next((r for r in tests if best and {r["method_a"], r["method_b"]} == {best, t["method"]}), None)
@@ -124,7 +143,7 @@ def leaderboard(tables: dict[str, Sequence[dict[str, Any]]]) -> list[dict[str, A
         ran = [t for t in cells if t["status"] not in ("not applicable", "skipped")]
         if not ran:
             continue
-        ratios = np.clip([t["ratio"] for t in ran if math.isfinite(t["ratio"])], *RATIO_CLIP)
+        ratios = np.clip([t["ratio"] for t in ran if not math.isnan(t["ratio"])], *RATIO_CLIP)  # ∞: a failure
         lost = sum(t["status"] in ("diverged", "failed") for t in ran if t["problem_has_reference"])
         scored = np.concatenate([ratios, np.full(lost, RATIO_CLIP[1])])
         board.append({
@@ -152,7 +171,7 @@ def leaderboard(tables: dict[str, Sequence[dict[str, Any]]]) -> list[dict[str, A
 TABLE_COLUMNS = (
     "problem", "method", "status", "runs", "finished", "diverged", "failed", "final_test_loss_mean",
     "final_test_loss_std", "rank", "ratio_to_adam", "best", "p_vs_best", "pairs", "seeds_best_lower",
-    "seeds_compared", "reason",
+    "seeds_compared", "reason", "final_test_loss_median", "final_test_loss_low", "final_test_loss_high",
 )  # fmt: skip
 BOARD_COLUMNS = (
     "method",
@@ -168,7 +187,10 @@ BOARD_COLUMNS = (
 
 
 def _number(x: float, spec: str = ".3e") -> str:
-    return format(x, spec) if isinstance(x, (int, float)) and math.isfinite(x) else ""
+    """A CSV cell: empty for NaN or a non-number, ``inf`` for a failure's +∞."""
+    if not isinstance(x, (int, float)) or math.isnan(x):
+        return ""
+    return "inf" if math.isinf(x) else format(x, spec)
 
 
 def table_records(problem: str, table: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
@@ -181,6 +203,8 @@ def table_records(problem: str, table: Sequence[dict[str, Any]]) -> list[dict[st
         "p_vs_best": _number(t.get("p_vs_best", math.nan), ".3g"), "pairs": t.get("pairs") or "",
         "seeds_best_lower": "" if t.get("seeds_best_lower") is None else t["seeds_best_lower"],
         "seeds_compared": t.get("seeds_compared") or "", "reason": t["reason"],
+        "final_test_loss_median": _number(t["median"], ".6e"), "final_test_loss_low": _number(t["low"], ".6e"),
+        "final_test_loss_high": _number(t["high"], ".6e"),
     } for t in table]  # fmt: skip
 
 
@@ -190,11 +214,12 @@ def table_lines(
     """A problem's table as printable lines (header first): ranked methods first, then the
     diverged/failed/pending ones, then (with ``inapplicable``) the skipped methods and
     those that do not apply, with the reason."""
+    from ..seeds import median_cell
     from ..stats import format_p
 
     best = best_method(table)
-    header = ["rank", "method", "runs", "final test loss (mean ± std)", f"/ {reference}",
-              f"vs {best or 'best'}: Wilcoxon p (seeds lower)", "note"]  # fmt: skip
+    header = ["rank", "method", "runs", "final test loss: median [95% CI] over seeds", f"/ {reference}",
+              f"vs {best or 'best'}: Wilcoxon p over seeds, from 6 (seeds lower)", "note"]  # fmt: skip
     order = {"ok": 0, "diverged": 1, "failed": 1, "pending": 2, "skipped": 3, "not applicable": 4}
     lines = [header]
     for t in sorted(table, key=lambda t: (order[t["status"]], t["rank"] or 0)):
@@ -202,24 +227,26 @@ def table_lines(
             continue
         notes = []
         if t["diverged"]:
-            notes.append(f"{t['diverged']}/{t['runs']} diverged")
+            notes.append(f"{t['diverged']} of {t['runs']} diverged")
         if t["failed"]:
-            notes.append(f"{t['failed']}/{t['runs']} failed")
+            notes.append(f"{t['failed']} of {t['runs']} failed")
         if t["reason"]:
             notes.append(t["reason"])
         if t["status"] == "ok":
-            loss = f"{t['mean']:.3e} ± {t['std']:.1e}"
+            loss = median_cell(t)
         else:
             loss = {"diverged": "all diverged", "failed": "failed", "pending": "not run yet"}.get(
                 t["status"], str(t["status"])
             )
         if t["method"] == best:
             test = "best"
-        elif t.get("pairs"):
-            test = f"{format_p(t['p_vs_best'])} ({t['seeds_best_lower']}/{t['seeds_compared']})"
+        elif t.get("seeds_compared"):
+            p = t["p_vs_best"]
+            test = (f"{format_p(p)}" if math.isfinite(p) else f"n/a: {t['seeds_compared']} seeds") + (
+                f" ({t['seeds_best_lower']}/{t['seeds_compared']})")  # fmt: skip
         else:
             test = ""
-        ratio = _number(t["ratio"], ".3g")
+        ratio = number(t["ratio"], ".3g") if t["status"] == "ok" else ""
         runs = str(t["runs"]) if t["status"] not in ("not applicable", "skipped") else ""
         lines.append([str(t["rank"] or ""), t["method"], runs, loss, ratio, test, "; ".join(notes)])
     return lines
