@@ -70,7 +70,9 @@ TRAINING = {
 }
 
 
-@pytest.mark.parametrize("name", sorted(TRAINING))
+@pytest.mark.parametrize(
+    "name", [n if n == "hig_toy" else pytest.param(n, marks=pytest.mark.slow) for n in sorted(TRAINING)]
+)
 def test_kfac_trains_an_open_loop_problem_through_the_engine(name):
     settings, batch_size, steps = TRAINING[name]
     # damping_interval=1: one traced variant of kfac-jax's step (halves compilation here).

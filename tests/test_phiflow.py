@@ -44,6 +44,10 @@ import pytest
 from physgrad import fluid, jacobian, phiflow
 from physgrad.inverse import GaussNewton
 
+# The PhiFlow comparisons trace PhiFlow and compile its graphs in a fresh interpreter (about a
+# minute of CPU from a cold cache): the slow tier, which CI runs after make test.
+pytestmark = pytest.mark.slow
+
 # A spec check, not pytest.importorskip("phi"): collecting this module imports no PhiFlow
 # (physgrad.phiflow imports it on first use, which the tests below exercise).
 if not phiflow.phiflow_available():

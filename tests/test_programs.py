@@ -109,6 +109,7 @@ def test_program_cache_keys_and_eviction():
         static_key({"w": x})
 
 
+@pytest.mark.slow  # two fresh command-line runs
 def test_persistent_compilation_cache_from_the_command_line(tmp_path):
     """``--compilation-cache DIR`` turns on JAX's persistent cache in the CLI's own process
     (the library never touches JAX's configuration); compiled programs land in DIR. (JAX

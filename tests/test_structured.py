@@ -182,7 +182,8 @@ def _mixed():
     return _objective(net) + (_batch(8, 3, b=5),)
 
 
-@pytest.mark.parametrize("chunk", [2**26, 4])  # one explicit group; several (the VJP path)
+# one explicit group; several (the VJP path, in the slow tier)
+@pytest.mark.parametrize("chunk", [2**26, pytest.param(4, marks=pytest.mark.slow)])
 def test_mixed_conv_dense_network_equals_the_gram_route(chunk):
     objective, params, batch = _mixed()
     rows = 5 * 3
