@@ -177,6 +177,7 @@ def hig_pieces(batch_size=32):
     return setup, batch, np.asarray(jac), np.asarray(g)
 
 
+@pytest.mark.slow  # block Gram against Gram: also in test_half_inverse's route comparisons
 def test_blockgram_route_equals_the_gram_route_without_forming_j():
     setup, batch, jac, g = hig_pieces()
     # τ = 1e-3: this ReLU net's J has singular values down to 1e-10 σ_max, whose σ^κ

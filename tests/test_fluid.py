@@ -101,7 +101,7 @@ def test_uniform_field_and_integer_shift_are_exact():
     np.testing.assert_array_equal(np.asarray(marker), np.asarray(shifted))
 
 
-@pytest.mark.parametrize("clamp", [True, False])
+@pytest.mark.parametrize("clamp", [pytest.param(True, marks=pytest.mark.slow), False])  # the clamped variant: slow tier
 def test_mac_cormack_is_second_order(clamp):
     """L1 error of a smooth periodic field advected by a uniform, non-grid-aligned velocity
     for time 0.5 at a fixed CFL number: halving Δx divides it by ~4 (semi-Lagrangian: ~2)."""

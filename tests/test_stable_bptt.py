@@ -299,6 +299,7 @@ def test_grid_panels_survive_a_partly_finished_grid(tmp_path):
     assert grid_panels([], tmp_path / "empty.png", panel="poles", methods=["bptt"]).exists()
 
 
+@pytest.mark.slow  # an end-to-end command-line study
 def test_a_reused_study_directory_reports_only_its_planned_runs(tmp_path, capsys):
     out = tmp_path / "s"
     base = [
