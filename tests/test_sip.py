@@ -269,7 +269,10 @@ with warnings.catch_warnings(record=True) as caught:
             d = np.asarray(direction["w"], np.float64)
             out[f"{name}_{precision}"] = {"dtype": str(direction["w"].dtype), "failures": int(stats["inverse_failures"]),
                                           "error": float(np.abs(d - want).max() / np.abs(want).max())}
-out["warnings"] = [str(w.message)[:200] for w in caught]
+# the run's own warnings (a float64 request truncated, a dtype mix), not a dependency's
+# DeprecationWarning (at the version floors one of them calls jax.core.mapped_aval, which jax
+# 0.8.2 deprecates: make test-floors failed on it)
+out["warnings"] = [str(w.message)[:200] for w in caught if not issubclass(w.category, DeprecationWarning)]
 print(json.dumps(out))
 """
 
