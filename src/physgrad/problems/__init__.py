@@ -12,7 +12,7 @@ from .kolmogorov import Kolmogorov
 from .ks import KuramotoSivashinsky
 from .linear_oscillators import LinearOscillators
 from .navier_stokes import NavierStokes
-from .oscillators import Oscillators
+from .oscillators import AbstractOscillators, Oscillators
 from .poisson import Poisson
 from .poisson_hig import PoissonHig
 from .quantum_control import QuantumControl
@@ -37,6 +37,7 @@ __all__ = [
     "Sine",
     "Toy2d",
     "HigToy",
+    "AbstractOscillators",
     "LinearOscillators",
     "NavierStokes",
     "Oscillators",

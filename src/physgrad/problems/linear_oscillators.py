@@ -29,21 +29,27 @@ from typing import ClassVar
 
 import equinox as eqx
 
-from .oscillators import Oscillators
+from .oscillators import AbstractOscillators
 
 
-class LinearOscillators(Oscillators):
+class LinearOscillators(AbstractOscillators):
     """Return-to-start control of two linearly coupled oscillators (PBDL book).
 
-    Only the settings whose book value differs from the nonlinear chain's are redeclared.
+    A final class beside :class:`~physgrad.problems.Oscillators`, not a subclass of it:
+    every setting is stated here with the book's value.
     """
 
+    n_oscillators: int = eqx.field(static=True, default=2)
     n_steps: int = eqx.field(static=True, default=24)
     dt: float = eqx.field(static=True, default=0.5)
     cubic_coupling: float = eqx.field(static=True, default=0.0)
     linear_coupling: float = eqx.field(static=True, default=0.2)
     control_gain: float = eqx.field(static=True, default=1.0)
+    n_train: int = eqx.field(static=True, default=4096)
+    n_test: int = eqx.field(static=True, default=4096)  # physgrad's test set (the book has none)
+    hidden: int = eqx.field(static=True, default=20)
     activation: str = eqx.field(static=True, default="tanh")
+    dtype: str = eqx.field(static=True, default="float32")
 
     name: ClassVar[str] = "linear_oscillators"
     source: ClassVar[str] = "PBDL book, physgrad-hig-code.ipynb"

@@ -30,24 +30,27 @@ from ..precision import require_float64
 from .base import AbstractProblem
 
 
-class Oscillators(AbstractProblem):
-    """Return-to-start control of a chain of cubically coupled oscillators."""
+class AbstractOscillators(AbstractProblem):
+    """Return-to-start control of a chain of coupled oscillators: the physics, data, network
+    and loss shared by :class:`Oscillators` (the HIG paper's cubic chain) and
+    :class:`~physgrad.problems.LinearOscillators` (the PBDL book's linear one).
 
-    n_oscillators: int = eqx.field(static=True, default=2)
-    n_steps: int = eqx.field(static=True, default=96)
-    dt: float = eqx.field(static=True, default=0.125)
-    cubic_coupling: float = eqx.field(static=True, default=1.0)
-    linear_coupling: float = eqx.field(static=True, default=0.0)
-    control_gain: float = eqx.field(static=True, default=3.0)
-    n_train: int = eqx.field(static=True, default=4096)
-    n_test: int = eqx.field(static=True, default=4096)
-    hidden: int = eqx.field(static=True, default=20)
-    activation: str = eqx.field(static=True, default="relu")
-    dtype: str = eqx.field(static=True, default="float32")
+    Equinox's abstract/final pattern: this class holds the methods, each final class
+    declares every setting with its own source's value, and no concrete problem is
+    subclassed (a preset would otherwise inherit the other paper's defaults silently).
+    """
 
-    name: ClassVar[str] = "oscillators"
-    source: ClassVar[str] = "Schnell, Holl, Thuerey, ICLR 2022, Fig. 2b"
-    default_batch_size: ClassVar[int] = 128
+    n_oscillators: eqx.AbstractVar[int]
+    n_steps: eqx.AbstractVar[int]
+    dt: eqx.AbstractVar[float]
+    cubic_coupling: eqx.AbstractVar[float]  # α
+    linear_coupling: eqx.AbstractVar[float]  # β
+    control_gain: eqx.AbstractVar[float]  # c
+    n_train: eqx.AbstractVar[int]
+    n_test: eqx.AbstractVar[int]
+    hidden: eqx.AbstractVar[int]
+    activation: eqx.AbstractVar[str]
+    dtype: eqx.AbstractVar[str]
 
     @property
     def needs_float64(self) -> bool:
@@ -94,3 +97,23 @@ class Oscillators(AbstractProblem):
     def target(self, sample):
         """Return to the start: y* = x₀ (SIP's y-space target)."""
         return sample["x0"]
+
+
+class Oscillators(AbstractOscillators):
+    """Return-to-start control of a chain of cubically coupled oscillators (HIG paper)."""
+
+    n_oscillators: int = eqx.field(static=True, default=2)
+    n_steps: int = eqx.field(static=True, default=96)
+    dt: float = eqx.field(static=True, default=0.125)
+    cubic_coupling: float = eqx.field(static=True, default=1.0)
+    linear_coupling: float = eqx.field(static=True, default=0.0)
+    control_gain: float = eqx.field(static=True, default=3.0)
+    n_train: int = eqx.field(static=True, default=4096)
+    n_test: int = eqx.field(static=True, default=4096)
+    hidden: int = eqx.field(static=True, default=20)
+    activation: str = eqx.field(static=True, default="relu")
+    dtype: str = eqx.field(static=True, default="float32")
+
+    name: ClassVar[str] = "oscillators"
+    source: ClassVar[str] = "Schnell, Holl, Thuerey, ICLR 2022, Fig. 2b"
+    default_batch_size: ClassVar[int] = 128
