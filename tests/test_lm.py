@@ -149,6 +149,27 @@ def test_lm_step_accepts_good_steps_and_rejects_bad_ones():
     assert float(state2.damping) == pytest.approx(2e-2) and float(state2.growth) == 4.0
 
 
+def test_levenberg_marquardt_entry_point_is_the_method_with_the_users_chain_under_plain_jit():
+    """physgrad.levenberg_marquardt(predict, loss, optimizer=chain): jax.jit(lm.step) as it is,
+    on a whole Equinox module, gives the method's own step bit for bit (accepted and refused)."""
+    import optax
+
+    import physgrad
+
+    objective, params, batch = _problem()
+    for lr, accepted in ((1.0, True), (50.0, False)):
+        lm = physgrad.levenberg_marquardt(objective.predict, objective.loss, optimizer=optax.sgd(lr), damping=1e-2,
+                                          truncation=0.0, route=routes.Gram())  # fmt: skip
+        new, state, stats = jax.jit(lm.step)(params, lm.init(params), batch)
+        method = LevenbergMarquardt(JacobianPower(-1.0, 0.0, routes.Gram()), optax.sgd(lr), damping=1e-2)
+        want, want_state, _ = jax.jit(method.step, static_argnums=0)(objective, params, method.init(params), batch)
+        assert bool(stats["accepted"]) is accepted
+        for a, b in zip(jax.tree.leaves((new, state)), jax.tree.leaves((want, want_state))):
+            np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    with pytest.raises(ValueError, match="damping"):
+        physgrad.levenberg_marquardt(objective.predict, objective.loss, damping=0.0)
+
+
 @pytest.mark.slow
 def test_lm_trains_an_open_loop_problem_from_the_command_line(tmp_path, capsys):
     out = tmp_path / "study"

@@ -55,6 +55,10 @@ class Study:
     tail: float = 0.0
     smooth: int = 0
     logx: bool = False
+    # another study on the same problem whose runs are drawn and tabulated beside this
+    # one's, cut at this study's calibrated budget (its last evaluation at or before it): a
+    # short ablation measured against the long study's curves instead of re-running them
+    reference: str | None = None
 
 
 STUDIES = {
@@ -74,6 +78,9 @@ STUDIES = {
     "kolmogorov_32": Study("kolmogorov", metric="rel_error", baseline="one", axis="steps"),
     "sip_heat_10k": Study("heat", metric="x_l1_clamped", axis="steps"),
     "sip_poisson_10k": Study("poisson", metric="x_l1", axis="steps"),
+    # Kronecker-factored HIG's power ablation (−½, −¾, −1) against the long studies' HIG/Adam
+    "khig_oscillators": Study("oscillators", baseline="hig", reference="oscillators_60min"),
+    "khig_quantum_dipole": Study("quantum_dipole", baseline="hig", reference="quantum_dipole_90min"),
 }
 
 
@@ -82,7 +89,7 @@ def study_of(name: str) -> Study:
 
 
 # settings (as they appear in a directory name) that leave the work of one update unchanged
-COST_NEUTRAL = ("lr", "learning_rate", "truncation", "eta")
+COST_NEUTRAL = ("lr", "learning_rate", "truncation", "eta", "power")
 
 
 def method_of(directory: str) -> tuple[str, int | None, str | None]:
@@ -135,6 +142,7 @@ def runs(study: Path, method: str) -> list[dict]:
             "seed": config["seed"], "budget": config["budget"]["steps"],
             "step": np.array([int(r["step"]) for r in rows]), "wall": np.array([float(r["wall_time"]) for r in rows]),
             "loss": np.array([float(r["value"]) for r in rows]),
+            "t": seconds(calibration(), study.name, method, [int(r["step"]) for r in rows]),
             "status": summary["status"] if summary else "partial",
             "partial": summary is None or (summary["status"] != "diverged" and summary["steps"] < config["budget"]["steps"]),
             "last_step": (summary.get("diverged_step") or summary["steps"]) if summary else (int(rows[-1]["step"]) if rows else 0),
@@ -149,10 +157,40 @@ def final_value(run: dict, tail: float) -> float:
     return float(np.mean(run["loss"][-max(1, int(round(tail * (len(run["loss"]) - 1)))) :]))
 
 
+def cut(run: dict, limit: float) -> dict:
+    """A reference run read up to the calibrated time ``limit`` (s): its evaluations at or
+    before it, finished there if it got that far."""
+    keep = np.asarray(run["t"]) <= limit * (1 + 1e-9)
+    reached = bool(keep.any()) and (run["status"] == "finished" or run["t"][keep][-1] < run["t"][-1])
+    out = {**run, **{k: np.asarray(run[k])[keep] for k in ("step", "wall", "loss", "t")}}
+    if reached and run["status"] != "diverged":
+        last = int(out["step"][-1]) if len(out["step"]) else 0
+        out.update(status="finished", partial=False, last_step=last, budget=last)
+    return out
+
+
+def with_reference(study: Path, data: dict) -> dict:
+    """``data`` plus the reference study's runs, cut at this study's longest calibrated
+    budget, under the names ``METHOD (REFERENCE)``."""
+    spec = study_of(study.name)
+    if spec.reference is None:
+        return data
+    limit = max((float(seconds(calibration(), study.name, m, r["budget"])) for m, rs in data.items() for r in rs),
+                default=0.0)  # fmt: skip
+    reference = DATA / spec.reference
+    out = dict(data)
+    for m in sorted(p.name for p in reference.iterdir() if (p / "runs").is_dir()):
+        rs = [cut(r, limit) for r in runs(reference, m)]
+        if rs and not math.isnan(float(seconds(calibration(), spec.reference, m, 1))):
+            out[f"{m} ({spec.reference})"] = rs
+    return out
+
+
 def table(study: Path, cal) -> tuple[list[str], dict]:
     spec = study_of(study.name)
-    methods = sorted(p.name for p in study.iterdir() if (p / "runs").is_dir())
-    data = {m: runs(study, m) for m in methods}
+    own = sorted(p.name for p in study.iterdir() if (p / "runs").is_dir())
+    data = with_reference(study, {m: runs(study, m) for m in own})
+    methods = sorted(data)
     finals = {}
     value = f"final test {spec.metric}" + (f" (mean of the last {spec.tail:.0%} of evaluations)" if spec.tail else "")
     lines = [f"| method | s/step alone | budget (steps) | runs | {value}: mean ± std | / {spec.baseline} | state |",
@@ -166,19 +204,20 @@ def table(study: Path, cal) -> tuple[list[str], dict]:
         state = ", ".join(f"seed {r['seed']}: {r['status']} at step {r['last_step']}"
                           for r in rs if r["status"] != "finished") or "all finished"  # fmt: skip
         mean = f"{values.mean():.3e} ± {values.std(ddof=1) if len(values) > 1 else 0:.1e}" if len(values) else "-"
-        per_step = float(seconds(cal, study.name, m, 1)) if method_of(m)[1] is None else math.nan
+        name, source = (m.split(" (")[0], spec.reference) if m not in own else (m, study.name)
+        per_step = float(seconds(cal, source, name, 1)) if method_of(name)[1] is None else math.nan
         lines.append(f"| {m} | {per_step:.4f} | {rs[0]['budget'] if rs else '-'} | "
-                     f"{len(done)} finished, {len(div)} diverged | {mean} | RATIO_{m} | {state} |")  # fmt: skip
-    base = finals.get(spec.baseline)
+                     f"{len(done)} finished, {len(div)} diverged | {mean} | RATIO_{methods.index(m)}_ | {state} |")  # fmt: skip
+    base = finals.get(spec.baseline, finals.get(f"{spec.baseline} ({spec.reference})"))
     for i, line in enumerate(lines):
         for m in methods:
-            if f"RATIO_{m}" in line:
+            if f"RATIO_{methods.index(m)}_" in line:
                 ratio = (
                     f"{finals[m].mean() / base.mean():.3g}"
                     if base is not None and len(base) and len(finals[m])
                     else "-"
                 )
-                lines[i] = line.replace(f"RATIO_{m}", ratio)
+                lines[i] = line.replace(f"RATIO_{methods.index(m)}_", ratio)
     return lines, data
 
 
@@ -205,7 +244,7 @@ def figure(study: Path, data: dict, cal, out: Path):
             # point is kept: its label says that it diverged)
             if not len(r["loss"]) or (len(r["loss"]) < 2 and r["status"] != "diverged"):
                 continue
-            t = seconds(cal, study.name, m, r["step"]) / 60 if spec.axis == "calibrated" else r["step"]
+            t = np.asarray(r["t"], float) / 60 if spec.axis == "calibrated" else r["step"]
             label = f"{m} seed {r['seed']}" + (" (diverged)" if r["status"] == "diverged" else "")
             if r["partial"]:
                 label += f" (partial: step {r['last_step']:,} of {r['budget']:,})"

@@ -17,7 +17,8 @@
 #   bash docs/reproductions/long/studies.sh [lane ...]      # default: oscillators dipole
 # Lanes: oscillators, dipole, poisson (HIG, core 0); navier_stokes, dipole_screen, dipole_screen_cheap,
 # quantum_control, guidance, ks_screen, ks_screen_shuffled, ks_screen_grouped, u1_screen_grouped,
-# kolmogorov_screen_grouped, ks, kolmogorov_zero, kolmogorov, heat, sip_poisson (core 1: CORE=1).
+# kolmogorov_screen_grouped, ks, kolmogorov_zero, kolmogorov, heat, sip_poisson, khig_oscillators,
+# khig_quantum_dipole (core 1: CORE=1).
 # Environment: CORE (default 0), SEEDS (default 3: grow every lane to this many seeds), STUDY_COMMIT,
 # LATE_COMMIT, PY (python of an env with physgrad's deps).
 set -euo pipefail
@@ -171,6 +172,21 @@ lane_kolmogorov_screen_grouped() {
   local size=(--set n=16 --set forcing_mode=4 --set width=16 --set blocks=3 --set frames=400 --set m=4)
   lane_study kolmogorov_16_2ep_correction kolmogorov "one@594@99 nog@594@99 wig@594@99" "${size[@]}" --set setup=correction
   lane_study kolmogorov_16_2ep_prediction kolmogorov "one@594@99 nog@594@99 wig@594@99" "${size[@]}" --set setup=prediction
+}
+# Kronecker-factored HIG's power ablation: p = −½, −¾ (HIG's) and −1 (Gauss–Newton's) on the
+# same Kronecker factors, at HIG's paper step size, batch and τ (khig's defaults), for a short
+# calibrated budget; report.py draws them against the long studies' HIG and Adam cut at the same
+# calibrated time (Study.reference). KHIG_COMMIT: physgrad with khig.
+khig() { use_commit "$ROOT/../studycode-khig" "${KHIG_COMMIT:-c476d49}"; }
+# oscillators, batch 128: 5 calibrated minutes (khig OSC_KHIG_MS ms/step alone), an evaluation every 30 s
+lane_khig_oscillators() {
+  khig
+  lane_study khig_oscillators oscillators "khig@OSC_STEPS@OSC_EVERY@power=-0.5 khig@OSC_STEPS@OSC_EVERY@power=-0.75 khig@OSC_STEPS@OSC_EVERY@power=-1"
+}
+# quantum dipole, batch 16: 10 calibrated minutes (khig DIP_KHIG_MS ms/step alone), an evaluation every minute
+lane_khig_quantum_dipole() {
+  khig
+  lane_study khig_quantum_dipole quantum_dipole "khig@DIP_STEPS@DIP_EVERY@power=-0.5 khig@DIP_STEPS@DIP_EVERY@power=-0.75 khig@DIP_STEPS@DIP_EVERY@power=-1"
 }
 # Claims 5 and 6, SIP Fig. 6: heat and Poisson 64², SIP vs Adam for the paper's 10,000 steps, test
 # x-error on 128 samples every 250 steps; ≈ 1.7–2 s per SIP step on one core: ≈ 5 h per run.

@@ -41,12 +41,13 @@ from .base import (
     MethodState,
     Objective,
     Part,
+    Stepper,
     trainable,
 )
 from .dp import Gradient, LossAwareDP, dp
 from .hig import JacobianPower, gauss_newton, hig
 from .kronecker_hig import KroneckerPower, kronecker_hig
-from .lm import GainRatio, LevenbergMarquardt, adapt_damping, predicted_decrease
+from .lm import GainRatio, LevenbergMarquardt, adapt_damping, levenberg_marquardt, predicted_decrease
 from .newton import Newton, newton
 from .sip import AbstractProxy, L1Proxy, L2Proxy, ScaleInvariantPhysics, sip
 from .stable_bptt import RolloutGradient, bptt, stabilised_bptt
@@ -71,6 +72,7 @@ __all__ = [
     "Objective",
     "OPEN_LOOP",
     "Part",
+    "Stepper",
     "ROLLOUT",
     "SPLIT",
     "UNROLLED",
@@ -84,6 +86,7 @@ __all__ = [
     "gauss_newton",
     "hig",
     "kronecker_hig",
+    "levenberg_marquardt",
     "newton",
     "predicted_decrease",
     "schedule",

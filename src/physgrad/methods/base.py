@@ -440,3 +440,30 @@ class Method(AbstractMethod):
         accepted, verdict, accept_state = self.acceptance(proposal, accept_state)
         params, opt_state = keep_where(accepted, (candidate, new_opt_state), (params, opt_state))
         return params, MethodState(opt_state, accept_state), {**stats, **verdict}
+
+
+class Stepper(eqx.Module):
+    """A method bound to a user's functions: ``init(params)`` and ``step(params, state,
+    batch) -> (params, state, stats)``.
+
+    For the rules whose update is more than a direction for the user's chain (Levenberg–
+    Marquardt measures the loss at the candidate and refuses bad steps): the user's optax
+    chain goes in as the method's optimizer, and the acceptance test is part of ``step``.
+    Pure and traceable like :class:`Estimator`; ``jax.jit(stepper.step)`` works as it is,
+    and ``params`` may be a whole Equinox module.
+    """
+
+    method: AbstractMethod
+    objective: Objective
+
+    def __check_init__(self):
+        self.method.check(self.objective)
+
+    __hash__ = object.__hash__  # a function to jax.jit, as Estimator
+    __eq__ = object.__eq__
+
+    def init(self, params: PyTree) -> Any:
+        return self.method.init(params)
+
+    def step(self, params: PyTree, state: Any, batch: PyTree) -> tuple[PyTree, Any, Stats]:
+        return self.method.step(self.objective, params, state, batch)

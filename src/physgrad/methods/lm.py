@@ -42,8 +42,8 @@ from jaxtyping import Array, PyTree
 
 from ..acceptance import AbstractAcceptance
 from ..jacobian import require_forward_mode
-from ..routes import Damped
-from .base import AbstractMethod, Method, MethodState, Objective, required, trainable
+from ..routes import AbstractRoute, Auto, Damped
+from .base import AbstractMethod, Method, MethodState, Objective, Stepper, required, trainable
 from .hig import JacobianPower
 
 
@@ -216,3 +216,36 @@ class LevenbergMarquardt(AbstractMethod):
         inner = MethodState(state.optimizer, DampingState(state.damping, state.growth))
         params, (opt_state, damping), stats = self.method.apply(objective, params, batch, direction, stats, inner)
         return eqx.combine(params, static), LMState(opt_state, *damping), stats
+
+
+def levenberg_marquardt(predict, loss, *, optimizer: optax.GradientTransformation | None = None,
+                        damping: float = 1e-3, reject: bool = True, truncation: float = 1e-6,
+                        route: AbstractRoute = Auto()) -> Stepper:  # fmt: skip
+    """Levenberg–Marquardt bound to your functions and your optax chain.
+
+    ``lm = levenberg_marquardt(predict, loss, optimizer=chain)``; ``state = lm.init(params)``;
+    ``params, state, stats = jax.jit(lm.step)(params, state, batch)``. Each step computes the
+    damped direction ``d = Jᵀ(J Jᵀ + μ σ_max² I)⁻¹ g`` (the same J, routes and truncation
+    as :func:`physgrad.hig`), lets ``optimizer`` turn it into updates, measures the batch loss
+    at the candidate and keeps or refuses the step by the gain ratio (:class:`GainRatio`,
+    Nielsen's rule, which also adapts μ). LM is a :class:`Stepper` rather than an
+    :class:`Estimator` because the acceptance needs the loss after the update: a direction
+    alone cannot be accepted or refused. The same pieces apart: ``Method(JacobianPower(-1),
+    chain, acceptance=GainRatio())`` accepts and refuses without feeding μ back (the
+    direction is then undamped Gauss–Newton).
+
+    Arguments:
+        predict, loss: as :func:`physgrad.hig`.
+        optimizer: applies the direction (None: ``optax.sgd(1)``, θ ← θ − d).
+        damping: the initial μ, relative to σ_max².
+        reject: refuse steps whose gain ratio is not positive (False: keep every step and
+            only adapt μ).
+        truncation, route: as :func:`physgrad.hig`.
+
+    ``stats``: ``loss`` (before the step), the rule's spectrum (``route``, ``rank``,
+    ``sigma_max``, ``sigma_min_kept``), ``damping`` (μ used by the step), ``gain_ratio`` (ρ)
+    and ``accepted`` (1 or 0).
+    """
+    optimizer = optax.sgd(1.0) if optimizer is None else optimizer
+    method = LevenbergMarquardt(JacobianPower(-1.0, truncation, route), optimizer, damping, reject)
+    return Stepper(method, Objective(predict, loss))
