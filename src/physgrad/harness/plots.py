@@ -72,13 +72,26 @@ def clip_marks(t: np.ndarray, v: np.ndarray, lower: float, upper: float):
     return t, clipped, (t[marked], edge[marked])
 
 
-def _series(results: list[dict[str, Any]], method: str, split: str, metric: str):
-    """Per seed: (seed, wall_time, value) of one method's metric, sorted by time (every
-    value, NaN and infinities included)."""
+def calibrated_axis(results: list[dict[str, Any]]) -> bool:
+    """Whether the rows carry the calibrated time (a calibrated study's ``results.csv``,
+    :mod:`physgrad.harness.calibration`)."""
+    return any(r.get("calibrated_time") not in (None, "") for r in results)
+
+
+def row_time(r: dict[str, Any], calibrated: bool) -> float:
+    """A row's time on the figure's axis: the calibrated time where the axis is calibrated
+    and the row has one, else the training wall-clock."""
+    value = r.get("calibrated_time") if calibrated else None
+    return float(value if value not in (None, "") else r["wall_time"])
+
+
+def _series(results: list[dict[str, Any]], method: str, split: str, metric: str, calibrated: bool = False):
+    """Per seed: (seed, time, value) of one method's metric, sorted by time (every value,
+    NaN and infinities included); the time is :func:`row_time`'s."""
     by_seed: dict[str, list[tuple[float, float]]] = {}
     for r in results:
         if r["method"] == method and r["split"] == split and r["metric"] == metric:
-            by_seed.setdefault(str(r["seed"]), []).append((float(r["wall_time"]), float(r["value"])))
+            by_seed.setdefault(str(r["seed"]), []).append((row_time(r, calibrated), float(r["value"])))
     return [(seed, *np.array(sorted(points, key=lambda p: p[0])).T) for seed, points in by_seed.items() if points]
 
 
@@ -131,7 +144,9 @@ def loss_vs_time(
     notes: dict[str, str] | None = None,
     diverged: dict[str, set[str]] | None = None,
 ) -> Path:
-    """Test loss vs training wall-clock, log y, one colour per method.
+    """Test loss vs training time, log y, one colour per method: the calibrated time
+    (step × calibrated seconds per step) where the rows carry it, else the training
+    wall-clock.
 
     Each seed is drawn as its own thin curve; with several seeds the thick line is the
     median over seeds (:func:`seed_median`: a diverged seed counts as the top of the axis
@@ -145,7 +160,8 @@ def loss_vs_time(
     fig = Figure(figsize=(7, 4.5), dpi=120)
     ax = fig.subplots()
     colours = rcParams["axes.prop_cycle"].by_key()["color"]
-    series = {method: _series(results, method, split, metric) for method in order}
+    calibrated = calibrated_axis(results)
+    series = {method: _series(results, method, split, metric, calibrated) for method in order}
     lower, upper = log_range([v for runs in series.values() for _, _, v in runs])
     failed = diverged or {}
     marked = False
@@ -181,7 +197,8 @@ def loss_vs_time(
             ax.plot(*median, color=colour, label=label, lw=1.8)
     ax.set_ylim(lower / 1.5, upper * 1.5)
     ax.set_yscale("log")
-    ax.set_xlabel("training wall-clock time [s] (evaluation excluded)")
+    ax.set_xlabel("calibrated training time [s] (step × calibrated s/step)" if calibrated
+                  else "training wall-clock time [s] (evaluation excluded)")  # fmt: skip
     ax.set_ylabel(f"{split} {metric} (thin: each seed; thick: median over seeds)")
     ax.set_title(title, fontsize=9)
     ax.grid(True, which="both", alpha=0.3)
