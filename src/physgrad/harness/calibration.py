@@ -261,6 +261,7 @@ def calibrate(
         entries[spec] = {"fingerprint": fingerprint(config), "stages": [dataclasses.asdict(c) for c in costs],
                          "error": None}  # fmt: skip
     threads = report()
+    setting = threads.get("setting")
     return {
         "version": 1,
         "problem": first.problem if first is not None else None,
@@ -268,7 +269,7 @@ def calibrate(
         "machine": machine() if programs is None else {},
         "load_before": before,
         "load_after": load(),
-        "threads": threads.get("setting"),
+        "threads": setting.get("requested") if isinstance(setting, dict) else setting,  # None: the libraries' own
         "thread_pools": threads,
         "devices": devices,
         "rule": RULE,
