@@ -241,7 +241,10 @@ def test_each_method_of_a_problem_study_gets_the_bench_settings():
     from physgrad.harness.config import make_config
     from physgrad.harness.study import plan
 
-    methods, problems = list(bench.QUICK["methods"]), ["hig_toy", "sine", "oscillators"]  # the quick profile's scopes
+    methods, problems = (
+        [*bench.QUICK["methods"], "sgd"],
+        ["hig_toy", "sine", "oscillators"],
+    )  # the quick profile's scopes
     settings = {**bench.quick_settings(problems, methods), "hig_toy.sgd.lr": "0.5", "lr": "0.01",
                 "adam.eps": "1e-7", "oscillators.batch_size": "16"}  # fmt: skip
     verdicts = bench.plan(problems, methods, settings)

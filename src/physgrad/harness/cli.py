@@ -63,6 +63,8 @@ def cmd_list(args, console):
         paper = protocol(name)
         console.print(f"  {name:<19} {paper.description}" + (f" {note}" if note else ""), markup=False)
         console.print(f"  {'':<19} paper comparison: {', '.join(paper.methods)}", markup=False)
+        if paper.target is not None:
+            console.print(f"  {'':<19} target test loss: {paper.target.loss:g} ({paper.target.origin})", markup=False)
     console.print("[bold]methods[/bold]")
     for name in METHODS:
         note = missing_note(method_extra(name))
@@ -415,10 +417,10 @@ def cmd_demo(args, console):
     elif r == 0:
         console.print(f"HIG diverged on at least half the seeds where Adam did not ({seeds}: 0; see the table).")
     elif r >= 1:
-        console.print(f"HIG's final test loss is {r:.1f}x below Adam's at equal wall-clock ({seeds}; {spread}).",
+        console.print(f"HIG's final test loss is {r:.1f}x below Adam's at equal calibrated time ({seeds}; {spread}).",
                       markup=False)  # fmt: skip
     else:
-        console.print(f"HIG's final test loss is {1 / r:.1f}x above Adam's at equal wall-clock ({seeds}; {spread}).",
+        console.print(f"HIG's final test loss is {1 / r:.1f}x above Adam's at equal calibrated time ({seeds}; {spread}).",
                       markup=False)  # fmt: skip
     return 0
 
