@@ -283,3 +283,22 @@ def test_physgrad_calibrate_writes_the_long_study_table(tmp_path, capsys):
         "3",
     )
     assert float(rows[0]["ms_per_step"]) > 0 and rows[0]["threads"] == "1" and "calibrate hig_toy" in rows[0]["command"]
+
+
+def test_a_wall_cap_stops_a_run_before_its_budget_and_a_larger_cap_resumes_it(tmp_path):
+    out, lines = tmp_path / "capped", []
+    budget = physgrad.Budget(steps=10**7)
+    (row,) = compare("hig_toy", ["adam"], [0], budget, out, echo=lines.append,
+                     settings={"wall_cap": "0.3", "eval_every": "50"})  # fmt: skip
+    assert row["wall_capped"] and 0 < row["steps"] < 10**7 and row["train_seconds"] >= 0.3
+    (run,) = targets.run_times([{**row, "wall_capped": "True"}], [], 1e-30)
+    assert run["status"] == "capped" and math.isinf(run["time_to_target"]) and "wall cap" in targets.seed_cell(run)
+    names = {p.name for p in (out / "runs").iterdir()}
+    lines.clear()
+    (same,) = compare("hig_toy", ["adam"], [0], budget, out, echo=lines.append,
+                      settings={"wall_cap": "0.3", "eval_every": "50"})  # fmt: skip
+    assert "done already" in lines[-1] and same["steps"] == row["steps"]
+    (longer,) = compare("hig_toy", ["adam"], [0], budget, out, echo=lines.append,
+                        settings={"wall_cap": "0.6", "eval_every": "50"})  # fmt: skip
+    assert longer["steps"] > row["steps"] and longer["train_seconds"] >= 0.6
+    assert {p.name for p in (out / "runs").iterdir()} == names  # the cap is not part of the run's identity

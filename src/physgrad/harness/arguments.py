@@ -62,6 +62,11 @@ def run_settings(args):
     settings = _settings(args.set)
     if getattr(args, "no_network", False):
         settings["no_network"] = True
+    cap = getattr(args, "wall_cap", None)
+    if cap is not None:
+        if not cap > 0:
+            raise UsageError(f"--wall-cap expects a positive number of seconds, got {cap!r}")
+        settings["wall_cap"] = str(cap)
     return settings
 
 
@@ -98,6 +103,10 @@ def _add_budget(p, calibrated: bool = False):
     g.add_argument("--steps", type=int, help="training steps")
     g.add_argument("--epochs", type=int, help="epochs over the training set")
     if calibrated:
+        g.add_argument("--wall-cap", type=float, metavar="SECONDS",
+                       help="also stop a run once its training wall-clock reaches SECONDS (a cap beside the "
+                            "calibrated or steps budget, e.g. on a loaded machine; the run is recorded as wall_capped "
+                            "and its time-to-target as censored; a larger cap later resumes it)")  # fmt: skip
         g.add_argument("--no-calibrate", action="store_true",
                        help="--seconds is training wall-clock instead (no calibration: the budget then depends on "
                             "the machine's load)")  # fmt: skip

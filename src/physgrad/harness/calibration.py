@@ -137,8 +137,8 @@ def time_programs(
     return times
 
 
-def summarize_times(values: Sequence[float]) -> dict[str, float]:
-    """Median, quartiles and extremes of one program's timings (seconds)."""
+def summarize_times(values: Sequence[float]) -> dict[str, Any]:
+    """Median, quartiles and extremes of one program's timings (seconds), and their count."""
     q = statistics.quantiles(values, n=4, method="inclusive") if len(values) > 1 else [values[0]] * 3
     return {"seconds": statistics.median(values), "q25": q[0], "q75": q[2], "low": min(values), "high": max(values),
             "rounds": len(values)}  # fmt: skip

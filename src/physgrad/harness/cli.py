@@ -251,6 +251,7 @@ def cmd_report(args, console):
     result = report(args.dir)
     _print_table(console, result.lines, title=str(args.dir), caption=TABLE_NOTE)
     _print_paired_tests(console, args.dir)
+    _print_targets(console, args.dir)
     if result.figure:
         console.print(f"wrote {result.figure}")
     return 0

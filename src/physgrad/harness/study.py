@@ -35,7 +35,7 @@ from .train import is_complete, read_metrics, read_summary, train
 SUMMARY_COLUMNS = (
     "problem", "method", "seed", "status", "steps", "epochs", "train_seconds", "time_per_step",
     "final_train_loss", "final_test_loss", "best_test_loss", "diverged_step", "last_finite_loss",
-    "compile_seconds", "run_dir", "calibrated_seconds", "calibrated_ms_per_step",
+    "compile_seconds", "run_dir", "calibrated_seconds", "calibrated_ms_per_step", "wall_capped",
 )  # fmt: skip
 RESULT_COLUMNS = ("problem", "method", "seed", "step", "wall_time", "split", "metric", "value", "calibrated_time")
 
@@ -144,7 +144,7 @@ def compare(
         for i, (config, name) in enumerate(zip(configs, names), 1):
             run_dir = out / "runs" / name
             prefix = f"[{i}/{len(configs)}] {config.method} seed {config.seed}"
-            if is_complete(run_dir):
+            if is_complete(run_dir) and not cap_raised(read_summary(run_dir) or {}, config.wall_cap):
                 echo(f"{prefix}: done already ({(read_summary(run_dir) or {}).get('status')}), skipped")
                 continue
             try:
@@ -157,6 +157,11 @@ def compare(
             log.clear(name)
             echo(f"{prefix}: {describe_run(summary)}")
         return collect(out)
+
+
+def cap_raised(summary: dict[str, Any], wall_cap: float) -> bool:
+    """Whether a run that a wall-clock cap stopped may train on: the cap is now higher, or gone."""
+    return bool(summary.get("wall_capped")) and (wall_cap <= 0 or wall_cap > summary.get("train_seconds", 0.0))
 
 
 def calibrated_config(config: RunConfig, calibration, seconds: float) -> RunConfig:

@@ -88,7 +88,8 @@ def run_times(
             out.append({**base, "budget_time": math.nan, "status": "diverged", "steps_to_target": math.inf, "time_to_target": math.inf,
                         "wall_to_target": math.inf})  # fmt: skip
         elif hit is None:
-            out.append({**base, "status": "censored", "steps_to_target": math.inf, "time_to_target": math.inf,
+            capped = str(row.get("wall_capped")).lower() == "true"  # stopped by --wall-cap before its budget
+            out.append({**base, "status": "capped" if capped else "censored", "steps_to_target": math.inf, "time_to_target": math.inf,
                         "wall_to_target": math.inf})  # fmt: skip
         else:
             step, t, wall = hit
@@ -116,9 +117,12 @@ def method_times(runs: Sequence[Mapping[str, Any]], order: Sequence[str]) -> lis
 
 
 def seed_cell(run: Mapping[str, Any]) -> str:
-    """One seed's time-to-target: ``12.3 s``, ``>60 s`` (censored at its budget) or ``diverged``."""
+    """One seed's time-to-target: ``12.3 s``, ``>60 s`` (censored at its budget), ``>20 s
+    (wall cap)`` (stopped by the wall-clock cap first) or ``diverged``."""
     if run["status"] == "diverged":
         return "diverged"
+    if run["status"] == "capped":
+        return f">{as_float(run['budget_time']):.3g} s (wall cap)"
     if run["status"] == "censored":
         return f">{as_float(run['budget_time']):.3g} s"
     return f"{run['time_to_target']:.3g} s"

@@ -52,7 +52,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -162,7 +162,7 @@ def bench(
 
 def calibrate_only(
     problems: Sequence[str],
-    verdicts: dict[str, Sequence[Verdict]],
+    verdicts: Mapping[str, Sequence[Verdict]],
     budget: Budget,
     out: str | Path,
     *,

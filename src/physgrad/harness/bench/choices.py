@@ -29,7 +29,9 @@ ZOO = ("optax:adamw", "optax:lion", "optax.contrib:muon")
 # method in seconds). The two problems with 65,536 training samples get 4,096 (an epoch, and
 # so a full evaluation, every ~40 steps instead of ~650); the Jacobian methods on the
 # oscillators take the demo's batch of 32 instead of the paper's 128 (at 128 a step costs
-# ~5 s on 2 cores: two steps in a 10 s run); evaluation every 2 s of calibrated time. The
+# ~5 s on 2 cores: two steps in a 10 s run). Evaluation every 0.5 s of calibrated time
+# (0.02-0.1 s on the problems with the shorter budgets below): about 12-25 evaluations per run,
+# which is the resolution of the time-to-target (the first evaluation at or below it). The
 # first quick profile (2 seeds, 10 s, 12 candidates: 140 runs) took 43 minutes on 2 loaded
 # cores; at 3 seeds the candidates drop SGD, Newton and Lion (SGD and Lion below Adam on
 # none of the six problems, Newton diverged on 8 of 12 runs: docs/benchmark.md) and each run
@@ -40,7 +42,8 @@ QUICK: dict[str, Any] = {
     # curvature and inversion method, AdamW and Muon (the rollout methods apply to none).
     "methods": ("adam", "rmsprop", "gn", "hig", "lm", "kfac", "sip", "optax:adamw", "optax.contrib:muon"),
     "settings": {
-        "exp_inverse.n_train": "4096", "sine.n_train": "4096", "eval_seconds": "2",
+        "exp_inverse.n_train": "4096", "sine.n_train": "4096", "eval_seconds": "0.5", "toy2d.eval_seconds": "0.02",
+        "hig_toy.eval_seconds": "0.05", "exp_inverse.eval_seconds": "0.1", "sine.eval_seconds": "0.1",
         "oscillators.gn.batch_size": "32", "oscillators.hig.batch_size": "32", "oscillators.lm.batch_size": "32",
     },
     "seconds": 6.0,

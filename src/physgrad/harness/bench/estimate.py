@@ -20,7 +20,7 @@ figures are planning estimates on an idle machine: a loaded one stretches every 
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -38,7 +38,7 @@ UNCALIBRATED_COMPILE_SECONDS = 10.0  # compiling and timing a method's step wher
 
 def estimate(
     problems: Sequence[str],
-    verdicts: dict[str, Sequence[Any]],
+    verdicts: Mapping[str, Sequence[Any]],
     seeds: Sequence[int],
     budget: Budget,
     out: str | Path,
