@@ -403,7 +403,11 @@ def performance_profile(
         ax.step(list(taus), list(values), where="post", label=method, color=colours[i % len(colours)],
                 ls=styles[(i // len(colours)) % len(styles)], lw=1.6)  # fmt: skip
     ax.set_xscale("log")
-    ax.set_xlim(1.0, max(taus) if len(taus) else 2.0)
+    ax.set_xlim(1.0, max(taus) if len(taus) else 10.0)
+    from matplotlib.ticker import FuncFormatter, NullFormatter
+
+    ax.xaxis.set_major_formatter(FuncFormatter(lambda x, _: f"{x:g}"))
+    ax.xaxis.set_minor_formatter(NullFormatter())
     ax.set_ylim(-0.02, 1.02)
     ax.set_xlabel("τ: time-to-target within a factor τ of the fastest method (log)")
     ax.set_ylabel("fraction of problems ρ(τ)")

@@ -210,11 +210,11 @@ def profile(
 
 
 def default_taus(times: Mapping[str, Mapping[str, float]], methods: Sequence[str]) -> list[float]:
-    """τ from 1 to past the largest finite ratio, log-spaced, with every ratio itself (so the
-    steps of the profile are exact)."""
+    """τ from 1 to past the largest finite ratio (twice it, and at least 10), log-spaced,
+    with every ratio itself (so the steps of the profile are exact)."""
     r = ratios(times, methods)
     finite = sorted({x for row in r.values() for x in row.values() if math.isfinite(x)})
-    top = max([*finite, 2.0]) * 2
+    top = max(max(finite, default=1.0) * 2, 10.0)  # at least a decade
     return sorted({1.0, *finite, *np.geomspace(1.0, top, 64).tolist()})
 
 
