@@ -4,15 +4,16 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import math
 import os
 import statistics
-import time
 
 import jax
 import jax.numpy as jnp
 
 import physgrad  # noqa: F401
 from physgrad import Budget
+from physgrad.harness.calibration import time_programs
 from physgrad.harness.config import make_config
 from physgrad.harness.train import build, make_step
 
@@ -57,13 +58,12 @@ def training_step(problem: str, method: str, settings: dict[str, str]):
 
 
 def median_seconds(fn, args, repeats: int) -> float:
+    """Median seconds per call over ``repeats`` calls after a warm-up call: the harness's
+    step timing (:func:`physgrad.harness.calibration.time_programs`, which a calibrated
+    study uses too), for one program."""
     jax.block_until_ready(fn(*args))  # compile and warm up
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        jax.block_until_ready(fn(*args))
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times)
+    times = time_programs({"step": [lambda: jax.block_until_ready(fn(*args))]}, repeats=repeats, max_seconds=math.inf)
+    return statistics.median(times["step"][0])
 
 
 def half_inverse_floor(setup, batch_size: int, repeats: int) -> dict:

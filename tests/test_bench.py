@@ -50,7 +50,7 @@ def test_method_lists_keep_colon_names_apart_from_sequences():
     assert split_methods(" adam , hig ,") == ["adam", "hig"]
     quick = bench.quick_settings(["oscillators", "sine"], ["adam", "hig"])
     assert quick["oscillators.hig.batch_size"] == "32" and "oscillators.gn.batch_size" not in quick
-    assert "exp_inverse.n_train" not in quick and quick["sine.n_train"] == "4096" and quick["eval_seconds"] == "2"
+    assert "exp_inverse.n_train" not in quick and quick["sine.n_train"] == "4096" and quick["eval_seconds"] == "0.5"
     assert bench.problem_settings("sine", "adam", {"sine.n_train": "64", "toy2d.start": "1", "lr": "0.1",
                                                    "sine.hig.lr": "2", "adam.eps": "1e-8"}) == {
         "n_train": "64", "lr": "0.1", "adam.eps": "1e-8"}  # fmt: skip
@@ -241,7 +241,10 @@ def test_each_method_of_a_problem_study_gets_the_bench_settings():
     from physgrad.harness.config import make_config
     from physgrad.harness.study import plan
 
-    methods, problems = list(bench.QUICK["methods"]), ["hig_toy", "sine", "oscillators"]  # the quick profile's scopes
+    methods, problems = (
+        [*bench.QUICK["methods"], "sgd"],
+        ["hig_toy", "sine", "oscillators"],
+    )  # the quick profile's scopes
     settings = {**bench.quick_settings(problems, methods), "hig_toy.sgd.lr": "0.5", "lr": "0.01",
                 "adam.eps": "1e-7", "oscillators.batch_size": "16"}  # fmt: skip
     verdicts = bench.plan(problems, methods, settings)
@@ -253,7 +256,7 @@ def test_each_method_of_a_problem_study_gets_the_bench_settings():
                     for m in runs for s in (0, 1)]  # fmt: skip
         assert planned == expected, problem
     assert bench.study_settings("oscillators", ["adam", "hig"], settings) == {
-        "eval_seconds": "2", "hig.batch_size": "32", "lr": "0.01", "adam.eps": "1e-7", "batch_size": "16"}  # fmt: skip
+        "eval_seconds": "0.5", "hig.batch_size": "32", "lr": "0.01", "adam.eps": "1e-7", "batch_size": "16"}  # fmt: skip
 
 
 @pytest.mark.slow

@@ -231,5 +231,5 @@ def test_demo_runs_and_prints_its_settings_and_ratio(tmp_path, capsys):
     assert main(["demo", "--seconds", "0.3", "--out", str(tmp_path / "demo")]) == 0
     out = capsys.readouterr().out
     assert "batch 32" in out and "hig.batch_size" in out
-    assert "below Adam's at equal wall-clock" in out
+    assert "below Adam's at equal calibrated time" in out
     assert (tmp_path / "demo" / "loss_vs_time.png").exists()

@@ -157,7 +157,7 @@ SHARED: dict[str, Check] = {
                      "total_mass", "half_length", "eta", "stage_epochs", "box", "swirl_sigma", "falloff", "rc",
                      "min_damping"), POSITIVE),
     **dict.fromkeys(("truncation", "eps", "damping", "momentum", "clip", "l2_reg", "rcond", "uncertainty",
-                     "eval_seconds", "checkpoint_seconds", "noise_scale", "noise_smoothness", "fluctuations", "lam",
+                     "eval_seconds", "checkpoint_seconds", "wall_cap", "noise_scale", "noise_smoothness", "fluctuations", "lam",
                      "initial_accumulator", "decay", "gravity"), NON_NEGATIVE),
     **dict.fromkeys(("b1", "b2", "rho", "damping_decay", "curvature_ema"), FRACTION),
     **dict.fromkeys(("prdp_tau_step", "prdp_tau_stop", "dataset_fraction"), UNIT),

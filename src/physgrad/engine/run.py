@@ -205,7 +205,7 @@ def _run(request: Request, *, placement: Placement, progress: AbstractProgressMe
     placement.barrier(f"physgrad.fit:{run_dir}")  # every process has looked before process 0 writes
     if not placement.writer:  # other processes compute alike and write nothing
         progress = NoProgressMeter()
-    done = _done_already(run_dir, budget) if request.resume else None
+    done = _done_already(run_dir, budget, settings.wall_cap) if request.resume else None
     if done is not None:
         return done  # every file unchanged (checked before building data and network)
 
@@ -237,7 +237,7 @@ def _run(request: Request, *, placement: Placement, progress: AbstractProgressMe
     if steps is None:
         ending = _evaluated(Ending(state, setup, "finished"), recorder=recorder, evaluated=evaluated)
     else:
-        strategies = Strategies(StopRule(budget, setup), EvalSchedule(settings), placement, steps, fidelity, recorder,
+        strategies = Strategies(StopRule(budget, setup, settings.wall_cap), EvalSchedule(settings), placement, steps, fidelity, recorder,
                                 checkpointer, progress)  # fmt: skip
         progress.start(budget=budget, steps_per_epoch=setup.steps_per_epoch, step=state.step,
                        train_time=state.train_time, label=request.label)  # fmt: skip
@@ -309,6 +309,12 @@ def _close(ending: Ending, *, request: Request, recorder: Recorder, checkpointer
         **request.identity,
         **finish(ending, recorder=recorder, checkpointer=checkpointer, budget=request.budget),
     }
+    cap = request.settings.wall_cap
+    if cap > 0:  # stopped by the wall-clock cap before its budget: recorded, and resumable with a larger cap
+        rule = StopRule(request.budget, ending.setup, cap)
+        summary["wall_capped"] = (ending.status == "finished" and rule.capped(state.train_time)
+                                  and not rule.budget_met(state.step, state.train_time))  # fmt: skip
+        summary["wall_cap"] = cap
     if writer:
         write_json(run_dir / "summary.json", summary)
     return summary
@@ -336,16 +342,20 @@ def _writer_lock(run_dir: Path, placement: Placement):
         yield
 
 
-def _done_already(run_dir: Path, budget: Budget) -> dict[str, Any] | None:
+def _done_already(run_dir: Path, budget: Budget, wall_cap: float = 0.0) -> dict[str, Any] | None:
     """The summary of a run that needs nothing more for ``budget`` (diverged, or finished
-    exactly at it), read before any work; None if it must train on or finish (a
-    ``summary.json`` without its final losses, as an older physgrad wrote after a resume,
-    is finished again from the checkpoint)."""
+    exactly at it, or stopped by a wall-clock cap that ``wall_cap`` does not raise), read
+    before any work; None if it must train on or finish (a ``summary.json`` without its
+    final losses, as an older physgrad wrote after a resume, is finished again from the
+    checkpoint)."""
     summary = read_summary(run_dir)
     if summary is None or not is_final(summary):
         return None
     if summary["status"] == "diverged":
         return summary
+    if summary.get("wall_capped") and wall_cap > 0 and summary.get("train_seconds", 0.0) >= wall_cap:
+        if summary.get("budget") == budget.to_dict():
+            return summary
     if not isinstance(summary.get("steps"), int):
         return None
     met = _budget_met(budget, recorded=summary.get("budget"), step=summary["steps"],

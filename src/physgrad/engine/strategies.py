@@ -20,12 +20,20 @@ from .types import Budget, Setup, Stage, TrainSettings, TrainState
 
 @dataclasses.dataclass
 class StopRule:
-    """The budget: steps, epochs (each stage at its own batch size) or training seconds."""
+    """The budget: steps, epochs (each stage at its own batch size) or training seconds;
+    with ``wall_cap`` > 0 also the training wall-clock reaching that many seconds."""
 
     budget: Budget
     setup: Setup
+    wall_cap: float = 0.0
 
     def met(self, step: int, train_time: float) -> bool:
+        return self.budget_met(step, train_time) or self.capped(train_time)
+
+    def capped(self, train_time: float) -> bool:
+        return self.wall_cap > 0 and train_time >= self.wall_cap
+
+    def budget_met(self, step: int, train_time: float) -> bool:
         kind, amount = self.budget.kind, self.budget.amount
         if kind == "seconds":
             return train_time >= amount

@@ -106,6 +106,9 @@ class TrainSettings:
     prdp_tau_step: float = 0.98
     prdp_tau_stop: float = 0.9
     memory_guard: bool = True  # refuse a step that cannot fit in memory before it runs (physgrad.memory)
+    # if > 0: stop as well once the training wall-clock reaches this many seconds, a cap beside
+    # a steps (or calibrated) budget; the summary then says ``wall_capped``
+    wall_cap: float = 0.0
 
     def __post_init__(self):
         checks.check_fields(self, "TrainSettings field")
@@ -113,7 +116,7 @@ class TrainSettings:
 
 # Settings that change how a run is guarded, not what it computes: a run resumes under
 # either value (they are not part of a run's identity).
-UNGUARDED_SETTINGS = ("memory_guard",)
+UNGUARDED_SETTINGS = ("memory_guard", "wall_cap")
 # Settings added after runs were recorded without them, with the value those runs had: a
 # recorded run resumes when the setting holds that value.
 ADDED_SETTINGS = {"fresh_samples": False}

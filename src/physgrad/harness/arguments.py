@@ -24,6 +24,15 @@ DEMO = {
 }
 
 
+# The bench profiles' one-line summaries (physgrad.harness.bench.choices.PROFILES), for --help
+# without importing the registries.
+QUICK_SUMMARY = ("6 fast open-loop problems, 9 candidates, small datasets, 6 s of calibrated training per run "
+                 "(0.5-2 s on the 4 problems with sub-millisecond steps), 3 seeds (planned for at most 45 min on "
+                 "2 CPU cores)")  # fmt: skip
+STANDARD_SUMMARY = ("every problem that fits a CPU at its paper settings and batch sizes, every applicable method, "
+                    "5 min of calibrated training per run, 5 seeds (a resumable long study: days on 2 CPU cores)")  # fmt: skip
+
+
 class UsageError(Exception):
     pass
 
@@ -53,6 +62,11 @@ def run_settings(args):
     settings = _settings(args.set)
     if getattr(args, "no_network", False):
         settings["no_network"] = True
+    cap = getattr(args, "wall_cap", None)
+    if cap is not None:
+        if not cap > 0:
+            raise UsageError(f"--wall-cap expects a positive number of seconds, got {cap!r}")
+        settings["wall_cap"] = str(cap)
     return settings
 
 
@@ -77,11 +91,25 @@ def _settings(pairs):
     return settings
 
 
-def _add_budget(p):
+def _add_budget(p, calibrated: bool = False):
     g = p.add_argument_group("budget (one of; default --seconds 60)")
-    g.add_argument("--seconds", type=float, help="training wall-clock seconds (evaluation excluded)")
+    if calibrated:
+        g.add_argument("--seconds", type=float,
+                       help="calibrated training seconds per run: each method's compiled step is timed first "
+                            "(calibration.json in the study) and its runs train for seconds / (its seconds per step) "
+                            "steps; curves and time-to-target use step x calibrated seconds per step")  # fmt: skip
+    else:
+        g.add_argument("--seconds", type=float, help="training wall-clock seconds (evaluation excluded)")
     g.add_argument("--steps", type=int, help="training steps")
     g.add_argument("--epochs", type=int, help="epochs over the training set")
+    if calibrated:
+        g.add_argument("--wall-cap", type=float, metavar="SECONDS",
+                       help="also stop a run once its training wall-clock reaches SECONDS (a cap beside the "
+                            "calibrated or steps budget, e.g. on a loaded machine; the run is recorded as wall_capped "
+                            "and its time-to-target as censored; a larger cap later resumes it)")  # fmt: skip
+        g.add_argument("--no-calibrate", action="store_true",
+                       help="--seconds is training wall-clock instead (no calibration: the budget then depends on "
+                            "the machine's load)")  # fmt: skip
     p.add_argument(
         "--no-network",
         action="store_true",
@@ -174,7 +202,7 @@ def build_parser() -> Parser:
     p.add_argument("--devices", default="1", metavar="N|all", help="devices to split each batch over (default 1)")
     p.add_argument("--out", help="study directory (default studies/PROBLEM)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
-    _add_budget(p)
+    _add_budget(p, calibrated=True)
 
     p = sub.add_parser("report", help="re-draw a study's (or a sweep's) table and figure from its files")
     p.add_argument("dir")
@@ -193,25 +221,55 @@ def build_parser() -> Parser:
         description="Run every applicable method on every chosen problem with the same budget per run, rank them per "
                     "problem and across problems (physgrad.harness.bench). Resumable: the same command again skips finished "
                     "runs and resumes interrupted ones.",
-        epilog="examples:\n"
-               "  physgrad bench --quick                      a few fast problems, 10 s per run, 2 seeds\n"
-               "  physgrad bench --seconds 600 --seeds 5      every problem, 10 min per run, 5 seeds (long)\n"
+        epilog="profiles:\n"
+               "  --quick     " + QUICK_SUMMARY + "\n"
+               "  --standard  " + STANDARD_SUMMARY + "\n"
+               "examples:\n"
+               "  physgrad bench --quick --plan               what the quick profile runs and its estimated time\n"
+               "  physgrad bench --quick                      run it (the same command again resumes it)\n"
+               "  physgrad bench --standard --calibrate-only  time every step first: --plan then estimates from it\n"
                "  physgrad bench --problems sine,oscillators --methods adam,hig,optax:lion --steps 500\n"
-               "  --set NAME=VALUE applies wherever the setting exists; --set PROBLEM.NAME=VALUE to one problem",
+               "  --set NAME=VALUE applies wherever the setting exists; --set PROBLEM.NAME=VALUE to one problem\n"
+               "Each problem declares a target test loss; the leaderboard is a performance profile of the\n"
+               "time to it (profile.png), with the final-loss ranking beside it.",
     )  # fmt: skip
     p.add_argument("--problems", help="comma-separated problems, or all (default: all shipped problems)")
     p.add_argument("--methods", help="comma-separated candidate methods, or applicable (default: every registered "
                                      "method; each problem runs those that apply)")  # fmt: skip
-    p.add_argument("--seeds", type=int, default=None, help="number of seeds 0..N-1 (default 1; --quick: 2)")
-    p.add_argument("--out", help="bench directory (default bench, --quick: bench-quick)")
-    p.add_argument(
-        "--quick",
-        action="store_true",
-        help="the quick profile: a few fast open-loop problems, small datasets, 10 s per run, 2 seeds",
-    )
+    p.add_argument("--seeds", type=int, default=None, help="number of seeds 0..N-1 (default 1; a profile: its own)")
+    p.add_argument("--out", help="bench directory (default bench; a profile: bench-quick, bench-standard)")
+    p.add_argument("--quick", action="store_true", help="the quick profile: " + QUICK_SUMMARY)
+    p.add_argument("--standard", action="store_true", help="the standard profile: " + STANDARD_SUMMARY)
+    p.add_argument("--plan", action="store_true",
+                   help="print what would run and its estimated time (from the calibration in --out where there is "
+                        "one), and run nothing")  # fmt: skip
+    p.add_argument("--calibrate-only", action="store_true",
+                   help="run only each problem's calibration (into --out, which the bench then reuses), then print "
+                        "the plan")  # fmt: skip
     p.add_argument("--devices", default="1", metavar="N|all", help="devices to split each batch over (default 1)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
-    _add_budget(p)
+    _add_budget(p, calibrated=True)
+
+    p = sub.add_parser(
+        "calibrate", help="time each method's compiled step on a problem; write the calibration table",
+        description="Time each method's compiled training step on PROBLEM (seed 0, the paper settings and --set "
+                    "values; interleaved rounds, median; compilation excluded) and write the table in the columns of "
+                    "docs/reproductions/long/calibration.csv (problem, method, route, batch, ms_per_step, measured, "
+                    "machine, command), then the spread. The same timing a calibrated study runs first.",
+    )  # fmt: skip
+    p.add_argument("problem")
+    p.add_argument("--methods", help="comma-separated, sequences allowed (default: the paper's comparison)")
+    p.add_argument("--out", help="CSV file to write (default: print only); FILE.json writes the full record")
+    p.add_argument("--append", action="store_true", help="add the rows to an existing --out CSV")
+    p.add_argument("--repeats", type=int, default=None, help="rounds of interleaved timing, at most (default 15)")
+    p.add_argument("--max-seconds", type=float, default=None,
+                   help="a method leaves the rounds once its timed steps add up to this, after 3 rounds (default 10)")  # fmt: skip
+    p.add_argument("--devices", default="1", metavar="N|all", help="devices to split each batch over (default 1)")
+    p.add_argument("--no-network", action="store_true", help="direct optimisation (as in train and compare)")
+    p.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
+                   help="a problem setting, method hyperparameter or training setting; repeatable")  # fmt: skip
+    _add_compilation_cache(p)
+    _add_threads(p)
 
     p = sub.add_parser("demo", help="adam vs gn vs hig on the oscillators in about two minutes")
     p.add_argument("--out", default="studies/demo")

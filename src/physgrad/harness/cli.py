@@ -8,10 +8,13 @@
                      (--set name=a,b,c sweeps: every cell of the grid is a study)
     physgrad report DIR
     physgrad bench [--problems p1,p2|all] [--methods m1,m2|applicable] [--seeds N] [budget] [--out DIR]
-                   [--quick] [--set ...]   (every applicable method on every problem, ranked; physgrad.harness.bench)
+                   [--quick | --standard] [--plan | --calibrate-only] [--set ...]
+                   (every applicable method on every problem, ranked; physgrad.harness.bench)
+    physgrad calibrate PROBLEM [--methods a,b] [--set ...] [--out FILE.csv|FILE.json] [--repeats N]
     physgrad demo
 
-train, compare, bench and demo take --threads N|default (default 1: physgrad.cpu.process_threads).
+train, compare, bench, calibrate and demo take --threads N|default (default 1: physgrad.cpu.process_threads).
+compare and bench calibrate a --seconds budget (physgrad.harness.calibration; --no-calibrate: wall-clock).
 Bad input (an unknown problem, method or setting) prints one line with the valid choices
 and exits with status 2.
 """
@@ -60,6 +63,8 @@ def cmd_list(args, console):
         paper = protocol(name)
         console.print(f"  {name:<19} {paper.description}" + (f" {note}" if note else ""), markup=False)
         console.print(f"  {'':<19} paper comparison: {', '.join(paper.methods)}", markup=False)
+        if paper.target is not None:
+            console.print(f"  {'':<19} target test loss: {paper.target.loss:g} ({paper.target.origin})", markup=False)
     console.print("[bold]methods[/bold]")
     for name in METHODS:
         note = missing_note(method_extra(name))
@@ -132,25 +137,42 @@ def cmd_train(args, console):
     return 0
 
 
-def _run_compare(console, problem, methods, seeds, budget, settings, out, quiet=False, devices="1"):
+def _run_compare(console, problem, methods, seeds, budget, settings, out, quiet=False, devices="1", calibrate=True):
     from ..progress import RichProgressMeter
     from .study import compare, plan, report
 
     plan(problem, methods, seeds, budget, settings)  # validate every name before anything runs
+    calibrated = calibrate and budget.kind == "seconds"
     console.print(
-        f"comparing on {problem}: budget {budget} per run, seeds {list(seeds)}, settings {settings or 'paper defaults'}"
+        f"comparing on {problem}: budget {budget}{' (calibrated)' if calibrated else ''} per run, seeds {list(seeds)}, "
+        f"settings {settings or 'paper defaults'}"
     )
     meter = None if quiet or not console.is_terminal else RichProgressMeter
-    compare(
-        problem, methods, seeds, budget, out, settings=settings, progress=meter, echo=console.print, devices=devices
-    )
+    compare(problem, methods, seeds, budget, out, settings=settings, progress=meter, echo=console.print,
+            devices=devices, calibrate=calibrate)  # fmt: skip
     from .seeds import TABLE_NOTE
 
     result = report(out)
     _print_table(console, result.lines, title=f"{problem}: {budget} per run", caption=TABLE_NOTE)
     _print_paired_tests(console, out)
-    console.print(f"wrote {_files(Path(out) / 'results.csv', Path(out) / 'summary.csv', result.figure)}")
+    _print_targets(console, out)
+    extra = [Path(out) / name for name in ("calibration.json", "time_to_target.csv") if (Path(out) / name).exists()]
+    console.print(f"wrote {_files(Path(out) / 'results.csv', Path(out) / 'summary.csv', *extra, result.figure)}")
     return result
+
+
+def _print_targets(console, out):
+    """The study's time-to-target table (:mod:`physgrad.harness.targets`), where its problem declares a target."""
+    from .targets import study_times, table_lines
+
+    target, runs, table = study_times(out)
+    if target is None or not table:
+        return
+    axis = runs[0]["axis"] if runs else "wall-clock"
+    _print_table(console, table_lines(target, table, axis), title=f"time to the target test loss {target.loss:g}",
+                 caption=f"target: {target.origin} ({target.why}). First evaluation at or below the target, no "
+                         "interpolation; >budget: never reached (censored); a diverged seed never reaches it; "
+                         "median over seeds, those seeds included")  # fmt: skip
 
 
 def cmd_compare(args, console):
@@ -164,16 +186,15 @@ def cmd_compare(args, console):
     from .study import split_grid
 
     if split_grid(settings)[1]:
-        _run_grid(
-            console, args.problem, methods, range(args.seeds), budget_of(args), settings, out, args.quiet, args.devices
-        )
+        _run_grid(console, args.problem, methods, range(args.seeds), budget_of(args), settings, out, args.quiet,
+                  args.devices, calibrate=not args.no_calibrate)  # fmt: skip
     else:
         _run_compare(console, args.problem, methods, range(args.seeds), budget_of(args), settings, out, args.quiet,
-                     args.devices)  # fmt: skip
+                     args.devices, calibrate=not args.no_calibrate)  # fmt: skip
     return 0
 
 
-def _run_grid(console, problem, methods, seeds, budget, settings, out, quiet=False, devices="1"):
+def _run_grid(console, problem, methods, seeds, budget, settings, out, quiet=False, devices="1", calibrate=True):
     """A sweep: ``--set a=1,2 --set b=x,y`` runs every cell of the grid as its own study."""
     from ..progress import RichProgressMeter
     from .study import compare_grid, grid_cells, grid_report, split_grid
@@ -185,7 +206,7 @@ def _run_grid(console, problem, methods, seeds, budget, settings, out, quiet=Fal
     )
     meter = None if quiet or not console.is_terminal else RichProgressMeter
     compare_grid(problem, methods, seeds, budget, out, settings=settings, progress=meter, echo=console.print,
-                 devices=devices)  # fmt: skip
+                 devices=devices, calibrate=calibrate)  # fmt: skip
     result = grid_report(out)
     _print_table(console, result.lines, title=f"{problem}: {budget} per run")
     _print_paired_tests(console, out)
@@ -230,6 +251,7 @@ def cmd_report(args, console):
     result = report(args.dir)
     _print_table(console, result.lines, title=str(args.dir), caption=TABLE_NOTE)
     _print_paired_tests(console, args.dir)
+    _print_targets(console, args.dir)
     if result.figure:
         console.print(f"wrote {result.figure}")
     return 0
@@ -241,29 +263,41 @@ def cmd_bench(args, console):
 
     if args.seeds is not None and args.seeds < 1:
         raise UsageError("--seeds must be at least 1")
+    if args.quick and args.standard:
+        raise UsageError("give only one of --quick, --standard")
+    name = "quick" if args.quick else "standard" if args.standard else ""
     settings = run_settings(args)
     given = any(getattr(args, k) is not None for k in ("steps", "epochs", "seconds"))
-    if args.quick:
-        problems = bench.choose_problems(args.problems) if args.problems else list(bench.QUICK["problems"])
-        methods = bench.choose_methods(args.methods) if args.methods else list(bench.QUICK["methods"])
-        settings = {**bench.quick_settings(problems, methods), **settings}
-        budget = budget_of(args) if given else Budget(seconds=bench.QUICK["seconds"])
-        seeds = args.seeds or bench.QUICK["seeds"]
+    if name:
+        profile = bench.profile_choice(name)
+        problems = bench.choose_problems(args.problems) if args.problems else list(profile["problems"])
+        methods = bench.choose_methods(args.methods) if args.methods else list(profile["methods"])
+        settings = {**bench.quick_settings(problems, methods, name), **settings}
+        budget = budget_of(args) if given else Budget(seconds=profile["seconds"])
+        budgets = {} if given else bench.profile_budgets(profile, problems)
+        seeds = args.seeds or profile["seeds"]
     else:
         problems = bench.choose_problems(args.problems)
         methods = bench.choose_methods(args.methods)
-        budget, seeds = budget_of(args), args.seeds or 1
-    out = output_dir(args.out or ("bench-quick" if args.quick else "bench"))
+        budget, seeds, budgets = budget_of(args), args.seeds or 1, {}
+    out = output_dir(args.out or (f"bench-{name}" if name else "bench"))
+    calibrate = not args.no_calibrate and budget.kind == "seconds"
     console.print(
-        f"bench{' (quick profile)' if args.quick else ''}: {len(problems)} problems x {len(methods)} candidate methods, "
-        f"budget {budget} per run, seeds {list(range(seeds))}, settings {settings or 'paper defaults'} -> {out}"
+        f"bench{f' ({name} profile)' if name else ''}: {len(problems)} problems x {len(methods)} candidate methods, "
+        f"budget {budget}{' (calibrated)' if calibrate else ''} per run"
+        + "".join(f", {p} {b}" for p, b in budgets.items())
+        + f", seeds {list(range(seeds))}, "
+        f"settings {settings or 'paper defaults'} -> {out}"
     )
+    if args.plan or args.calibrate_only:
+        return _bench_plan(console, args, problems, methods, range(seeds), budget, settings, out, budgets)
     console.print("deciding which methods apply to which problem (from shapes; no data, no training)")
     from ..progress import RichProgressMeter
 
     meter = None if args.quiet or not console.is_terminal else RichProgressMeter
     result = bench.bench(problems, methods, range(seeds), budget, out, settings=settings, progress=meter,
-                         echo=console.print, devices=args.devices, profile="quick" if args.quick else "")  # fmt: skip
+                         echo=console.print, devices=args.devices, profile=name,
+                         calibrate=not args.no_calibrate, budgets=budgets)  # fmt: skip
     for problem in problems:
         table = result.tables[problem]
         _print_table(console, bench.table_lines(table, inapplicable=False), title=f"{problem}: {budget} per run")
@@ -271,9 +305,83 @@ def cmd_bench(args, console):
             names = [t["method"] for t in table if t["status"] == status]
             if names:
                 console.print(f"  {status}: {', '.join(names)} (reasons in {out / problem / 'bench_table.md'})")
-    _print_table(console, result.lines, title=f"leaderboard: {budget} per run, {seeds} seed{'s' if seeds != 1 else ''}")
-    files = _files(*(result.files[k] for k in ("markdown", "leaderboard", "table", "heatmap")))
+    plural = "s" if seeds != 1 else ""
+    _print_table(console, result.profile_lines, title=f"leaderboard: performance profile of the time to target, "
+                 f"{budget} per run, {seeds} seed{plural}",
+                 caption="rho(tau): fraction of all problems within a factor tau of the fastest method's median "
+                         "time to the problem's target test loss; geo-mean over the problems run (unsolved: 2x the "
+                         "budget); profile.png draws rho(tau)")  # fmt: skip
+    _print_table(console, result.lines, title=f"by final test loss: {budget} per run, {seeds} seed{plural}")
+    files = _files(*(result.files[k] for k in ("markdown", "leaderboard", "profile", "table", "heatmap",
+                                               "profile_figure")))  # fmt: skip
     console.print(f"wrote {files} and per problem {out}/PROBLEM/bench_table.csv")
+    return 0
+
+
+def _bench_plan(console, args, problems, methods, seeds, budget, settings, out, budgets):
+    """``--plan`` (and ``--calibrate-only``, which calibrates first): the runs per problem
+    and their estimated time from the calibration (:mod:`physgrad.harness.bench.estimate`);
+    nothing trains."""
+    from . import bench
+    from .bench.estimate import LOOP_SECONDS_PER_STEP, RUN_OVERHEAD_SECONDS, UNCALIBRATED_COMPILE_SECONDS, duration
+
+    verdicts = bench.plan(problems, methods, settings, echo=console.print)
+    if args.calibrate_only:
+        if budget.kind != "seconds" or args.no_calibrate:
+            raise UsageError("--calibrate-only needs a calibrated --seconds budget")
+        bench.calibrate_only(problems, verdicts, budget, out, settings=settings, echo=console.print,
+                             devices=args.devices, budgets=budgets)  # fmt: skip
+    rows = bench.estimate(problems, verdicts, seeds, budget, out, budgets)
+    _print_table(console, bench.plan_lines(rows), title=f"plan: {budget} per run, {len(seeds)} seeds -> {out}",
+                 caption=f"a calibrated method: steps x (calibrated s/step + {1e3 * LOOP_SECONDS_PER_STEP:g} ms of "
+                         f"loop per step) + {RUN_OVERHEAD_SECONDS:g} s per run; not calibrated: its budget + "
+                         f"{RUN_OVERHEAD_SECONDS:g} s per run and {UNCALIBRATED_COMPILE_SECONDS:g} s to calibrate it; "
+                         "on an idle machine")  # fmt: skip
+    uncalibrated = sum(r["methods"] - r["calibrated"] for r in rows)
+    note = (f"; {uncalibrated} method(s) not calibrated yet (--calibrate-only times them)" if uncalibrated else
+            "; every method calibrated")  # fmt: skip
+    console.print(f"estimated total: {duration(bench.total_seconds(rows))} for {sum(r['runs'] for r in rows)} runs"
+                  f"{note}; nothing was trained")  # fmt: skip
+    return 0
+
+
+def cmd_calibrate(args, console):
+    """``physgrad calibrate``: the calibration phase of a study alone, as a table."""
+    from .calibration import CSV_COLUMNS, EXTRA_COLUMNS, Calibration, calibrate, csv_rows, write_csv
+    from .config import Budget, split_methods
+    from .study import plan, read_csv
+
+    methods = split_methods(args.methods) if args.methods else None
+    if args.repeats is not None and args.repeats < 1:
+        raise UsageError("--repeats must be at least 1")
+    if args.max_seconds is not None and not args.max_seconds > 0:
+        raise UsageError("--max-seconds must be positive")
+    out = Path(args.out) if args.out else None
+    if out is not None and (out.is_dir() or (out.suffix not in (".csv", ".json"))):
+        raise UsageError(f"--out {str(out)!r} must be a .csv or .json file")
+    configs = plan(args.problem, methods, [0], Budget(steps=1), run_settings(args))
+    options = {k: v for k, v in (("repeats", args.repeats), ("max_seconds", args.max_seconds)) if v is not None}
+    record = calibrate({c.method: c for c in configs}, devices=args.devices, echo=console.print, **options)
+    command = (
+        "physgrad " + " ".join(sys.argv[1:]) if sys.argv[1:2] == ["calibrate"] else f"physgrad calibrate {args.problem}"
+    )
+    rows = csv_rows(Calibration(record), command=command)
+    lines = [["method", "stage", "route", "batch", "ms/step (median)", "quartiles", "min-max", "rounds", "compile s"]]
+    for r in rows:
+        lines.append([r["spec"], str(r["stage"]), r["route"], str(r["batch"]), r["ms_per_step"],
+                      f"{r['ms_q25']}-{r['ms_q75']}", f"{r['ms_min']}-{r['ms_max']}", str(r["rounds"]),
+                      r["compile_seconds"]])  # fmt: skip
+    _print_table(console, lines, title=f"{args.problem}: calibrated step times ({rows[0]['machine'] if rows else ''})")
+    if out is not None:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        if out.suffix == ".json":
+            out.write_text(json.dumps(record, indent=2, default=str) + "\n")
+        else:
+            if args.append and out.exists():
+                rows = [*read_csv(out), *rows]
+            write_csv(out, rows)
+        console.print(f"wrote {out} ({', '.join(CSV_COLUMNS)}, then {', '.join(EXTRA_COLUMNS)})"
+                      if out.suffix == ".csv" else f"wrote {out}")  # fmt: skip
     return 0
 
 
@@ -310,10 +418,10 @@ def cmd_demo(args, console):
     elif r == 0:
         console.print(f"HIG diverged on at least half the seeds where Adam did not ({seeds}: 0; see the table).")
     elif r >= 1:
-        console.print(f"HIG's final test loss is {r:.1f}x below Adam's at equal wall-clock ({seeds}; {spread}).",
+        console.print(f"HIG's final test loss is {r:.1f}x below Adam's at equal calibrated time ({seeds}; {spread}).",
                       markup=False)  # fmt: skip
     else:
-        console.print(f"HIG's final test loss is {1 / r:.1f}x above Adam's at equal wall-clock ({seeds}; {spread}).",
+        console.print(f"HIG's final test loss is {1 / r:.1f}x above Adam's at equal calibrated time ({seeds}; {spread}).",
                       markup=False)  # fmt: skip
     return 0
 
@@ -338,6 +446,7 @@ COMMANDS = {
     "compare": cmd_compare,
     "report": cmd_report,
     "bench": cmd_bench,
+    "calibrate": cmd_calibrate,
     "demo": cmd_demo,
 }
 

@@ -186,6 +186,7 @@ class RunConfig:
     prdp_tau_step: float = 0.98
     prdp_tau_stop: float = 0.9
     memory_guard: bool = True
+    wall_cap: float = 0.0
 
     def to_dict(self) -> dict[str, Any]:
         out = dataclasses.asdict(self)

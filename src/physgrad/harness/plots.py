@@ -72,13 +72,26 @@ def clip_marks(t: np.ndarray, v: np.ndarray, lower: float, upper: float):
     return t, clipped, (t[marked], edge[marked])
 
 
-def _series(results: list[dict[str, Any]], method: str, split: str, metric: str):
-    """Per seed: (seed, wall_time, value) of one method's metric, sorted by time (every
-    value, NaN and infinities included)."""
+def calibrated_axis(results: list[dict[str, Any]]) -> bool:
+    """Whether the rows carry the calibrated time (a calibrated study's ``results.csv``,
+    :mod:`physgrad.harness.calibration`)."""
+    return any(r.get("calibrated_time") not in (None, "") for r in results)
+
+
+def row_time(r: dict[str, Any], calibrated: bool) -> float:
+    """A row's time on the figure's axis: the calibrated time where the axis is calibrated
+    and the row has one, else the training wall-clock."""
+    value = r.get("calibrated_time") if calibrated else None
+    return float(value if value not in (None, "") else r["wall_time"])
+
+
+def _series(results: list[dict[str, Any]], method: str, split: str, metric: str, calibrated: bool = False):
+    """Per seed: (seed, time, value) of one method's metric, sorted by time (every value,
+    NaN and infinities included); the time is :func:`row_time`'s."""
     by_seed: dict[str, list[tuple[float, float]]] = {}
     for r in results:
         if r["method"] == method and r["split"] == split and r["metric"] == metric:
-            by_seed.setdefault(str(r["seed"]), []).append((float(r["wall_time"]), float(r["value"])))
+            by_seed.setdefault(str(r["seed"]), []).append((row_time(r, calibrated), float(r["value"])))
     return [(seed, *np.array(sorted(points, key=lambda p: p[0])).T) for seed, points in by_seed.items() if points]
 
 
@@ -131,7 +144,9 @@ def loss_vs_time(
     notes: dict[str, str] | None = None,
     diverged: dict[str, set[str]] | None = None,
 ) -> Path:
-    """Test loss vs training wall-clock, log y, one colour per method.
+    """Test loss vs training time, log y, one colour per method: the calibrated time
+    (step × calibrated seconds per step) where the rows carry it, else the training
+    wall-clock.
 
     Each seed is drawn as its own thin curve; with several seeds the thick line is the
     median over seeds (:func:`seed_median`: a diverged seed counts as the top of the axis
@@ -145,7 +160,8 @@ def loss_vs_time(
     fig = Figure(figsize=(7, 4.5), dpi=120)
     ax = fig.subplots()
     colours = rcParams["axes.prop_cycle"].by_key()["color"]
-    series = {method: _series(results, method, split, metric) for method in order}
+    calibrated = calibrated_axis(results)
+    series = {method: _series(results, method, split, metric, calibrated) for method in order}
     lower, upper = log_range([v for runs in series.values() for _, _, v in runs])
     failed = diverged or {}
     marked = False
@@ -181,7 +197,8 @@ def loss_vs_time(
             ax.plot(*median, color=colour, label=label, lw=1.8)
     ax.set_ylim(lower / 1.5, upper * 1.5)
     ax.set_yscale("log")
-    ax.set_xlabel("training wall-clock time [s] (evaluation excluded)")
+    ax.set_xlabel("calibrated training time [s] (step × calibrated s/step)" if calibrated
+                  else "training wall-clock time [s] (evaluation excluded)")  # fmt: skip
     ax.set_ylabel(f"{split} {metric} (thin: each seed; thick: median over seeds)")
     ax.set_title(title, fontsize=9)
     ax.grid(True, which="both", alpha=0.3)
@@ -363,6 +380,41 @@ def heatmap(
     bar.set_label(f"log10(final test loss / {reference}'s)", fontsize=7)
     bar.ax.tick_params(labelsize=6)
     ax.set_title(title or f"final test loss relative to {reference} (blue: lower; blank: not applicable)", fontsize=8)
+    fig.tight_layout()
+    path = Path(path)
+    fig.savefig(path)
+    return path
+
+
+def performance_profile(
+    taus: Sequence[float], rho: dict[str, Sequence[float]], path: str | Path, *, title: str = ""
+) -> Path:
+    """A Dolan–Moré performance profile (:mod:`physgrad.harness.targets`): per method the
+    fraction of problems ρ(τ) whose time-to-target is within τ of the fastest method's,
+    a step function of τ on a log axis."""
+    from matplotlib import rcParams
+    from matplotlib.figure import Figure  # its own canvas: no pyplot, no backend switch
+
+    fig = Figure(figsize=(7, 4.5), dpi=120)
+    ax = fig.subplots()
+    colours = rcParams["axes.prop_cycle"].by_key()["color"]
+    styles = ("-", "--", ":", "-.")
+    for i, (method, values) in enumerate(rho.items()):
+        ax.step(list(taus), list(values), where="post", label=method, color=colours[i % len(colours)],
+                ls=styles[(i // len(colours)) % len(styles)], lw=1.6)  # fmt: skip
+    ax.set_xscale("log")
+    ax.set_xlim(1.0, max(taus) if len(taus) else 10.0)
+    from matplotlib.ticker import FuncFormatter, NullFormatter
+
+    ax.xaxis.set_major_formatter(FuncFormatter(lambda x, _: f"{x:g}"))
+    ax.xaxis.set_minor_formatter(NullFormatter())
+    ax.set_ylim(-0.02, 1.02)
+    ax.set_xlabel("τ: time-to-target within a factor τ of the fastest method (log)")
+    ax.set_ylabel("fraction of problems ρ(τ)")
+    ax.set_title(title, fontsize=9)
+    ax.grid(True, which="both", alpha=0.3)
+    if rho:
+        ax.legend(fontsize=8, loc="lower right")
     fig.tight_layout()
     path = Path(path)
     fig.savefig(path)

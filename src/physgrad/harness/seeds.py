@@ -216,12 +216,14 @@ def aggregate(rows: list[dict[str, Any]], order: Sequence[str], spread: Mapping[
         best = summarize([as_float(r["best_test_loss"]) for r in runs])  # a diverged run's best is real
         steps = [as_float(r["steps"]) for r in runs]
         times = [as_float(r["time_per_step"]) for r in runs]
+        calibrated = [as_float(r.get("calibrated_ms_per_step")) for r in runs]
         table.append({
             "method": method, "runs": len(runs), "diverged": sum(r["status"] == "diverged" for r in runs),
             "final": final, "best": best, "seeds": seeds, "spread": (spread or {}).get(method, math.nan),
             "final_test_loss": (final["mean"], final["std"]), "best_test_loss": (best["mean"], best["std"]),
             "steps": float(np.nanmedian(steps)) if not np.isnan(steps).all() else math.nan,
             "ms_per_step": 1e3 * float(np.nanmedian(times)) if not np.isnan(times).all() else math.nan,
+            "calibrated_ms": float(np.nanmedian(calibrated)) if not np.isnan(calibrated).all() else math.nan,
         })  # fmt: skip
     return table
 
@@ -241,6 +243,10 @@ def format_table(table: list[dict[str, Any]], reference: str | None = None) -> l
     ref = next((t for t in table if t["method"] == reference), None)
     header = ["method", "runs", "final test loss, median [95% CI]", "mean ± std", "test-case spread",
               "best test loss", "steps", "ms/step"]  # fmt: skip
+    calibrated = any(math.isfinite(t.get("calibrated_ms", math.nan)) for t in table)
+    if calibrated:
+        header[-1] = "ms/step (wall)"
+        header.append("calibrated ms/step")
     if ref is not None:
         header.append(f"final / {reference}")
     lines = [header]
@@ -248,6 +254,8 @@ def format_table(table: list[dict[str, Any]], reference: str | None = None) -> l
         line = [t["method"], runs_cell(t["runs"], t["diverged"]), median_cell(t["final"]), mean_cell(t["final"]),
                 number(t["spread"], ".1e"), number(t["best"]["median"]), f"{t['steps']:.0f}",
                 f"{t['ms_per_step']:.2f}"]  # fmt: skip
+        if calibrated:
+            line.append(number(t.get("calibrated_ms", math.nan), ".3g"))
         if ref is not None:
             ratio = paired_ratio(t, ref)
             line.append("-" if ratio["n"] == 0 else f"{number(ratio['median'], '.3g')} {interval(ratio, '.3g')}")

@@ -12,6 +12,7 @@ ones from their checkpoints.
 from __future__ import annotations
 
 import csv
+import dataclasses
 import io
 import json
 import math
@@ -34,8 +35,9 @@ from .train import is_complete, read_metrics, read_summary, train
 SUMMARY_COLUMNS = (
     "problem", "method", "seed", "status", "steps", "epochs", "train_seconds", "time_per_step",
     "final_train_loss", "final_test_loss", "best_test_loss", "diverged_step", "last_finite_loss",
-    "compile_seconds", "run_dir",
+    "compile_seconds", "run_dir", "calibrated_seconds", "calibrated_ms_per_step", "wall_capped",
 )  # fmt: skip
+RESULT_COLUMNS = ("problem", "method", "seed", "step", "wall_time", "split", "metric", "value", "calibrated_time")
 
 
 def settings_for(problem: str, method: str, methods: Sequence[str], settings: dict[str, Any]) -> dict[str, Any]:
@@ -102,26 +104,47 @@ def compare(
     echo: Callable[[str], None] = print,
     devices: int | str | None = 1,
     record_failures: bool = False,
+    calibrate: bool = True,
+    calibration_options: dict[str, Any] | None = None,
 ) -> list[dict[str, Any]]:
     """Train every method × seed on the same budget into ``out``; return the summary rows.
     ``devices``: each run's batch is split over that many devices (``train``). One study
     writes to ``out`` at a time (a second is refused in one line naming the first).
     ``record_failures``: a run that raises is recorded and the study goes on (the bench's
     choice: one crashing method must not cost the others' runs; :mod:`physgrad.harness.failures`);
-    without it the first error stops the study, as bad input and KeyboardInterrupt always do."""
+    without it the first error stops the study, as bad input and KeyboardInterrupt always do.
+
+    A seconds budget is calibrated (``calibrate``, the default; :mod:`physgrad.harness.calibration`):
+    each method's compiled step is timed first (or the study's recorded calibration read
+    back), and its runs train for ``seconds / calibrated seconds per step`` steps, their
+    ``eval_seconds`` becoming the same cadence in steps. ``calibrate=False`` keeps the
+    wall-clock budget (the run stops when its training wall-clock reaches the seconds).
+    ``calibration_options``: :func:`~physgrad.harness.calibration.calibrate`'s ``repeats``,
+    ``max_seconds``, ``clock`` or ``programs``."""
     out = Path(out)
     configs = plan(problem, methods, seeds, budget, settings)
     with rundir.one_writer(out, "study"):  # one writer per study directory, for the whole study
+        calibrated = budget.kind == "seconds" and calibrate
+        if calibrated:
+            from .calibration import study_calibration
+
+            firsts: dict[str, RunConfig] = {}
+            for c in configs:  # each method's seed-0 run: the seeds share its step program
+                firsts.setdefault(c.method, dataclasses.replace(c, seed=0))
+            calibration = study_calibration(out, firsts, echo=echo, devices=devices,
+                                            record_failures=record_failures, **(calibration_options or {}))  # fmt: skip
+            configs = [calibrated_config(c, calibration, float(budget.amount)) for c in configs]
         names = [run_name(c) for c in configs]
         rundir.atomic_write(out / "study.json", json.dumps({
             "problem": problem, "methods": list(dict.fromkeys(c.method for c in configs)), "seeds": list(seeds),
-            "budget": budget.to_dict(), "settings": settings or {}, "runs": names,
+            "budget": budget.to_dict(), "settings": settings or {}, "runs": names, "calibrated": calibrated,
+            "run_budgets": {c.method: c.budget.to_dict() for c in configs},
         }, indent=2) + "\n")  # fmt: skip
         log = FailureLog(out, names, write=record_failures)
         for i, (config, name) in enumerate(zip(configs, names), 1):
             run_dir = out / "runs" / name
             prefix = f"[{i}/{len(configs)}] {config.method} seed {config.seed}"
-            if is_complete(run_dir):
+            if is_complete(run_dir) and not cap_raised(read_summary(run_dir) or {}, config.wall_cap):
                 echo(f"{prefix}: done already ({(read_summary(run_dir) or {}).get('status')}), skipped")
                 continue
             try:
@@ -134,6 +157,26 @@ def compare(
             log.clear(name)
             echo(f"{prefix}: {describe_run(summary)}")
         return collect(out)
+
+
+def cap_raised(summary: dict[str, Any], wall_cap: float) -> bool:
+    """Whether a run that a wall-clock cap stopped may train on: the cap is now higher, or gone."""
+    return bool(summary.get("wall_capped")) and (wall_cap <= 0 or wall_cap > summary.get("train_seconds", 0.0))
+
+
+def calibrated_config(config: RunConfig, calibration, seconds: float) -> RunConfig:
+    """A run of a calibrated study: ``seconds`` of calibrated time as a step budget, and its
+    ``eval_seconds`` (training seconds between evaluations) as ``eval_every`` steps at its
+    last stage's calibrated cost, so that evaluations fall at the same calibrated times
+    whatever the load. A method without a calibration (its step could not be built) keeps
+    the wall-clock budget: its run meets the same error and is recorded."""
+    if not calibration.has(config.method):
+        return config
+    changes: dict[str, Any] = {"budget": Budget(steps=calibration.steps(config.method, seconds))}
+    if config.eval_seconds > 0:
+        every = max(1, round(config.eval_seconds / calibration.seconds_per_step(config.method)))
+        changes.update(eval_every=every, eval_seconds=0.0)
+    return dataclasses.replace(config, **changes)
 
 
 def describe_run(summary: dict[str, Any]) -> str:
@@ -152,10 +195,13 @@ def collect(out: str | Path) -> list[dict[str, Any]]:
     """Gather the runs of a study into ``results.csv`` and ``summary.csv`` (only the runs
     that ``study.json`` plans, when it lists them: a directory reused with another budget or
     setting keeps the old runs' directories, which must not mix into the tables)."""
+    from .calibration import read as read_calibration
+
     out = Path(out)
     rows, results = [], []
     study = json.loads((out / "study.json").read_text()) if (out / "study.json").exists() else {}
     planned = set(study.get("runs", [])) or None  # a reused directory keeps other plans' runs
+    calibration = read_calibration(out)
     for run_dir in sorted((out / "runs").glob("*")):
         if planned is not None and run_dir.name not in planned:
             continue
@@ -164,11 +210,17 @@ def collect(out: str | Path) -> list[dict[str, Any]]:
             continue
         config = json.loads(config_path.read_text())
         ident = {"problem": config["problem"], "method": config["method"], "seed": config["seed"]}
-        rows.append({**{k: summary.get(k) for k in SUMMARY_COLUMNS}, **ident, "run_dir": str(run_dir.relative_to(out))})
-        results += [{**ident, **r} for r in read_metrics(run_dir / "metrics.csv")]
+        clock = (lambda step, m=config["method"]: calibration.time_at(m, step)) if calibration and calibration.has(
+            config["method"]) else None  # fmt: skip
+        row = {**{k: summary.get(k) for k in SUMMARY_COLUMNS}, **ident, "run_dir": str(run_dir.relative_to(out))}
+        if clock is not None and isinstance(summary.get("steps"), int):
+            row["calibrated_seconds"] = clock(summary["steps"])
+            row["calibrated_ms_per_step"] = 1e3 * calibration.seconds_per_step(config["method"])  # type: ignore[union-attr]
+        rows.append(row)
+        metrics = read_metrics(run_dir / "metrics.csv")
+        results += [{**ident, **r, **({"calibrated_time": clock(r["step"])} if clock else {})} for r in metrics]
     write_csv(out / "summary.csv", SUMMARY_COLUMNS, rows)
-    write_csv(out / "results.csv", ("problem", "method", "seed", "step", "wall_time", "split", "metric", "value"),
-              results)  # fmt: skip
+    write_csv(out / "results.csv", RESULT_COLUMNS, results)
     return rows
 
 
@@ -379,8 +431,10 @@ def compare_grid(
     progress: Callable[[], AbstractProgressMeter] | None = None,
     echo: Callable[[str], None] = print,
     devices: int | str | None = 1,
+    calibrate: bool = True,
 ) -> None:
-    """Every cell of a settings grid as its own study under ``out`` (validated first)."""
+    """Every cell of a settings grid as its own study under ``out`` (validated first); each
+    cell calibrates its own seconds budget (its settings may change the step's cost)."""
     fixed, grid = split_grid(settings)
     cells = grid_cells(grid)
     for cell in cells:  # every name and value is checked before anything runs
@@ -394,7 +448,7 @@ def compare_grid(
         for i, cell in enumerate(cells, 1):
             echo(f"cell {i}/{len(cells)}: {', '.join(f'{k}={v}' for k, v in cell.items())}")
             compare(problem, methods, seeds, budget, out / cell_name(cell), settings={**fixed, **cell},
-                    progress=progress, echo=echo, devices=devices)  # fmt: skip
+                    progress=progress, echo=echo, devices=devices, calibrate=calibrate)  # fmt: skip
             report(out / cell_name(cell))
 
 

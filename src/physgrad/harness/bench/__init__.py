@@ -52,43 +52,42 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import os
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
 from ...rundir import atomic_write, one_writer
+from ..calibration import machine
 from ..config import Budget
 from ..failures import read_failures
 from ..study import compare
 from .applicability import POLICY, Verdict, applicability, describe_verdicts, plan
-from .choices import QUICK, ZOO, choose_methods, choose_problems, problem_settings, quick_settings, study_settings
+from .choices import (
+    PROFILES,
+    QUICK,
+    STANDARD,
+    STANDARD_EXCLUDED,
+    ZOO,
+    choose_methods,
+    choose_problems,
+    problem_settings,
+    profile_budgets,
+    profile_choice,
+    quick_settings,
+    study_settings,
+)
+from .estimate import estimate, plan_lines, total_seconds
 from .report import BenchReport, heatmap, problem_table, report
 from .tables import REFERENCE, add_paired_tests, leaderboard, method_rows, table_lines
 
 # What the command line, the tests and the benchmarks use; the rest lives in the modules.
 __all__ = [
-    "POLICY", "QUICK", "REFERENCE", "ZOO", "BenchReport", "Verdict", "add_paired_tests", "applicability", "bench",
-    "choose_methods", "choose_problems", "describe_verdicts", "heatmap", "leaderboard", "machine", "method_rows",
-    "plan", "problem_settings", "problem_table", "quick_settings", "read_failures", "report", "run_problem",
-    "study_settings", "table_lines",
+    "POLICY", "PROFILES", "QUICK", "REFERENCE", "STANDARD", "STANDARD_EXCLUDED", "ZOO", "BenchReport", "Verdict",
+    "add_paired_tests", "applicability", "bench", "calibrate_only", "choose_methods", "choose_problems",
+    "describe_verdicts", "estimate", "heatmap", "leaderboard", "machine", "method_rows", "plan", "plan_lines",
+    "problem_settings", "problem_table", "profile_budgets", "profile_choice", "quick_settings", "read_failures", "report", "run_problem",
+    "study_settings", "table_lines", "total_seconds",
 ]  # fmt: skip
-
-
-def machine() -> dict[str, Any]:
-    """What the budgets were spent on: CPU cores (all, and usable by this process), JAX's
-    backend and devices, versions (``engine.environment``)."""
-    from ...engine import environment
-
-    env = environment()
-    try:
-        usable = len(os.sched_getaffinity(0))
-    except AttributeError:  # not on Linux
-        usable = os.cpu_count()
-    import jax
-
-    kinds = sorted({getattr(d, "device_kind", d.platform) for d in jax.devices()})
-    return {**env, "usable_cpus": usable, "device_kind": ", ".join(kinds)}
 
 
 def run_problem(
@@ -102,6 +101,7 @@ def run_problem(
     progress: Callable[[], Any] | None = None,
     echo: Callable[[str], None] = print,
     devices: int | str | None = 1,
+    calibrate: bool = True,
 ) -> list[dict[str, Any]]:
     """One problem's study in ``out``: :func:`physgrad.harness.study.compare` of its applicable
     methods × ``seeds`` (the same ``study.json``, run directories, skipping and resuming)
@@ -111,7 +111,7 @@ def run_problem(
     methods = [v.method for v in verdicts if v.runs]
     return compare(problem, methods, seeds, budget, out, settings=study_settings(problem, methods, settings or {}),
                    progress=progress, echo=lambda line: echo(f"{problem} {line}"), devices=devices,
-                   record_failures=True)  # fmt: skip
+                   record_failures=True, calibrate=calibrate)  # fmt: skip
 
 
 def bench(
@@ -126,12 +126,17 @@ def bench(
     echo: Callable[[str], None] = print,
     devices: int | str | None = 1,
     profile: str = "",
+    calibrate: bool = True,
+    budgets: dict[str, Budget] | None = None,
 ) -> BenchReport:
     """Run the bench into ``out`` (see the module docstring) and write its report.
 
     ``methods`` are the candidates (each problem runs those that apply); ``settings`` the
     ``--set`` values (``p.name`` scopes to problem ``p``); ``profile`` names a preset such
-    as ``quick`` in the report."""
+    as ``quick`` in the report; ``budgets`` replaces ``budget`` for the problems it names
+    (a profile's cheaper problems); ``calibrate``: a seconds budget is calibrated
+    (:mod:`physgrad.harness.calibration`)."""
+    budgets = budgets or {}
     settings = settings or {}
     out = Path(out)
     verdicts = plan(problems, methods, settings, echo=echo)
@@ -139,14 +144,46 @@ def bench(
         atomic_write(out / "bench.json", json.dumps({
             "problems": list(problems), "methods": list(methods), "seeds": list(seeds), "budget": budget.to_dict(),
             "settings": settings, "profile": profile, "devices": devices,
+            "calibrated": calibrate and budget.kind == "seconds",
+            "budgets": {p: b.to_dict() for p, b in budgets.items()},
             "verdicts": {p: [dataclasses.asdict(v) for v in vs] for p, vs in verdicts.items()},
             "machine": machine(),
         }, indent=2, default=str) + "\n")  # fmt: skip
         for i, problem in enumerate(problems, 1):
             runnable = sum(v.runs for v in verdicts[problem])
+            mine = budgets.get(problem, budget)
             echo(
-                f"problem {i}/{len(problems)} {problem}: {runnable} methods x {len(seeds)} seeds, budget {budget} per run"
+                f"problem {i}/{len(problems)} {problem}: {runnable} methods x {len(seeds)} seeds, budget {mine} per run"
             )
-            run_problem(problem, verdicts[problem], seeds, budget, out / problem, settings=settings, progress=progress,
-                        echo=echo, devices=devices)  # fmt: skip
+            run_problem(problem, verdicts[problem], seeds, mine, out / problem, settings=settings, progress=progress,
+                        echo=echo, devices=devices, calibrate=calibrate)  # fmt: skip
         return report(out)
+
+
+def calibrate_only(
+    problems: Sequence[str],
+    verdicts: Mapping[str, Sequence[Verdict]],
+    budget: Budget,
+    out: str | Path,
+    *,
+    settings: dict[str, Any] | None = None,
+    echo: Callable[[str], None] = print,
+    devices: int | str | None = 1,
+    budgets: dict[str, Budget] | None = None,
+) -> None:
+    """The calibration phase of every problem's study and nothing else: each problem's
+    applicable methods timed (:func:`physgrad.harness.calibration.study_calibration`) into
+    ``out/<problem>/calibration.*``, which the bench then reuses (and ``--plan`` reads)."""
+    from ..calibration import study_calibration
+    from ..study import plan as study_plan
+
+    for problem in problems:
+        methods = [v.method for v in verdicts[problem] if v.runs]
+        if not methods:
+            continue
+        configs = study_plan(problem, methods, [0], (budgets or {}).get(problem, budget),
+                             study_settings(problem, methods, settings or {}))  # fmt: skip
+        (Path(out) / problem).mkdir(parents=True, exist_ok=True)
+        with one_writer(Path(out) / problem, "study"):
+            study_calibration(Path(out) / problem, {c.method: c for c in configs}, devices=devices,
+                              record_failures=True, echo=lambda line, p=problem: echo(f"{p} {line}"))  # fmt: skip

@@ -11,6 +11,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import Any
 
+from ..arguments import QUICK_SUMMARY, STANDARD_SUMMARY
 from ..config import ConfigError, choose, parse_method, phase_methods, split_methods, split_scope, valid_settings
 from ..registry import METHODS, PROBLEMS
 
@@ -18,28 +19,79 @@ from ..registry import METHODS, PROBLEMS
 # weight decay, and two newer first-order methods (sign momentum; orthogonalised momentum).
 ZOO = ("optax:adamw", "optax:lion", "optax.contrib:muon")
 
-# The quick profile (``physgrad bench --quick``): the fastest open-loop problems, measured on
-# 2 CPU cores (setup and compilation of every method in seconds), 10 s of training per run
-# and 2 seeds. Measured on 2 cores shared with other jobs (load ~6): a 10 s run costs ~18 s
-# of wall-clock (setup, compilation, evaluation); the first version's 118 runs took 36
-# minutes, so the curated list below (142 runs) takes about 43. The two problems with 65,536 training samples get
-# 4,096 (an epoch, and so a full evaluation, every ~40 steps instead of ~650); the Jacobian
-# methods on the oscillators take the demo's batch of 32 instead of the paper's 128 (at 128 a
-# step costs ~5 s on 2 cores: two steps in a 10 s run). Evaluation every 2 training seconds
-# gives every curve a few points.
+# The named profiles (``physgrad bench --quick`` / ``--standard``): problems, candidates,
+# settings, seconds of calibrated training per run (harness/calibration.py) and seeds.
+# ``physgrad bench --quick --plan`` prints what a profile runs and its estimated time
+# (harness/bench/estimate.py) without running it.
+#
+# quick: at most 45 minutes on 2 CPU cores, 3 seeds (the fewest with a bootstrap interval).
+# The fastest open-loop problems, measured on 2 CPU cores (setup and compilation of every
+# method in seconds). The two problems with 65,536 training samples get 4,096 (an epoch, and
+# so a full evaluation, every ~40 steps instead of ~650); the Jacobian methods on the
+# oscillators take the demo's batch of 32 instead of the paper's 128 (at 128 a step costs
+# ~5 s on 2 cores: two steps in a 10 s run). Evaluation every 0.5 s of calibrated time
+# (0.02-0.1 s on the problems with the shorter budgets below): about 12-25 evaluations per run,
+# which is the resolution of the time-to-target (the first evaluation at or below it). The
+# first quick profile (2 seeds, 10 s, 12 candidates: 140 runs) took 43 minutes on 2 loaded
+# cores; at 3 seeds the candidates drop SGD, Newton and Lion (SGD and Lion below Adam on
+# none of the six problems, Newton diverged on 8 of 12 runs: docs/benchmark.md) and each run
+# gets 6 s.
 QUICK: dict[str, Any] = {
     "problems": ("hig_toy", "toy2d", "exp_inverse", "sine", "linear_oscillators", "oscillators"),
-    # The candidates of the quick profile: the DP baselines that did best in the HIG paper's
-    # comparison (Adam, RMSprop, SGD; Adagrad and Adadelta trail them) plus every
-    # curvature and inversion method and the zoo (the rollout methods apply to none of them).
-    "methods": ("adam", "sgd", "rmsprop", "gn", "hig", "lm", "kfac", "sip", "newton", *ZOO),
+    # The DP baselines Adam and RMSprop (the best of the HIG paper's comparison), every
+    # curvature and inversion method, AdamW and Muon (the rollout methods apply to none).
+    "methods": ("adam", "rmsprop", "gn", "hig", "lm", "kfac", "sip", "optax:adamw", "optax.contrib:muon"),
     "settings": {
-        "exp_inverse.n_train": "4096", "sine.n_train": "4096", "eval_seconds": "2",
+        "exp_inverse.n_train": "4096", "sine.n_train": "4096", "eval_seconds": "0.5", "toy2d.eval_seconds": "0.02",
+        "hig_toy.eval_seconds": "0.05", "exp_inverse.eval_seconds": "0.1", "sine.eval_seconds": "0.1",
         "oscillators.gn.batch_size": "32", "oscillators.hig.batch_size": "32", "oscillators.lm.batch_size": "32",
     },
-    "seconds": 10.0,
-    "seeds": 2,
+    "seconds": 6.0,
+    "problem_seconds": {"toy2d": 0.5, "hig_toy": 1.0, "exp_inverse": 2.0, "sine": 2.0},
+    "seeds": 3,
+    "summary": QUICK_SUMMARY,
 }  # fmt: skip
+
+# standard: every problem that fits a CPU, at its paper settings (batch sizes included),
+# every applicable method, 5 minutes of calibrated training per run, 5 seeds; a long study
+# (days on 2 cores) that resumes run by run. Left out, with the reason (calibration.csv):
+STANDARD_EXCLUDED = {
+    "poisson_hig": "a HIG step at the paper's batch 64 costs 18.8 s on one core (structured route; 43.5 s gram): "
+                   "a 5-minute run makes 16 updates",
+    "navier_stokes": "an Adam step at the paper's batch 64 costs 7.4 s on one core (SIP 4.8 s): a 5-minute run "
+                     "makes about 40 updates",
+}  # fmt: skip
+STANDARD: dict[str, Any] = {
+    "problems": None,  # every shipped problem but STANDARD_EXCLUDED (standard_problems())
+    "methods": None,  # every registered method and the zoo (choose_methods(None)); each problem runs those that apply
+    "settings": {"eval_seconds": "10"},
+    "seconds": 300.0,
+    "seeds": 5,
+    "summary": STANDARD_SUMMARY,
+}
+PROFILES: dict[str, dict[str, Any]] = {"quick": QUICK, "standard": STANDARD}
+
+
+def profile_budgets(profile: dict[str, Any], problems: Sequence[str]) -> dict[str, Any]:
+    """A profile's per-problem seconds (``problem_seconds``) as budgets, for ``problems``."""
+    from ..config import Budget
+
+    return {p: Budget(seconds=s) for p, s in profile.get("problem_seconds", {}).items() if p in problems}
+
+
+def standard_problems() -> list[str]:
+    """The standard profile's problems: every shipped problem but :data:`STANDARD_EXCLUDED`."""
+    return [p for p in PROBLEMS if p not in STANDARD_EXCLUDED]
+
+
+def profile_choice(name: str) -> dict[str, Any]:
+    """A named profile with its problems and methods resolved (a one-line error naming the
+    valid profiles otherwise)."""
+    choose("bench profile", name, PROFILES)
+    profile = dict(PROFILES[name])
+    profile["problems"] = list(profile["problems"] or standard_problems())
+    profile["methods"] = list(profile["methods"] or choose_methods(None))
+    return profile
 
 
 def _unscoped(key: str) -> tuple[str | None, str]:
@@ -49,12 +101,13 @@ def _unscoped(key: str) -> tuple[str | None, str]:
     return (head, rest) if head in PROBLEMS and rest else (None, key)
 
 
-def quick_settings(problems: Sequence[str], methods: Sequence[str]) -> dict[str, Any]:
-    """The quick profile's settings that concern ``problems`` and the candidate ``methods``
-    (those scoped to another problem or to a method not among the candidates dropped)."""
+def quick_settings(problems: Sequence[str], methods: Sequence[str], profile: str = "quick") -> dict[str, Any]:
+    """A profile's settings (default the quick one's) that concern ``problems`` and the
+    candidate ``methods`` (those scoped to another problem or to a method not among the
+    candidates dropped)."""
     stages = {m for spec in methods for m in phase_methods(spec)}
     keep = {}
-    for key, value in QUICK["settings"].items():
+    for key, value in PROFILES[profile]["settings"].items():
         problem, rest = _unscoped(key)
         if problem is not None and problem not in problems:
             continue

@@ -172,6 +172,7 @@ TABLE_COLUMNS = (
     "problem", "method", "status", "runs", "finished", "diverged", "failed", "final_test_loss_mean",
     "final_test_loss_std", "rank", "ratio_to_adam", "best", "p_vs_best", "pairs", "seeds_best_lower",
     "seeds_compared", "reason", "final_test_loss_median", "final_test_loss_low", "final_test_loss_high",
+    "target", "time_to_target_median", "target_reached",
 )  # fmt: skip
 BOARD_COLUMNS = (
     "method",
@@ -204,7 +205,9 @@ def table_records(problem: str, table: Sequence[dict[str, Any]]) -> list[dict[st
         "seeds_best_lower": "" if t.get("seeds_best_lower") is None else t["seeds_best_lower"],
         "seeds_compared": t.get("seeds_compared") or "", "reason": t["reason"],
         "final_test_loss_median": _number(t["median"], ".6e"), "final_test_loss_low": _number(t["low"], ".6e"),
-        "final_test_loss_high": _number(t["high"], ".6e"),
+        "final_test_loss_high": _number(t["high"], ".6e"), "target": _number(t.get("target", math.nan), ".6g"),
+        "time_to_target_median": _number(t["ttt"], ".6g") if t.get("ttt_reached") else "",
+        "target_reached": t.get("ttt_reached", ""),
     } for t in table]  # fmt: skip
 
 
@@ -219,7 +222,8 @@ def table_lines(
 
     best = best_method(table)
     header = ["rank", "method", "runs", "final test loss: median [95% CI] over seeds", f"/ {reference}",
-              f"vs {best or 'best'}: Wilcoxon p over seeds, from 6 (seeds lower)", "note"]  # fmt: skip
+              f"vs {best or 'best'}: Wilcoxon p over seeds, from 6 (seeds lower)", "note",
+              "time to target: median over seeds"]  # fmt: skip
     order = {"ok": 0, "diverged": 1, "failed": 1, "pending": 2, "skipped": 3, "not applicable": 4}
     lines = [header]
     for t in sorted(table, key=lambda t: (order[t["status"]], t["rank"] or 0)):
@@ -248,7 +252,9 @@ def table_lines(
             test = ""
         ratio = number(t["ratio"], ".3g") if t["status"] == "ok" else ""
         runs = str(t["runs"]) if t["status"] not in ("not applicable", "skipped") else ""
-        lines.append([str(t["rank"] or ""), t["method"], runs, loss, ratio, test, "; ".join(notes)])
+        lines.append(
+            [str(t["rank"] or ""), t["method"], runs, loss, ratio, test, "; ".join(notes), t.get("ttt_cell", "")]
+        )
     return lines
 
 

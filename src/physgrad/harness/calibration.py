@@ -1,0 +1,398 @@
+"""Calibrated cost: each method's compiled training step timed on the problem, and the step
+budgets and time axis that follow from it (issue 31, item 2).
+
+A wall-clock race on a shared machine measures the machine's load as much as the update
+rule (one busy neighbour made a HIG step 55× slower, an Adam step 3×). So a study with a
+seconds budget first **calibrates**: it builds each method's run (seed 0, the study's
+settings), compiles its step with the engine's own :class:`~physgrad.engine.step.Steps`
+(the compiled program is kept in :data:`physgrad.programs.STEPS`, so the runs that follow
+do not compile it again), calls it once more to warm it up, and then times it in
+**interleaved rounds** (one step of every method per round, so that a change of load
+touches every method alike) under the thread setting the study runs with. The median over
+the rounds is the method's seconds per step (the quartiles and the extremes are kept as
+its spread). Each run then trains for
+
+    steps = floor(seconds / calibrated seconds per step)           (at least 1)
+
+(a sequence ``adam:2000,hig`` spends its stages' calibrated costs in order), and its curves
+are drawn against the **calibrated time** ``t = step × calibrated seconds per step`` (summed
+over the stages of a sequence), with the raw training wall-clock recorded beside it. The
+record, ``calibration.json`` in the study directory (and ``calibration.csv``: one row per
+stage in the columns of ``docs/reproductions/long/calibration.csv``), holds the machine,
+its load before and after, the thread setting, and per method the median, spread, number
+of rounds and compile time. A resumed study reads it back and does not time again (a
+method whose configuration changed, or a new method, is timed then and added).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import csv
+import dataclasses
+import functools
+import io
+import json
+import math
+import os
+import statistics
+import time
+from collections.abc import Callable, Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+from .. import rundir
+from ..engine import Budget
+from ..errors import ConfigError
+from .config import RunConfig
+
+CALIBRATION_FILE = "calibration.json"
+CALIBRATION_CSV = "calibration.csv"
+# The columns of docs/reproductions/long/calibration.csv (the long-study lanes' table),
+# then the spread and conditions of each measurement.
+CSV_COLUMNS = ("problem", "method", "route", "batch", "ms_per_step", "measured", "machine", "command")
+EXTRA_COLUMNS = ("spec", "stage", "ms_q25", "ms_q75", "ms_min", "ms_max", "rounds", "compile_seconds", "threads",
+                 "load")  # fmt: skip
+REPEATS = 15  # rounds of interleaved timing, at most
+MIN_REPEATS = 3  # every method gets at least this many rounds
+MAX_SECONDS = 10.0  # a method leaves the rounds once its timed steps add up to this (after MIN_REPEATS)
+RULE = ("median over interleaved rounds (one step of every method per round) of the compiled step's wall-clock; "
+        "compilation and the first call excluded; seed 0's data and network")  # fmt: skip
+
+Program = Callable[[], Any]  # one training step, blocking until its results are ready
+
+
+@dataclasses.dataclass(frozen=True)
+class StageCost:
+    """One stage's calibrated step: its method and batch size, its length (None: the last
+    stage, until the budget is spent), its route (the Jacobian methods' ``route`` setting,
+    else empty) and the timing: median seconds per step, quartiles, extremes, rounds, and
+    the seconds spent compiling and warming it up."""
+
+    method: str
+    batch_size: int
+    steps: int | None
+    route: str
+    seconds: float
+    q25: float
+    q75: float
+    low: float
+    high: float
+    rounds: int
+    compile_seconds: float = 0.0
+
+
+def steps_for(seconds: float, stages: Sequence[StageCost]) -> int:
+    """The step budget of ``seconds`` of calibrated time: each fixed-length stage spends its
+    steps × cost in order, the last stage runs on until ``seconds`` is spent; at least 1
+    step (a budget below one step still trains one)."""
+    spent, steps = 0.0, 0
+    for stage in stages:
+        if stage.steps is not None and spent + stage.steps * stage.seconds < seconds:
+            spent += stage.steps * stage.seconds
+            steps += stage.steps
+            continue
+        steps += math.floor((seconds - spent) / stage.seconds + 1e-9)
+        break
+    return max(1, steps)
+
+
+def time_at(step: float, stages: Sequence[StageCost]) -> float:
+    """The calibrated time after ``step`` steps: each step costs its stage's calibrated
+    seconds (``t = step × seconds per step`` for a single method)."""
+    t, left = 0.0, float(step)
+    for stage in stages:
+        n = left if stage.steps is None else min(left, stage.steps)
+        t += n * stage.seconds
+        left -= n
+        if left <= 0:
+            break
+    return t
+
+
+def time_programs(
+    programs: Mapping[str, Sequence[Program]],
+    *,
+    repeats: int = REPEATS,
+    max_seconds: float = MAX_SECONDS,
+    clock: Callable[[], float] = time.perf_counter,
+) -> dict[str, list[list[float]]]:
+    """Seconds per call of each program, in interleaved rounds: every round calls each
+    key's programs (a sequence's stages) once, in order; a key leaves the rounds once it
+    has ``MIN_REPEATS`` rounds and its timed calls add up to ``max_seconds``. Returns
+    ``{key: [per-program list of seconds]}``. ``clock`` is the timer (a fake one makes the
+    tests deterministic)."""
+    times: dict[str, list[list[float]]] = {k: [[] for _ in progs] for k, progs in programs.items()}
+    active = list(programs)
+    for r in range(max(repeats, 1)):
+        for key in list(active):
+            for i, program in enumerate(programs[key]):
+                t0 = clock()
+                program()
+                times[key][i].append(clock() - t0)
+            spent = sum(sum(t) for t in times[key])
+            if r + 1 >= min(MIN_REPEATS, repeats) and spent >= max_seconds:
+                active.remove(key)
+        if not active:
+            break
+    return times
+
+
+def summarize_times(values: Sequence[float]) -> dict[str, Any]:
+    """Median, quartiles and extremes of one program's timings (seconds), and their count."""
+    q = statistics.quantiles(values, n=4, method="inclusive") if len(values) > 1 else [values[0]] * 3
+    return {"seconds": statistics.median(values), "q25": q[0], "q75": q[2], "low": min(values), "high": max(values),
+            "rounds": len(values)}  # fmt: skip
+
+
+def fingerprint(config: RunConfig) -> str:
+    """What a calibration is valid for: the run's configuration with seed 0 and no budget
+    (the problem, its settings, every stage's method, hyperparameters and batch size)."""
+    return dataclasses.replace(config, seed=0, budget=Budget(steps=1), eval_every=0, eval_seconds=0.0).digest()
+
+
+def step_programs(config: RunConfig, devices: int | str | None = 1) -> tuple[list[Program], list[float], list[Any]]:
+    """Each stage's compiled training step of ``config`` as a no-argument program, the
+    seconds spent compiling and warming up each, and the stages (the engine's
+    :class:`~physgrad.engine.types.Stage`). Built with the engine's
+    :class:`~physgrad.engine.step.Steps`, so the program is the one the run uses (and finds
+    in :data:`physgrad.programs.STEPS` instead of compiling it again); the memory guard
+    checks it as in a run. Call inside :func:`physgrad.precision.float64_scope` where the
+    problem needs float64 (:func:`calibrate` does)."""
+    import jax
+    import numpy as np
+
+    from ..engine.step import Steps
+    from ..engine.strategies import Placement
+    from ..engine.types import TrainState
+    from .train import build, settings_of
+
+    setup = build(config)
+    placement = Placement(devices)
+    params = placement.put(setup.params)
+    steps = Steps(setup, placement, settings_of(config), config.seed)
+    programs, warmups = [], []
+    for i, stage in enumerate(setup.stages):
+        opt_state = placement.put(stage.method.init(setup.params))
+        state = TrainState(params, opt_state, stage=i)
+        t0 = time.perf_counter()
+        with placement.scope():
+            compiled, _ = steps.compile(state, setup)
+            order = steps.order(i, 0)
+            program = functools.partial(compiled, params, opt_state, steps.data, order, np.int32(0))
+            jax.block_until_ready(program())  # the first call: warm-up, not timed
+        warmups.append(time.perf_counter() - t0)
+        programs.append(lambda program=program: jax.block_until_ready(program()))
+    return programs, warmups, list(setup.stages)
+
+
+def machine() -> dict[str, Any]:
+    """What the budgets were spent on: CPU cores (all, and usable by this process), JAX's
+    backend and devices, versions (``engine.environment``)."""
+    from ..engine import environment
+
+    env = environment()
+    try:
+        usable = len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        usable = os.cpu_count()
+    import jax
+
+    kinds = sorted({getattr(d, "device_kind", d.platform) for d in jax.devices()})
+    return {**env, "usable_cpus": usable, "device_kind": ", ".join(kinds)}
+
+
+def load() -> list[float] | None:
+    """The machine's 1, 5 and 15 minute load averages (None where the OS has none)."""
+    try:
+        return [round(x, 2) for x in os.getloadavg()]
+    except (AttributeError, OSError):
+        return None
+
+
+def calibrate(
+    configs: Mapping[str, RunConfig],
+    *,
+    repeats: int = REPEATS,
+    max_seconds: float = MAX_SECONDS,
+    devices: int | str | None = 1,
+    echo: Callable[[str], None] = print,
+    clock: Callable[[], float] = time.perf_counter,
+    programs: Callable[[RunConfig], tuple[list[Program], list[float], list[Any]]] | None = None,
+    record_failures: bool = False,
+) -> dict[str, Any]:
+    """Time every method of ``configs`` (``{method spec: its seed-0 run configuration}``,
+    one problem) and return the calibration record (``calibration.json``'s contents).
+
+    ``programs`` builds a configuration's step programs (default :func:`step_programs`; a
+    test passes fakes with a fake ``clock``). With ``record_failures`` a method whose step
+    cannot be built (the memory guard's refusal, a crash) is recorded with its error and
+    the others are timed; otherwise the error stops the calibration."""
+    from ..cpu import report
+    from ..precision import float64_scope
+    from .failures import recordable
+    from .train import problem_of
+
+    build = programs or (lambda c: step_programs(c, devices))
+    entries: dict[str, dict[str, Any]] = {}
+    built: dict[str, tuple[list[Program], list[float], list[Any]]] = {}
+    before = load()
+    first = next(iter(configs.values()), None)
+    needs64 = first is not None and programs is None and problem_of(first).needs_float64
+    with float64_scope(needs64) if needs64 else contextlib.nullcontext():
+        for spec, config in configs.items():
+            try:
+                built[spec] = build(config)
+            except Exception as e:
+                if not (record_failures and recordable(e)):
+                    raise
+                entries[spec] = {"fingerprint": fingerprint(config), "stages": [], "error": f"{type(e).__name__}: {e}"}
+                echo(f"calibration: {spec}: could not build its step ({entries[spec]['error']})")
+        times = time_programs({k: v[0] for k, v in built.items()}, repeats=repeats, max_seconds=max_seconds,
+                              clock=clock)  # fmt: skip
+    for spec, (_, warmups, stages) in built.items():
+        config = configs[spec]
+        costs = []
+        for i, (phase, values) in enumerate(zip(config.phases, times[spec])):
+            stage = stages[i] if i < len(stages) else None
+            batch = getattr(stage, "batch_size", phase.batch_size)
+            costs.append(StageCost(method=phase.method, batch_size=int(batch), steps=phase.steps,
+                                   route=str(phase.hyperparameters.get("route", "")), compile_seconds=warmups[i],
+                                   **summarize_times(values)))  # fmt: skip
+        entries[spec] = {"fingerprint": fingerprint(config), "stages": [dataclasses.asdict(c) for c in costs],
+                         "error": None}  # fmt: skip
+    threads = report()
+    setting = threads.get("setting")
+    return {
+        "version": 1,
+        "problem": first.problem if first is not None else None,
+        "measured": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+        "machine": machine() if programs is None else {},
+        "load_before": before,
+        "load_after": load(),
+        "threads": setting.get("requested") if isinstance(setting, dict) else setting,  # None: the libraries' own
+        "thread_pools": threads,
+        "devices": devices,
+        "rule": RULE,
+        "repeats": repeats,
+        "max_seconds": max_seconds,
+        "methods": entries,
+    }
+
+
+class Calibration:
+    """A study's calibration record, read: each method's stage costs, its step budget for
+    a number of seconds, and the calibrated time after a number of steps."""
+
+    def __init__(self, record: dict[str, Any]):
+        self.record = record
+
+    def stages(self, spec: str) -> list[StageCost]:
+        entry = self.record["methods"].get(spec) or {}
+        return [StageCost(**s) for s in entry.get("stages", [])]
+
+    def has(self, spec: str) -> bool:
+        return bool(self.stages(spec))
+
+    def steps(self, spec: str, seconds: float) -> int:
+        return steps_for(seconds, self.stages(spec))
+
+    def time_at(self, spec: str, step: float) -> float:
+        stages = self.stages(spec)
+        return time_at(step, stages) if stages else math.nan
+
+    def seconds_per_step(self, spec: str) -> float:
+        """The last stage's calibrated seconds per step (the one a budget is spent on)."""
+        stages = self.stages(spec)
+        return stages[-1].seconds if stages else math.nan
+
+    def error(self, spec: str) -> str | None:
+        return (self.record["methods"].get(spec) or {}).get("error")
+
+
+def read(out: str | Path) -> Calibration | None:
+    """A study directory's calibration, or None where it has none."""
+    path = Path(out) / CALIBRATION_FILE
+    if not path.exists():
+        return None
+    try:
+        return Calibration(json.loads(path.read_text()))
+    except (OSError, ValueError):
+        raise ConfigError(f"{path} cannot be read; move it away to calibrate again") from None
+
+
+def study_calibration(
+    out: str | Path,
+    configs: Mapping[str, RunConfig],
+    *,
+    echo: Callable[[str], None] = print,
+    devices: int | str | None = 1,
+    record_failures: bool = False,
+    **options: Any,
+) -> Calibration:
+    """The calibration of a study in ``out``: the recorded one where it covers every method
+    of ``configs`` with the same configuration (a resumed study does not time again); the
+    methods it lacks (new, or configured differently) are timed now, together, and added.
+    Written as ``calibration.json`` and ``calibration.csv``."""
+    out = Path(out)
+    old = read(out)
+    record = old.record if old is not None else None
+    known = (record or {}).get("methods", {})
+    missing = {spec: c for spec, c in configs.items()
+               if known.get(spec, {}).get("fingerprint") != fingerprint(c) or not known[spec].get("stages")}  # fmt: skip
+    if not missing:
+        echo(f"calibration: reusing {out / CALIBRATION_FILE} (measured {record['measured']})")  # type: ignore[index]
+        return Calibration(record)  # type: ignore[arg-type]
+    echo(f"calibration: timing the compiled step of {', '.join(missing)} (interleaved rounds, median; "
+         "compilation excluded)")  # fmt: skip
+    fresh = calibrate(missing, echo=echo, devices=devices, record_failures=record_failures, **options)
+    if record is not None:  # keep the earlier measurements, with their own conditions
+        merged = dict(record)
+        merged["methods"] = {**known, **{k: {**v, "measured": fresh["measured"], "load": fresh["load_before"]}
+                                         for k, v in fresh["methods"].items()}}  # fmt: skip
+        fresh = merged
+    rundir.atomic_write(out / CALIBRATION_FILE, json.dumps(fresh, indent=2, default=str) + "\n")
+    calibration = Calibration(fresh)
+    write_csv(out / CALIBRATION_CSV, csv_rows(calibration, list(configs)))
+    for spec in missing:
+        if calibration.has(spec):
+            costs = ", ".join(f"{s.method} {1e3 * s.seconds:.3g} ms/step [{1e3 * s.q25:.3g}, {1e3 * s.q75:.3g}]"
+                              for s in calibration.stages(spec))  # fmt: skip
+            echo(f"calibration: {spec}: {costs} ({calibration.stages(spec)[-1].rounds} rounds)")
+    return calibration
+
+
+def machine_line(record: Mapping[str, Any]) -> str:
+    """The machine column of the calibration table: cores, usable cores, device, threads, load."""
+    m = record.get("machine") or {}
+    load_text = ", ".join(f"{x:g}" for x in record.get("load_before") or []) or "unknown"
+    threads = record.get("threads")
+    return (f"{m.get('cpu_count', '?')} CPU cores ({m.get('usable_cpus', '?')} usable), {m.get('device_kind', '?')}; "
+            f"threads {threads if threads is not None else 'default'}; load {load_text}")  # fmt: skip
+
+
+def csv_rows(calibration: Calibration, specs: Sequence[str] | None = None, command: str = "") -> list[dict[str, Any]]:
+    """One row per stage of every calibrated method, in the long-study table's columns
+    (:data:`CSV_COLUMNS`) followed by the spread and conditions (:data:`EXTRA_COLUMNS`)."""
+    record = calibration.record
+    rows = []
+    for spec in specs or list(record["methods"]):
+        for i, s in enumerate(calibration.stages(spec)):
+            entry = record["methods"][spec]
+            rows.append({
+                "problem": record.get("problem"), "method": s.method, "route": s.route, "batch": s.batch_size,
+                "ms_per_step": f"{1e3 * s.seconds:.4g}", "measured": str(entry.get("measured", record["measured"]))[:10],
+                "machine": machine_line(record), "command": command or f"physgrad compare {record.get('problem')} (calibration)",
+                "spec": spec, "stage": i, "ms_q25": f"{1e3 * s.q25:.4g}", "ms_q75": f"{1e3 * s.q75:.4g}",
+                "ms_min": f"{1e3 * s.low:.4g}", "ms_max": f"{1e3 * s.high:.4g}", "rounds": s.rounds,
+                "compile_seconds": f"{s.compile_seconds:.3g}", "threads": record.get("threads"),
+                "load": " ".join(f"{x:g}" for x in entry.get("load") or record.get("load_before") or []),
+            })  # fmt: skip
+    return rows
+
+
+def write_csv(path: str | Path, rows: list[dict[str, Any]]) -> None:
+    text = io.StringIO()
+    writer = csv.DictWriter(text, fieldnames=[*CSV_COLUMNS, *EXTRA_COLUMNS], extrasaction="ignore")
+    writer.writeheader()
+    writer.writerows(rows)
+    rundir.atomic_write(Path(path), text.getvalue())
