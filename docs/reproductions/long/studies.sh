@@ -178,15 +178,15 @@ lane_kolmogorov_screen_grouped() {
 # calibrated budget; report.py draws them against the long studies' HIG and Adam cut at the same
 # calibrated time (Study.reference). KHIG_COMMIT: physgrad with khig.
 khig() { use_commit "$ROOT/../studycode-khig" "${KHIG_COMMIT:-c476d49}"; }
-# oscillators, batch 128: 5 calibrated minutes (khig OSC_KHIG_MS ms/step alone), an evaluation every 30 s
+# oscillators, batch 128: 5 calibrated minutes (khig 5.024 ms/step alone, calibration.csv), an evaluation every 30 s
 lane_khig_oscillators() {
   khig
-  lane_study khig_oscillators oscillators "khig@OSC_STEPS@OSC_EVERY@power=-0.5 khig@OSC_STEPS@OSC_EVERY@power=-0.75 khig@OSC_STEPS@OSC_EVERY@power=-1"
+  lane_study khig_oscillators oscillators "khig@60000@6000@power=-0.5 khig@60000@6000@power=-0.75 khig@60000@6000@power=-1"
 }
-# quantum dipole, batch 16: 10 calibrated minutes (khig DIP_KHIG_MS ms/step alone), an evaluation every minute
+# quantum dipole, batch 16: 10 calibrated minutes (khig 82.58 ms/step alone), an evaluation every minute
 lane_khig_quantum_dipole() {
   khig
-  lane_study khig_quantum_dipole quantum_dipole "khig@DIP_STEPS@DIP_EVERY@power=-0.5 khig@DIP_STEPS@DIP_EVERY@power=-0.75 khig@DIP_STEPS@DIP_EVERY@power=-1"
+  lane_study khig_quantum_dipole quantum_dipole "khig@7266@727@power=-0.5 khig@7266@727@power=-0.75 khig@7266@727@power=-1"
 }
 # Claims 5 and 6, SIP Fig. 6: heat and Poisson 64², SIP vs Adam for the paper's 10,000 steps, test
 # x-error on 128 samples every 250 steps; ≈ 1.7–2 s per SIP step on one core: ≈ 5 h per run.
