@@ -394,8 +394,8 @@ def cmd_demo(args, console):
         f"instead of the paper's 128, because a 512x512 eigendecomposition dominates a batch-128 step on a few CPU cores.\n"
         f"  {args.seconds:g} s of training per method and seed, {DEMO['seeds']} seeds, full test loss every 64 steps; "
         f"settings {DEMO['settings']}\n"
-        f"  The seeds are the replicates: with {DEMO['seeds']} seeds the table gives medians without intervals and no "
-        "p-values (an interval needs 3 seeds, a Wilcoxon test over seeds 6: physgrad compare oscillators --seeds 6)."
+        f"  The seeds are the replicates: {DEMO['seeds']} seeds give medians with 95% bootstrap intervals over seeds "
+        "but no p-values (a Wilcoxon test over seeds needs 6: physgrad compare oscillators --seeds 6)."
     )
     result = _run_compare(
         console,
