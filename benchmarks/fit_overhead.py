@@ -9,7 +9,10 @@ per-step cost of each is the marginal wall time of a longer run over a shorter o
 so what every run pays once (data, network, compilation, the first and the final
 evaluation, the summary) cancels and what remains is the step plus whatever the loop does
 around it (host syncs, Python work, metric recording, checkpoints, the progress meter).
-The median of ``--repeats`` differences is printed for each, with the ratio fit / hand.
+The median of ``--repeats`` differences is printed for each, in wall-clock time and in
+this process's CPU time (steadier on a loaded machine), with the ratio fit / hand. A third
+loop, ``scan``, takes the same steps in one ``lax.fori_loop`` per epoch: the floor of any
+loop on this problem.
 
     taskset -c 0 python benchmarks/fit_overhead.py [--width 64] [--batch-size 64]
         [--short 500] [--long 5500] [--repeats 5] [--out DIR]
@@ -65,50 +68,73 @@ class Cubic(physgrad.AbstractProblem):
         return jnp.sum((y - sample["y"]) ** 2)
 
 
-def hand_loop(problem: Cubic, *, lr: float, batch_size: int, steps: int, seed: int = 0) -> float:
-    """A hand-written training loop: fit's keys for data and network, one jitted Adam step
-    per batch in the fixed order, the loss read back once at the end; returns seconds."""
-    t0 = time.perf_counter()
+def _pieces(problem: Cubic, *, lr: float, batch_size: int, seed: int):
+    """fit's data and network for ``seed`` (its keys), Adam, and the jitted loss of a batch."""
     key = jax.random.key(seed)
     data = problem.make_data(jax.random.fold_in(key, 0))
     network = problem.initial_network(jax.random.fold_in(key, 1), data)
     params, static = eqx.partition(network, eqx.is_inexact_array)
     optimizer = optax.adam(lr)
-    opt_state = optimizer.init(params)
-    train = data["train"]
-    per_epoch = train["x"].shape[0] // batch_size
 
     def batch_loss(params, batch):
         net = eqx.combine(params, static)
         per_sample = jax.vmap(lambda s: problem.loss(problem.simulate(problem.network_output(net, s), s), s))
         return jnp.mean(per_sample(batch))
 
-    @jax.jit
-    def step(params, opt_state, index):
-        batch = jax.tree.map(lambda a: jax.lax.dynamic_slice_in_dim(a, index * batch_size, batch_size), train)
+    def step(params, opt_state, index):  # batch ``index`` of the fixed order
+        batch = jax.tree.map(lambda a: jax.lax.dynamic_slice_in_dim(a, index * batch_size, batch_size), data["train"])
         loss, grad = jax.value_and_grad(batch_loss)(params, batch)
         updates, opt_state = optimizer.update(grad, opt_state, params)
         return optax.apply_updates(params, updates), opt_state, loss
 
-    float(batch_loss(params, data["test"]))  # the first evaluation
+    per_epoch = data["train"]["x"].shape[0] // batch_size
+    return data, params, optimizer.init(params), jax.jit(batch_loss), step, per_epoch
+
+
+def hand_loop(problem: Cubic, *, lr: float, batch_size: int, steps: int, seed: int = 0) -> None:
+    """A hand-written training loop: one ``jax.jit`` Adam step per batch, dispatched
+    without waiting, the test loss read at the start and the end."""
+    data, params, opt_state, loss, step, per_epoch = _pieces(problem, lr=lr, batch_size=batch_size, seed=seed)
+    step = jax.jit(step)
+    float(loss(params, data["test"]))
     for i in range(steps):
         params, opt_state, _ = step(params, opt_state, i % per_epoch)
-    float(batch_loss(params, data["test"]))  # the final evaluation waits for every step
-    return time.perf_counter() - t0
+    float(loss(params, data["test"]))  # waits for every step
 
 
-def fit_run(problem: Cubic, *, lr: float, batch_size: int, steps: int, long: int, out: str | None) -> float:
-    """:func:`physgrad.fit` with Adam for ``steps`` steps, evaluating at 0 and the end; seconds."""
-    method = physgrad.Method(Gradient(), optax.adam(lr))
+def scan_loop(problem: Cubic, *, lr: float, batch_size: int, steps: int, seed: int = 0) -> None:
+    """The floor: the same steps in one ``lax.fori_loop`` per epoch (no host work per step)."""
+    data, params, opt_state, loss, step, per_epoch = _pieces(problem, lr=lr, batch_size=batch_size, seed=seed)
+
+    @jax.jit
+    def steps_of(params, opt_state, start, count):
+        def body(i, carry):
+            return step(*carry, (start + i) % per_epoch)[:2]
+
+        return jax.lax.fori_loop(0, count, body, (params, opt_state))
+
+    float(loss(params, data["test"]))
+    for start in range(0, steps, per_epoch):
+        params, opt_state = steps_of(params, opt_state, start, min(per_epoch, steps - start))
+    float(loss(params, data["test"]))
+
+
+def fit_run(problem: Cubic, method, *, batch_size: int, steps: int, long: int, out: str | None) -> None:
+    """:func:`physgrad.fit` with ``method`` for ``steps`` steps, evaluating at 0 and the end
+    (the same method object every time: its compiled steps are shared, as in a study)."""
     settings = physgrad.TrainSettings(eval_every=long)
     run_dir = None if out is None else tempfile.mkdtemp(dir=out)
-    t0 = time.perf_counter()
     physgrad.fit(problem, method, budget=physgrad.Budget(steps=steps), out=run_dir and os.path.join(run_dir, "run"),
                  batch_size=batch_size, settings=settings, name="adam")  # fmt: skip
-    seconds = time.perf_counter() - t0
     if run_dir is not None:
         shutil.rmtree(run_dir)
-    return seconds
+
+
+def timed(run, steps: int) -> tuple[float, float]:
+    """Wall-clock and CPU seconds (this process's) of ``run(steps)``."""
+    wall, cpu = time.perf_counter(), time.process_time()
+    run(steps)
+    return time.perf_counter() - wall, time.process_time() - cpu
 
 
 def main():
@@ -123,25 +149,33 @@ def main():
     args = parser.parse_args()
     problem = Cubic(width=args.width)
     common = dict(lr=args.lr, batch_size=args.batch_size)
+    adam = physgrad.Method(Gradient(), optax.adam(args.lr))
     runs = {
         "hand": lambda steps: hand_loop(problem, steps=steps, **common),
-        "fit": lambda steps: fit_run(problem, steps=steps, long=args.long, out=args.out, **common),
+        "fit": lambda steps: fit_run(
+            problem, adam, steps=steps, long=args.long, out=args.out, batch_size=args.batch_size
+        ),
+        "scan": lambda steps: scan_loop(problem, steps=steps, **common),
     }
     for run in runs.values():  # compile and warm up (fit's compiled programs are shared in-process)
         run(args.short)
-    per_step = {name: [] for name in runs}
-    for _ in range(args.repeats):  # back to back, alternating, so load changes hit both alike
+    wall = {name: [] for name in runs}
+    cpu = {name: [] for name in runs}
+    for _ in range(args.repeats):  # back to back, alternating, so load changes hit each alike
         for name, run in runs.items():
-            short, long = run(args.short), run(args.long)
-            per_step[name].append((long - short) / (args.long - args.short))
-    ms = {name: 1e3 * statistics.median(values) for name, values in per_step.items()}
+            (w0, c0), (w1, c1) = timed(run, args.short), timed(run, args.long)
+            wall[name].append((w1 - w0) / (args.long - args.short))
+            cpu[name].append((c1 - c0) / (args.long - args.short))
     where = f"run directories under {args.out}" if args.out else "in memory (out=None)"
     print(f"problem: MLP width {args.width}, batch {args.batch_size}, Adam; fit {where}; "
           f"steps {args.short} vs {args.long}, {args.repeats} repeats; jax {jax.__version__}, {jax.default_backend()}")  # fmt: skip
-    for name, value in ms.items():
-        spread = ", ".join(f"{1e3 * v:.4f}" for v in per_step[name])
-        print(f"{name:>5}: {value:.4f} ms/step (median; each repeat: {spread})")
-    print(f"ratio fit / hand: {ms['fit'] / ms['hand']:.3f} (overhead {100 * (ms['fit'] / ms['hand'] - 1):+.1f}%)")
+    for label, table in (("wall", wall), ("cpu", cpu)):
+        ms = {name: 1e3 * statistics.median(values) for name, values in table.items()}
+        for name, value in ms.items():
+            spread = ", ".join(f"{1e3 * v:.4f}" for v in table[name])
+            print(f"{label} {name:>5}: {value:.4f} ms/step (median; each repeat: {spread})")
+        print(f"{label} ratio fit / hand: {ms['fit'] / ms['hand']:.3f} (overhead {100 * (ms['fit'] / ms['hand'] - 1):+.1f}%);"
+              f" fit / scan (the floor): {ms['fit'] / ms['scan']:.3f}")  # fmt: skip
 
 
 if __name__ == "__main__":
