@@ -196,6 +196,43 @@ def test_a_run_recorded_before_the_hyperparameters_resumes(tmp_path):
     assert more["steps"] == 4 and more.history["step"].tolist() == [0, 2, 3, 4]
 
 
+def _scalars(logdir) -> dict[str, list[tuple[int, float]]]:
+    """Every scalar of the event files in ``logdir``, read back record by record (TFRecord
+    framing: length, its CRC, the Event protobuf, its CRC)."""
+    import struct
+
+    from tensorboardX.proto import event_pb2
+
+    scalars: dict[str, list[tuple[int, float]]] = {}
+    for path in sorted(logdir.glob("events.out.tfevents.*")):
+        data, offset = path.read_bytes(), 0
+        while offset < len(data):
+            (length,) = struct.unpack("<Q", data[offset : offset + 8])
+            record = data[offset + 12 : offset + 12 + length]
+            event = event_pb2.Event.FromString(record)  # pyright: ignore[reportAttributeAccessIssue]
+            offset += 12 + length + 4
+            for value in event.summary.value:
+                scalars.setdefault(value.tag, []).append((event.step, value.simple_value))
+    return scalars
+
+
+def test_the_tensorboard_callback_writes_every_evaluation(tmp_path):
+    pytest.importorskip("tensorboardX")
+    from physgrad.tensorboard import TensorBoard
+
+    with TensorBoard(tmp_path / "tb", prefix="adam/") as board:
+        result = physgrad.fit(Square(), ADAM, budget=physgrad.Budget(steps=25), batch_size=BATCH, settings=SETTINGS,
+                              callbacks=[board])  # fmt: skip
+    scalars = _scalars(tmp_path / "tb")
+    steps = result.history["step"].tolist()
+    for name in ("train_loss", "test_loss", "time"):
+        written = scalars["adam/" + name]
+        assert [step for step, _ in written] == steps, name
+        np.testing.assert_allclose([v for _, v in written], result.history[name], rtol=1e-6, err_msg=name)
+    # time_per_step is NaN at step 0 and not written there
+    assert [step for step, _ in scalars["adam/train_time_per_step"]] == steps[1:]
+
+
 def test_a_divergent_step_inside_a_chunk_ends_the_run_before_it():
     """SGD at a step size that diverges: fit stops at the first step whose batch loss is not
     finite (inside a chunk of steps), with the parameters before it, as a step-by-step
