@@ -86,7 +86,7 @@ class InterruptAt(NoProgressMeter):
         self.at = step
 
     def update(self, *, step, **kwargs):
-        if step == self.at:
+        if step >= self.at:  # the first update at or after the step (fit updates once per chunk of steps)
             raise KeyboardInterrupt
 
 

@@ -61,7 +61,7 @@ def test_readme_time_stepper_example_trains(tmp_path, monkeypatch):
     namespace = {}
     exec(compile(code, "README.md", "exec"), namespace)
     assert "my_decay" not in PROBLEMS  # trained as an object: no registry write
-    summary = namespace["summary"]
+    summary = namespace["result"].summary
     assert summary["status"] == "finished"
     # the exact step is 0.9048 u; the solver's 0.9 u leaves a correction to learn
     assert summary["final_test_metrics"]["rel_error"] < 1e-4, summary["final_test_metrics"]

@@ -14,7 +14,7 @@ no thread pool: ``with physgrad.threads(1):`` limits the BLAS/LAPACK pools aroun
 
 from . import acceptance, cpu, distributed, inverse, routes, transforms
 from .cpu import threads
-from .engine import Budget, Phase, TrainSettings, TrainState, fit
+from .engine import Budget, Callback, FitResult, Phase, TrainSettings, TrainState, fit
 from .errors import ConfigError
 from .harness.train import load_network
 from .jacobian import stacked_jacobian
@@ -49,8 +49,10 @@ __all__ = [
     "AbstractProblem",
     "AbstractRule",
     "Budget",
+    "Callback",
     "ConfigError",
     "Estimator",
+    "FitResult",
     "Method",
     "Objective",
     "Phase",

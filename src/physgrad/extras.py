@@ -6,7 +6,9 @@ The core install trains every problem and method except these:
 - ``kfac`` (kfac-jax, which brings distrax and TensorFlow Probability): the ``kfac`` method;
 - ``pde`` (exponax): the time-stepper problems ``ks``, ``kolmogorov`` and ``advection_1d``
   (their reference and coarse solvers);
-- ``phiflow`` (PhiFlow and PhiML): PhiFlow simulators (:mod:`physgrad.phiflow`).
+- ``phiflow`` (PhiFlow and PhiML): PhiFlow simulators (:mod:`physgrad.phiflow`);
+- ``tensorboard`` (tensorboardX): :class:`physgrad.tensorboard.TensorBoard`, a callback of
+  :func:`physgrad.fit` that writes TensorBoard event files.
 
 ``all`` installs every one of them. Nothing here imports an optional package: whether one is
 installed is asked of the import system (``importlib.util.find_spec``), and the packages are
@@ -26,6 +28,7 @@ EXTRAS: dict[str, tuple[str, ...]] = {
     "kfac": ("kfac_jax",),
     "pde": ("exponax",),
     "phiflow": ("phi", "phiml"),
+    "tensorboard": ("tensorboardX",),
 }
 
 # registered methods that need an extra (problems declare theirs as the class variable ``extra``)

@@ -9,7 +9,9 @@ from rich.progress import BarColumn, Progress, TextColumn
 
 
 class AbstractProgressMeter(abc.ABC):
-    """Receives ``start`` once, ``update`` after each step and ``close`` at the end."""
+    """Receives ``start`` once, ``update`` after each chunk of steps (:func:`physgrad.fit`
+    runs the steps between evaluations in chunks of at most ~0.25 s of training, so ``step``
+    may advance by more than one) and ``close`` at the end."""
 
     @abc.abstractmethod
     def start(self, *, budget, steps_per_epoch: int, step: int, train_time: float, label: str): ...

@@ -26,6 +26,12 @@ The package, in the order of a run:
   :class:`Placement` and :class:`Fidelity` (PRDP);
 - :mod:`~physgrad.engine.recording`: :class:`Recorder` (``metrics.csv``),
   :class:`Checkpointer`, the final files and reading run directories back;
+- :mod:`~physgrad.engine.record`: the run's record (``config.json``) and when a recorded
+  run is the same run; :mod:`~physgrad.engine.hyperparams`: the optimizer's
+  hyperparameters in it;
+- :mod:`~physgrad.engine.callbacks`: :class:`Callback` (``on_eval``, ``on_checkpoint``);
+- :mod:`~physgrad.engine.result`: :class:`FitResult`, what :func:`fit` returns (summary,
+  history, final network and state);
 - :mod:`~physgrad.engine.run`: :func:`fit` and the loop, which takes the strategies as one
   bundle (:class:`~physgrad.engine.run.Strategies`).
 
@@ -34,6 +40,8 @@ Errors are :class:`physgrad.ConfigError` lines in the library's words (``resume=
 (:mod:`physgrad.harness.words`).
 """
 
+from .callbacks import Callback
+from .record import identity as _identity  # noqa: F401 — resume identity (tests compare records with it)
 from .recording import (
     ENV_PACKAGES,
     FINAL_STATUSES,
@@ -48,8 +56,8 @@ from .recording import (
     read_summary,
     write_json,
 )
+from .result import FitResult, history_from_metrics
 from .run import Strategies, fit, loop
-from .run import _identity as _identity  # resume identity (tests compare records with it)
 from .setup import (
     NOT_TRACEABLE,
     AbstractSetup,
@@ -77,9 +85,9 @@ from .types import (
 
 __all__ = [
     "ADDED_SETTINGS", "ENV_PACKAGES", "FINAL_STATUSES", "METRICS_HEADER", "NOT_TRACEABLE", "UNGUARDED_SETTINGS",
-    "AbstractSetup", "Budget", "Checkpointer", "Ending", "EvalSchedule", "Fidelity", "MetricsLog", "Phase",
-    "Placement", "Recorder", "Setup", "Stage", "Steps", "StopRule", "Strategies", "TrainSettings", "TrainState",
-    "abstract_data", "abstract_setup", "build_setup", "build_stages", "environment", "finish", "fit", "grouped_order",
-    "initial_network", "is_complete", "loop", "make_evaluate", "make_step", "preflight", "read_metrics",
-    "read_summary", "scalar_loss", "write_json",
+    "AbstractSetup", "Budget", "Callback", "Checkpointer", "Ending", "EvalSchedule", "Fidelity", "FitResult",
+    "MetricsLog", "Phase", "Placement", "Recorder", "Setup", "Stage", "Steps", "StopRule", "Strategies",
+    "TrainSettings", "TrainState", "abstract_data", "abstract_setup", "build_setup", "build_stages", "environment",
+    "finish", "fit", "grouped_order", "history_from_metrics", "initial_network", "is_complete", "loop",
+    "make_evaluate", "make_step", "preflight", "read_metrics", "read_summary", "scalar_loss", "write_json",
 ]  # fmt: skip

@@ -1,7 +1,8 @@
-"""What a run records: evaluations in ``metrics.csv`` (:class:`Recorder`), checkpoints of
-the loop state (:class:`Checkpointer`), the final files and summary (:func:`finish`), and
-reading run directories back (:func:`read_summary`, :func:`read_metrics`,
-:func:`is_complete`). Every file is written whole (:mod:`physgrad.rundir`).
+"""What a run records: evaluations in ``metrics.csv`` and in memory, for the history
+(:class:`Recorder`), checkpoints of the loop state (:class:`Checkpointer`), the final files
+and summary (:func:`finish`), and reading run directories back (:func:`read_summary`,
+:func:`read_metrics`, :func:`is_complete`). Every file is written whole
+(:mod:`physgrad.rundir`); a run in memory (``fit(..., out=None)``) writes none of them.
 
 A run directory holds ``config.json`` (what the caller says identifies the run),
 ``metrics.csv`` (long format: step, wall_time, split, metric, value), ``env.json``,
@@ -25,11 +26,14 @@ from typing import Any
 
 import equinox as eqx
 import jax
+import numpy as np
 
 from .. import cpu, distributed, rundir
 from ..errors import ConfigError
 from ..nets import parameter_count
 from ..precision import x64_enabled
+from .callbacks import Callbacks
+from .result import Row, rows_from_metrics
 from .step import make_evaluate
 from .strategies import Fidelity, Placement
 from .types import Budget, Ending, Setup, TrainSettings, TrainState
@@ -43,11 +47,11 @@ class MetricsLog:
     checkpoint's step (``kept``; a row torn by a kill during an append is dropped) and
     rewrites the file atomically, so a kill never leaves half a table."""
 
-    def __init__(self, path: Path, *, keep_until_step: int | None = None, enabled: bool = True):
+    def __init__(self, path: Path | None, *, keep_until_step: int | None = None, enabled: bool = True):
         self.path = path
-        self.enabled = enabled
+        self.enabled = enabled and path is not None
         self.kept: list[dict[str, str]] = []
-        if not enabled:
+        if path is None or not self.enabled:
             return
         if keep_until_step is not None and path.exists():
             self.kept = [r for r in _complete_rows(path) if int(r["step"]) <= keep_until_step]
@@ -58,7 +62,7 @@ class MetricsLog:
         rundir.atomic_write(path, text.getvalue())
 
     def write(self, step: int, wall_time: float, values: dict[tuple[str, str], float]):
-        if not self.enabled:
+        if self.path is None or not self.enabled:
             return
         with self.path.open("a", newline="") as f:
             writer = csv.writer(f)
@@ -91,13 +95,23 @@ def _complete_rows(path: Path) -> list[dict[str, str]]:
 class Recorder:
     """Evaluation at the scheduled steps: full train/test (and val) metrics, the methods'
     step statistics averaged since the last evaluation (``step_<name>``), written to
-    ``metrics.csv``; feeds PRDP the validation error."""
+    ``metrics.csv`` and kept as :attr:`rows` (the run's history); tells the callbacks
+    (``on_eval``); feeds PRDP the validation error."""
 
     def __init__(
-        self, setup: Setup, *, settings: TrainSettings, placement: Placement, fidelity: Fidelity, log: MetricsLog
+        self,
+        setup: Setup,
+        *,
+        settings: TrainSettings,
+        placement: Placement,
+        fidelity: Fidelity,
+        log: MetricsLog,
+        callbacks: Callbacks | None = None,
     ):
         self.settings, self.placement, self.fidelity, self.log = settings, placement, fidelity, log
+        self.callbacks = callbacks or Callbacks()
         self.last: dict[str, float] = {}
+        self.rows: list[Row] = []  # every evaluation: (step, training seconds, {split_metric: value})
         train = setup.data["train"]
         n_train = jax.tree.leaves(train)[0].shape[0]
         # The train-split evaluation may be limited to its first eval_samples samples (large
@@ -114,15 +128,21 @@ class Recorder:
     def use(self, setup: Setup):
         self.evaluate = make_evaluate(setup)
 
-    def accumulate(self, state: TrainState, stats: dict[str, Any]) -> TrainState:
+    def accumulate(self, state: TrainState, stats: dict[str, Any], taken: int) -> TrainState:
+        """The step statistics of a chunk's first ``taken`` steps (``stats[name]``: one row
+        per step, :func:`~physgrad.engine.step.make_steps`) added to the window since the
+        last evaluation and to the run's totals, one step after the other in float64 (so
+        the sums do not depend on how the steps were chunked: a resumed run logs the same)."""
         totals, window = dict(state.stat_totals), dict(state.stat_window)
-        for name, value in stats.items():
-            value = float(value)
-            if name == "loss" or not math.isfinite(value):  # e.g. the norm of a skipped NaN gradient
+        for name, values in stats.items():
+            if name == "loss":
                 continue
-            total, count = window.get(name, (0.0, 0))
-            window[name] = [total + value, count + 1]
-            totals[name] = totals.get(name, 0.0) + value
+            for value in np.asarray(values[:taken], np.float64).tolist():
+                if not math.isfinite(value):  # e.g. the norm of a skipped NaN gradient
+                    continue
+                total, count = window.get(name, (0.0, 0))
+                window[name] = [total + value, count + 1]
+                totals[name] = totals.get(name, 0.0) + value
         return state._replace(stat_totals=totals, stat_window=window)
 
     def restore(self, rows: list[dict[str, str]]) -> int | None:
@@ -130,6 +150,7 @@ class Recorder:
         made it, for the summary); returns its step (None without one)."""
         if not rows:
             return None
+        self.rows = rows_from_metrics(rows)
         step = max(int(r["step"]) for r in rows)
         self.last.update({f"{r['split']}_{r['metric']}": float(r["value"]) for r in rows if int(r["step"]) == step})
         return step
@@ -151,7 +172,10 @@ class Recorder:
         if self.settings.prdp and not final:
             state = self.fidelity.observe(state, float(val.get("rel_error", val["loss"])))
         self.log.write(state.step, state.train_time, values)
-        self.last.update({f"{split}_{metric}": v for (split, metric), v in values.items()})
+        metrics = {f"{split}_{metric}": float(v) for (split, metric), v in values.items()}
+        self.last.update(metrics)
+        self.rows.append((state.step, state.train_time, metrics))
+        self.callbacks.on_eval(state.step, {"time": state.train_time, **metrics})
         test = self.last["test_loss"]
         if math.isfinite(test):
             state = state._replace(best_test_loss=min(state.best_test_loss, test))
@@ -167,18 +191,31 @@ class Checkpointer:
     ``manifest.json``: :func:`physgrad.rundir.save_checkpoint`).
 
     Loading verifies the manifest; a checkpoint of an older physgrad (no manifest) still
-    loads, unverified."""
+    loads, unverified. Without a run directory (``run_dir`` None: a run in memory) it
+    saves nothing. After each save the callbacks' ``on_checkpoint`` is called."""
 
-    run_dir: Path
+    run_dir: Path | None
     seconds: float
     writer: bool
+    callbacks: Callbacks = dataclasses.field(default_factory=Callbacks)
     last: float = dataclasses.field(default_factory=time.monotonic)
 
+    @property
+    def writes(self) -> bool:
+        """Whether this process writes the run's files (a run directory, process 0)."""
+        return self.writer and self.run_dir is not None
+
+    def seconds_left(self) -> float:
+        """Wall-clock seconds until :meth:`maybe` saves (<= 0: due; inf in memory)."""
+        return self.seconds - (time.monotonic() - self.last) if self.run_dir is not None else math.inf
+
     def maybe(self, state: TrainState):
-        if time.monotonic() - self.last >= self.seconds:
+        if self.seconds_left() <= 0:
             self.save(state)
 
     def save(self, state: TrainState):
+        if self.run_dir is None:
+            return
         if self.writer:
             buffer = io.BytesIO()
             eqx.tree_serialise_leaves(buffer, distributed.to_host((state.params, state.opt_state)))
@@ -186,17 +223,18 @@ class Checkpointer:
             rundir.save_checkpoint(
                 self.run_dir, {"state.eqx": buffer.getvalue(), "counters.json": counters}, state.step
             )
+            self.callbacks.on_checkpoint(state.step, rundir.checkpoint_path(self.run_dir) or self.run_dir)
         self.last = time.monotonic()  # the interval counts from the end of a save
 
     def exists(self) -> bool:
-        return rundir.checkpoint_path(self.run_dir) is not None
+        return self.run_dir is not None and rundir.checkpoint_path(self.run_dir) is not None
 
     def load(self, like: Callable[[dict[str, Any]], TrainState]) -> TrainState | None:
         """The checkpointed state (None without one); ``like(counters)`` gives its structure
         (the optimizer state depends on the stage it was taken in). Damaged files are a
         one-line ConfigError (:func:`physgrad.rundir.load_checkpoint`); files that verify
         but do not fit ``like`` were written by another version of the method."""
-        found = rundir.load_checkpoint(self.run_dir)
+        found = rundir.load_checkpoint(self.run_dir) if self.run_dir is not None else None
         if found is None:
             return None
         ckpt, files, verified = found
@@ -219,21 +257,23 @@ class Checkpointer:
 
 def finish(ending: Ending, *, recorder: Recorder, checkpointer: Checkpointer, budget: Budget) -> dict[str, Any]:
     """The final checkpoint, ``params.eqx``, ``test_cases.json`` and the summary (which the
-    caller writes last: a run with a final ``summary.json`` has all its files)."""
+    caller writes last: a run with a final ``summary.json`` has all its files). A run in
+    memory writes none of them and returns the same summary."""
     state, setup, status, diverged_step = ending
     placement, run_dir = recorder.placement, checkpointer.run_dir
     checkpointer.save(state)
     rundir.fault("before-summary")
     params = state.params
-    if placement.writer:
+    if checkpointer.writes and run_dir is not None:
         network = io.BytesIO()
         eqx.tree_serialise_leaves(network, setup.network(distributed.to_host(params)))
         rundir.atomic_write(run_dir / "params.eqx", network.getvalue())
     # Every test case's final metrics, for paired tests between methods (same seeds and cases).
-    with placement.scope():
-        cases = distributed.to_host(make_evaluate(setup, per_sample=True)(params, recorder.splits["test"]))
-    if placement.writer:
-        write_json(run_dir / "test_cases.json", {k: [float(v) for v in vals] for k, vals in cases.items()})
+    if run_dir is not None:  # every process evaluates (a collective under a mesh); process 0 writes
+        with placement.scope():
+            cases = distributed.to_host(make_evaluate(setup, per_sample=True)(params, recorder.splits["test"]))
+        if checkpointer.writes:
+            write_json(run_dir / "test_cases.json", {k: [float(v) for v in vals] for k, vals in cases.items()})
     last = recorder.last
     summary = {
         "status": status,

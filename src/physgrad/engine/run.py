@@ -3,15 +3,16 @@ and :func:`loop` steps with one bundle of strategies (:class:`Strategies`).
 
 From the caller's objects to the jitted step::
 
-    fit(problem, method | [Phase], budget=, out=, seed=, settings=, resume=, devices=)
+    fit(problem, method | [Phase], budget=, out=, seed=, settings=, resume=, devices=, callbacks=)
       Request(...)                         the arguments checked, the phases settled
-      with float64_scope(problem.needs_float64), the run directory's lock:
+      with float64_scope(problem.needs_float64), the run directory's lock (out=None: none):
         preflight(problem, phases)         footprints from shapes alone   (setup.py)
         build_setup(problem, phases, seed) data, network, objective, stages
         TrainState(params, opt_state)      or the checkpoint's             (types.py)
-        Steps(...).compile(state, setup)   the jitted step, memory-guarded (step.py)
+        Steps(...).compile(state, setup)   the jitted chunk of steps, memory-guarded (step.py)
         loop(state, setup=, compiled=, strategies=Strategies(...))
         finish(ending, ...)                params.eqx, test_cases.json, summary.json (recording.py)
+      FitResult(summary, history, network, state)                          (result.py)
 
 Wall time counts training steps only: compilation (``compile_seconds``) and evaluation are
 excluded, so equal budgets compare update rules, not tracing.
@@ -23,7 +24,6 @@ import contextlib
 import dataclasses
 import json
 import math
-import re
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -33,12 +33,13 @@ import jax
 import numpy as np
 
 from .. import checks, distributed, rundir
-from ..acceptance import SKIPPED
 from ..errors import ConfigError
 from ..methods import AbstractMethod
 from ..precision import float64_scope
 from ..problems import AbstractProblem
 from ..progress import AbstractProgressMeter, NoProgressMeter
+from . import record as records
+from .callbacks import Callback, Callbacks
 from .recording import (
     Checkpointer,
     MetricsLog,
@@ -50,12 +51,12 @@ from .recording import (
     read_summary,
     write_json,
 )
+from .result import FitResult, history_from_metrics, history_of
 from .setup import build_setup, preflight
-from .step import Steps
-from .strategies import EvalSchedule, Fidelity, Placement, StopRule
-from .types import ADDED_SETTINGS, UNGUARDED_SETTINGS, Budget, Ending, Phase, Setup, TrainSettings, TrainState
+from .step import CHUNK, Steps
+from .strategies import ChunkSize, EvalSchedule, Fidelity, Placement, StopRule
+from .types import Budget, Ending, Phase, Setup, Stage, TrainSettings, TrainState
 
-_ABSENT = object()
 DEFAULT_SETTINGS = TrainSettings()  # frozen: one shared default
 
 
@@ -64,7 +65,7 @@ def fit(
     method: AbstractMethod | Phase | Sequence[Phase],
     *,
     budget: Budget,
-    out: str | Path,
+    out: str | Path | None = None,
     seed: int = 0,
     batch_size: int | None = None,
     settings: TrainSettings = DEFAULT_SETTINGS,
@@ -75,34 +76,73 @@ def fit(
     same_run: Callable[[dict[str, Any]], bool] | None = None,
     label: str = "",
     name: str = "",
-) -> dict[str, Any]:
-    """Train ``method`` (or a sequence of phases) on ``problem`` into the run directory
-    ``out`` and return the summary (also ``summary.json``).
+    callbacks: Sequence[Callback | Callable[[int, dict[str, float]], Any]] | None = None,
+) -> FitResult:
+    """Train ``method`` (or a sequence of phases) on ``problem`` and return a
+    :class:`~physgrad.engine.FitResult`: the summary, the history of every evaluation as
+    arrays, the final network and state. With ``out`` the run writes the run directory
+    ``out`` (``config.json``, ``metrics.csv``, checkpoints, ``params.eqx``,
+    ``summary.json``, ...); with ``out=None`` (the default) it runs in memory and writes
+    no file at all (no checkpoints, so no ``resume``).
 
     ``batch_size`` applies to a single method (phases carry their own; default: the
-    problem's ``default_batch_size``). ``record`` is written as ``config.json`` (default: a
-    description of problem, method, seed, budget and settings); with ``resume=True`` an
-    existing run whose record matches (``same_run(old_record)``, default: equal apart from
-    the budget) continues from its checkpoint up to ``budget``, and a finished run whose
-    budget is met returns its summary. A run whose loss turns NaN or infinite stops with
-    status ``"diverged"``, the step and the last finite loss. ``devices`` (a number or
-    ``"all"``) splits every batch over a device mesh; in a multi-process run every process
-    calls ``fit`` alike and only process 0 writes. ``name`` is the method's name in the
-    summary (default: the phases' names joined by ``,``).
+    problem's ``default_batch_size``). ``name`` is the method's name in the summary, in the
+    record and, for a single method, in ``stage_steps`` (default: the phases' names joined
+    by ``,``; a :class:`~physgrad.Method` without a name is called ``Method``).
+
+    ``record`` is written as ``config.json`` (default: a description of problem, method,
+    seed, budget and settings, with ``method`` the name and ``optimizers`` each phase's
+    optax hyperparameters where the optimizer was made with ``optax.inject_hyperparams``,
+    else a note that they cannot be recorded: :func:`physgrad.engine.hyperparams.optimizer_record`).
+    With ``resume=True`` an existing run whose record matches (``same_run(old_record)``,
+    default: equal apart from the budget and the name) continues from its checkpoint up to
+    ``budget``, and a finished run whose budget is met returns its summary (its history
+    read from ``metrics.csv``; ``network`` and ``state`` None).
+
+    ``callbacks`` is a list of :class:`~physgrad.engine.Callback` objects (``on_eval(step,
+    metrics)`` after each evaluation, ``on_checkpoint(step, path)`` after each checkpoint)
+    or functions ``f(step, metrics)`` (called after each evaluation), called between steps
+    outside ``jax.jit`` (:mod:`physgrad.engine.callbacks`).
+
+    A run whose loss turns NaN or infinite stops with status ``"diverged"``, the step and
+    the last finite loss. ``devices`` (a number or ``"all"``) splits every batch over a
+    device mesh; in a multi-process run every process calls ``fit`` alike and only process
+    0 writes.
+
+    Keys: everything random derives from ``key = jax.random.key(seed)``:
+    the data ``problem.make_data(fold_in(key, 0))``, the initial network
+    ``problem.initial_network(fold_in(key, 1), data)``, a shuffled epoch's order from
+    ``fold_in(fold_in(fold_in(key, 2), stage), epoch)`` and, with ``fresh_samples``, a
+    later epoch's training data ``make_data(fold_in(fold_in(fold_in(key, 3), stage),
+    epoch))["train"]`` (``fold_in`` is ``jax.random.fold_in``; stages and epochs count from
+    0). A hand-written loop given these keys takes the same steps.
+
+    Steps between evaluations run as chunks of one compiled program
+    (:func:`~physgrad.engine.step.make_steps`) with one read-back each, so the loop adds
+    almost nothing per step; ``summary["train_seconds"]`` counts training only
+    (compilation, evaluation and callbacks excluded).
 
     A problem that declares ``needs_float64`` runs inside ``jax.enable_x64(True)``; the
     caller's JAX configuration is otherwise untouched.
     """
-    _check_arguments(problem, budget=budget, seed=seed, batch_size=batch_size, settings=settings, out=out)
-    phases = _phases(method, batch_size)
-    record = record or _describe(problem, phases=phases, seed=seed, budget=budget, settings=settings)
-    same_run = same_run or (lambda old: _identity(old) == _identity(json.loads(json.dumps(record, default=str))))
-    run_dir = Path(out)
-    identity = {"problem": problem.name, "method": name or ",".join(p.label for p in phases), "seed": seed}
+    _check_arguments(problem, budget=budget, seed=seed, batch_size=batch_size, settings=settings, out=out,
+                     resume=resume)  # fmt: skip
+    hooks = Callbacks(callbacks)
+    phases = _phases(method, batch_size, name)
+    label_all = name or ",".join(p.label for p in phases)
+    # the record describes the phases as given (a name given to fit is the record's "method")
+    record = record or records.describe(problem, phases=_phases(method, batch_size, ""), seed=seed, budget=budget,
+                                        settings=settings, name=label_all)  # fmt: skip
+    as_json = json.loads(json.dumps(record, default=str))
+    same_run = same_run or (lambda old: records.identity(old) == records.identity(records.like(as_json, old)))
+    run_dir = None if out is None else Path(out)
+    identity = {"problem": problem.name, "method": label_all, "seed": seed}
     request = Request(problem, phases, seed, budget, settings, run_dir, resume, record, same_run,
-                      label or run_dir.name, identity)  # fmt: skip
+                      label or (run_dir.name if run_dir is not None else label_all), identity, hooks)  # fmt: skip
     with float64_scope(problem.needs_float64):
         placement = Placement(devices)
+        if run_dir is None:  # in memory: no lock, no files, no signal handler to install
+            return _run(request, placement=placement, progress=progress or NoProgressMeter())
         with _writer_lock(run_dir, placement), rundir.terminate_as_interrupt():  # SIGTERM: a checkpoint, then stop
             return _run(request, placement=placement, progress=progress or NoProgressMeter())
 
@@ -116,12 +156,13 @@ class Request:
     seed: int
     budget: Budget
     settings: TrainSettings
-    run_dir: Path
+    run_dir: Path | None  # None: in memory
     resume: bool
     record: dict[str, Any]  # written as config.json
     same_run: Callable[[dict[str, Any]], bool]  # whether a recorded run is this one
     label: str  # the progress meter's
     identity: dict[str, Any]  # problem, method and seed: the summary's first keys
+    callbacks: Callbacks = dataclasses.field(default_factory=Callbacks)
 
 
 class Strategies(NamedTuple):
@@ -139,11 +180,17 @@ class Strategies(NamedTuple):
 
 def loop(state: TrainState, *, setup: Setup, compiled: Any, strategies: Strategies) -> Ending:
     """Steps until the budget is met or the loss stops being finite (the training loop);
-    ``compiled`` is the current stage's step."""
+    ``compiled`` is the current stage's steps (:func:`~physgrad.engine.step.make_steps`).
+
+    The steps are dispatched in chunks (:class:`ChunkSize`) that end where something
+    happens between steps: an evaluation, an epoch's new batch order, a stage, the budget,
+    a checkpoint. Each chunk's statistics are read back once, which is also what makes its
+    training time honest (the device has finished)."""
     stop, schedule, placement, steps, fidelity, recorder, checkpointer, progress = strategies
     if state.step == 0:
         state, _ = recorder(state, final=False)
     schedule.start(state.train_time)
+    chunks = ChunkSize()
     order_key, order = None, None
     try:
         while not stop.met(state.step, state.train_time):
@@ -151,41 +198,53 @@ def loop(state: TrainState, *, setup: Setup, compiled: Any, strategies: Strategi
             if index != state.stage:  # switch method: the parameters carry over, the new method starts fresh
                 opt_state = placement.put(setup.stages[index].method.init(distributed.to_host(state.params)))
                 compiled, state = steps.compile(state._replace(stage=index, opt_state=opt_state), setup)
+                chunks.reset()
             stage = setup.stages[index]
             epoch, batch = divmod(state.step - stage.start, stage.steps_per_epoch)
-            if (index, epoch) != order_key:
+            if (index, 0 if steps.same_every_epoch else epoch) != order_key:
                 steps.draw(setup, index, epoch)
-                order, order_key = steps.order(index, epoch), (index, epoch)
+                order, order_key = steps.order(index, epoch), (index, 0 if steps.same_every_epoch else epoch)
+            limit = _steps_left(state, stage, stop, schedule, epoch_end=not steps.same_every_epoch)
+            count = placement.agree(chunks.size(limit, seconds_left=min(
+                stop.budget.amount - state.train_time if stop.budget.kind == "seconds" else math.inf,
+                schedule.seconds_left(state.train_time), checkpointer.seconds_left())))  # fmt: skip
             t_start = time.perf_counter()
-            params, opt_state, stats = compiled(state.params, state.opt_state, steps.data, order, np.int32(batch))
-            loss = float(stats["loss"])  # waits for the step: the timing is honest
+            params, opt_state, taken, diverged, stats = compiled(state.params, state.opt_state, steps.data, order,
+                                                                 np.int32(batch), np.int32(count))  # fmt: skip
+            taken, diverged, stats = jax.device_get(distributed.to_host((taken, diverged, stats)))  # waits: honest time
             train_time = placement.clock(state.train_time + time.perf_counter() - t_start)
+            taken = int(taken)
+            chunks.observe(taken + int(diverged), train_time - state.train_time)
             # A step its method's acceptance refused (physgrad.acceptance) left the parameters as they
-            # were: its non-finite loss is not a divergence.
-            if not math.isfinite(loss) and not float(stats.get(SKIPPED, 0.0)):
-                return Ending(state, setup, "diverged", state.step)
-            last_finite = loss if math.isfinite(loss) else state.last_finite_loss
-            state = recorder.accumulate(state, stats)._replace(params=params, opt_state=opt_state, step=state.step + 1,
-                                                                train_time=train_time, last_finite_loss=last_finite)  # fmt: skip
+            # were: its non-finite loss is not a divergence (make_steps stops at a divergent step only).
+            losses = np.asarray(stats["loss"][:taken], np.float64)
+            finite = losses[np.isfinite(losses)]
+            last_finite = float(finite[-1]) if finite.size else state.last_finite_loss
+            state = recorder.accumulate(state, stats, taken)._replace(
+                params=params, opt_state=opt_state, step=state.step + taken, train_time=train_time,
+                last_finite_loss=last_finite)  # fmt: skip
             if fidelity.name:
-                state = state._replace(solver_iterations=state.solver_iterations + fidelity.iterations(state))
+                state = state._replace(solver_iterations=state.solver_iterations + taken * fidelity.iterations(state))
+            if diverged:
+                return Ending(state, setup, "diverged", state.step)
             boundary = stop.met(state.step, state.train_time) or (
                 stage.steps is not None and state.step == stage.start + stage.steps
             )
             if schedule.due(state.step, state.train_time, stage, boundary):
-                state, finite = recorder(state, final=stop.met(state.step, state.train_time))
-                if not finite:
+                state, finite_eval = recorder(state, final=stop.met(state.step, state.train_time))
+                if not finite_eval:
                     return Ending(state, setup, "diverged", state.step)
                 refined = fidelity.problem_at(setup, state)
                 if refined is not setup:  # PRDP refined the solver: new problem, new step
                     setup = refined
                     recorder.use(setup)
                     compiled, state = steps.compile(state, setup)
+                    chunks.reset()
                 checkpointer.save(state)  # an evaluation is work too: never lost to a kill
             else:
                 checkpointer.maybe(state)
             rundir.fault("step")
-            progress.update(step=state.step, train_time=state.train_time, loss=loss)
+            progress.update(step=state.step, train_time=state.train_time, loss=float(losses[-1]))
     except KeyboardInterrupt as e:
         return Ending(state, setup, "terminated" if isinstance(e, rundir.Terminated) else "interrupted")
     except ConfigError:  # the memory guard refused a later stage's step: keep what was done for a resume
@@ -194,45 +253,61 @@ def loop(state: TrainState, *, setup: Setup, compiled: Any, strategies: Strategi
     return Ending(state, setup, "finished")
 
 
+def _steps_left(state: TrainState, stage: Stage, stop: StopRule, schedule: EvalSchedule, *, epoch_end: bool) -> int:
+    """The most steps the next chunk may take: to the end of the epoch (with ``epoch_end``:
+    the next has a new batch order or new data), of the stage, of a steps or epochs
+    budget, to a step-scheduled evaluation."""
+    local = state.step - stage.start
+    limit = min(CHUNK, stage.steps_per_epoch - local % stage.steps_per_epoch) if epoch_end else CHUNK
+    if stage.steps is not None:
+        limit = min(limit, stage.steps - local)
+    evaluation = schedule.steps_left(state.step, stage)
+    if evaluation is not None:
+        limit = min(limit, evaluation)
+    return stop.steps_left(state.step, max(limit, 1))
+
+
 # --- the run around the loop -----------------------------------------------------------------
-def _run(request: Request, *, placement: Placement, progress: AbstractProgressMeter) -> dict[str, Any]:
-    """One run while its writer process holds the run directory's lock: refuse or resume
-    what the directory holds, build, loop, finish."""
+def _run(request: Request, *, placement: Placement, progress: AbstractProgressMeter) -> FitResult:
+    """One run while its writer process holds the run directory's lock (a run in memory
+    has neither): refuse or resume what the directory holds, build, loop, finish."""
     run_dir, settings, budget = request.run_dir, request.settings, request.budget
     old = _recorded(request)
-    checkpointer = Checkpointer(run_dir, settings.checkpoint_seconds, placement.writer)
+    checkpointer = Checkpointer(run_dir, settings.checkpoint_seconds, placement.writer, request.callbacks)
     has_ckpt = request.resume and checkpointer.exists()
     placement.barrier(f"physgrad.fit:{run_dir}")  # every process has looked before process 0 writes
     if not placement.writer:  # other processes compute alike and write nothing
         progress = NoProgressMeter()
-    done = _done_already(run_dir, budget, settings.wall_cap) if request.resume else None
-    if done is not None:
-        return done  # every file unchanged (checked before building data and network)
+    done = _done_already(run_dir, budget, settings.wall_cap) if request.resume and run_dir is not None else None
+    if done is not None and run_dir is not None:  # every file unchanged (checked before building data and network)
+        return FitResult(done, history_from_metrics(run_dir / "metrics.csv"), run_dir=run_dir)
 
     fidelity = Fidelity.of(request.problem, settings)
     setup, state = _start(
         request, placement=placement, fidelity=fidelity, checkpoint=checkpointer if has_ckpt else None
     )
-    met = state.step > 0 and _budget_met(budget, recorded=(old or {}).get("budget"), step=state.step,
-                                         seconds=state.train_time, epochs=setup.epochs, run_dir=run_dir)  # fmt: skip
-    if met:  # a kill came after the final checkpoint: nothing to train, maybe the summary to write
+    met = state.step > 0 and run_dir is not None and _budget_met(budget, recorded=(old or {}).get("budget"),
+        step=state.step, seconds=state.train_time, epochs=setup.epochs, run_dir=run_dir)  # fmt: skip
+    if met and run_dir is not None:  # a kill came after the final checkpoint: nothing to train, maybe the summary
         summary = read_summary(run_dir)
         if summary and is_final(summary) and summary.get("steps") == state.step:
-            return summary
+            return _result(summary, history_from_metrics(run_dir / "metrics.csv"), state, setup, run_dir)
     setup = fidelity.problem_at(setup, state)
     state = state._replace(params=placement.put(state.params), opt_state=placement.put(state.opt_state))
     steps, compiled = None, None
     if not met:
         steps = Steps(setup, placement, settings, request.seed)
         compiled, state = steps.compile(state, setup)  # a step the memory guard refuses leaves no files behind
-    if placement.writer:
+    if checkpointer.writes and run_dir is not None:
         run_dir.mkdir(parents=True, exist_ok=True)  # made by the lock already, unless the caller holds none
         write_json(run_dir / "config.json", request.record)
         write_json(run_dir / "env.json", {**environment(), "mesh_devices": distributed.mesh_size(placement.mesh)})
     # a checkpoint at step 0 precedes the first evaluation, which the resumed loop makes again
     keep = state.step if has_ckpt and state.step > 0 else None
-    log = MetricsLog(run_dir / "metrics.csv", keep_until_step=keep, enabled=placement.writer)
-    recorder = Recorder(setup, settings=settings, placement=placement, fidelity=fidelity, log=log)
+    log = MetricsLog(None if run_dir is None else run_dir / "metrics.csv", keep_until_step=keep,
+                     enabled=checkpointer.writes)  # fmt: skip
+    recorder = Recorder(setup, settings=settings, placement=placement, fidelity=fidelity, log=log,
+                        callbacks=request.callbacks)  # fmt: skip
     evaluated = recorder.restore(log.kept)
     if steps is None:
         ending = _evaluated(Ending(state, setup, "finished"), recorder=recorder, evaluated=evaluated)
@@ -245,16 +320,24 @@ def _run(request: Request, *, placement: Placement, progress: AbstractProgressMe
             ending = loop(state, setup=setup, compiled=compiled, strategies=strategies)
         finally:
             progress.close()
-    return _close(ending, request=request, recorder=recorder, checkpointer=checkpointer)
+    summary = _close(ending, request=request, recorder=recorder, checkpointer=checkpointer)
+    return _result(summary, history_of(recorder.rows), ending.state, ending.setup, run_dir)
+
+
+def _result(summary: dict[str, Any], history, state: TrainState, setup: Setup, run_dir: Path | None) -> FitResult:
+    """The result with the final network and state on the host."""
+    params, opt_state = distributed.to_host((state.params, state.opt_state))
+    state = state._replace(params=params, opt_state=opt_state)
+    return FitResult(summary, history, network=setup.network(params), state=state, run_dir=run_dir)
 
 
 def _recorded(request: Request) -> dict[str, Any] | None:
     """The record (``config.json``) of the run already in the directory, None for a new
-    run; refused unless the caller resumes that same run."""
-    path = request.run_dir / "config.json"
-    if not path.exists():
-        return None
+    run (or a run in memory); refused unless the caller resumes that same run."""
     run_dir = request.run_dir
+    if run_dir is None or not (run_dir / "config.json").exists():
+        return None
+    path = run_dir / "config.json"
     if not request.resume:
         raise ConfigError(f"run directory {run_dir} exists; resume it (resume=True) or choose another run directory")
     old = read_json(path)
@@ -298,10 +381,10 @@ def _evaluated(ending: Ending, *, recorder: Recorder, evaluated: int | None) -> 
 def _close(ending: Ending, *, request: Request, recorder: Recorder, checkpointer: Checkpointer) -> dict[str, Any]:
     """The summary of a finished or diverged run (written last); an interrupted run is
     checkpointed and the interrupt raised again."""
-    state, writer, run_dir = ending.state, recorder.placement.writer, request.run_dir
+    state, writer, run_dir = ending.state, checkpointer.writes, request.run_dir
     if ending.status in ("interrupted", "terminated"):  # Ctrl-C or SIGTERM: keep what was done, then stop
         checkpointer.save(state)
-        if writer:
+        if writer and run_dir is not None:
             write_json(run_dir / "summary.json",
                        {"status": "interrupted", "steps": state.step, "train_seconds": state.train_time})  # fmt: skip
         raise rundir.Terminated if ending.status == "terminated" else KeyboardInterrupt
@@ -315,7 +398,7 @@ def _close(ending: Ending, *, request: Request, recorder: Recorder, checkpointer
         summary["wall_capped"] = (ending.status == "finished" and rule.capped(state.train_time)
                                   and not rule.budget_met(state.step, state.train_time))  # fmt: skip
         summary["wall_cap"] = cap
-    if writer:
+    if writer and run_dir is not None:
         write_json(run_dir / "summary.json", summary)
     return summary
 
@@ -389,7 +472,7 @@ def _budget_met(
 
 
 # --- fit's arguments --------------------------------------------------------------------------
-def _check_arguments(problem, *, budget, seed, batch_size, settings, out) -> None:
+def _check_arguments(problem, *, budget, seed, batch_size, settings, out, resume) -> None:
     """:func:`fit`'s arguments by type and range, each refused in one line in the library's
     words before any work (the method is checked by :func:`_phases`)."""
     if not isinstance(problem, AbstractProblem):
@@ -403,40 +486,19 @@ def _check_arguments(problem, *, budget, seed, batch_size, settings, out) -> Non
                           f"got {batch_size!r}")  # fmt: skip
     if not isinstance(settings, TrainSettings):
         raise ConfigError(f"settings must be a physgrad.TrainSettings, got {settings!r}")
-    checks.check_directory(out, "out")
+    if out is not None:
+        checks.check_directory(out, "out")
+    elif resume:
+        raise ConfigError("resume=True needs the run directory to resume: pass out=DIR (out=None runs in memory)")
 
 
-def _identity(record: dict[str, Any]) -> dict[str, Any]:
-    """What must match for a run to resume: the record without its budget and without the
-    settings that change only how the run is guarded."""
-    settings = {k: v for k, v in record.get("settings", {}).items()
-                if k not in UNGUARDED_SETTINGS and ADDED_SETTINGS.get(k, _ABSENT) != v}  # fmt: skip
-    return {**record, "budget": None, "settings": settings}
-
-
-def _phases(method, batch_size) -> list[Phase]:
+def _phases(method, batch_size, name: str = "") -> list[Phase]:
+    """The phases of a single method (named ``name``) or of the phases given, checked."""
     if isinstance(method, AbstractMethod):
-        return [Phase(method, None, batch_size)]
+        return [Phase(method, None, batch_size, name=name)]
     phases = [method] if isinstance(method, Phase) else list(method)
     if not phases or not all(isinstance(p, Phase) for p in phases):
         raise ConfigError("method must be a physgrad method (e.g. physgrad.methods.Method) or a list of Phase")
     if any(p.steps is None for p in phases[:-1]) or phases[-1].steps is not None and len(phases) > 1:
         raise ConfigError("every phase but the last needs steps; the last runs until the budget is spent")
     return phases
-
-
-def _describe(problem, *, phases, seed, budget, settings) -> dict[str, Any]:
-    """A readable record of a run given as objects (memory addresses removed, so the same
-    objects describe alike in every process and session)."""
-    text = lambda obj: re.sub(r" at 0x[0-9a-f]+", "", repr(obj))  # noqa: E731
-    return {"problem": text(problem), "phases": [text(p) for p in phases], "seed": seed,
-            "budget": budget.to_dict(), "settings": _resolved(settings, problem)}  # fmt: skip
-
-
-def _resolved(settings: TrainSettings, problem: AbstractProblem) -> dict[str, Any]:
-    """The settings as recorded: ``shuffle`` and ``fresh_samples`` None stand for the
-    problem's defaults."""
-    out = dataclasses.asdict(settings)
-    out["shuffle"] = problem.default_shuffle if settings.shuffle is None else settings.shuffle
-    out["fresh_samples"] = problem.default_fresh_samples if settings.fresh_samples is None else settings.fresh_samples
-    return out

@@ -1,6 +1,10 @@
 """The jitted training step and evaluation, and :class:`Steps`: the training data on the
-devices, each epoch's batch order and each stage's step compiled (and checked by the
-memory guard, :mod:`physgrad.memory`) ahead of time."""
+devices, each epoch's batch order and each stage's steps compiled (and checked by the
+memory guard, :mod:`physgrad.memory`) ahead of time.
+
+The run takes its steps in chunks (:func:`make_steps`): up to :data:`CHUNK` steps in one
+dispatch, their statistics read back once, so a step of a fraction of a millisecond is not
+dominated by a host round trip and Python work per step."""
 
 from __future__ import annotations
 
@@ -12,12 +16,17 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import distributed, memory, programs
+from ..acceptance import SKIPPED
 from ..errors import ConfigError
 from ..methods import AbstractMethod
 from ..precision import x64_enabled
 from .setup import mesh_devices, method_refusals, scalar_loss
 from .strategies import Placement
 from .types import Setup, Stage, TrainSettings, TrainState
+
+# The most steps one dispatch of :func:`make_steps` takes: the length of its statistics
+# buffers (a few kB). The loop sizes each chunk by time (:class:`physgrad.engine.run.Chunks`).
+CHUNK = 1024
 
 
 def make_step(setup: Setup, batch_size: int, method: AbstractMethod | None = None):
@@ -27,6 +36,58 @@ def make_step(setup: Setup, batch_size: int, method: AbstractMethod | None = Non
     ``index`` the batch number), so a step is a single dispatch with no host work.
     Traced under a mesh (``jax.set_mesh``, :mod:`physgrad.distributed`) the batch is split
     over the mesh's ``"data"`` axis while parameters and state stay replicated."""
+    return jax.jit(_step(setup, batch_size, method))
+
+
+def make_steps(setup: Setup, batch_size: int, method: AbstractMethod | None = None, chunk: int = CHUNK):
+    """Up to ``chunk`` training steps as one jitted function of
+    ``(params, state, data, order, start, count)`` (what the run dispatches).
+
+    Takes the steps of batches ``start, start + 1, ...`` of ``order`` (as :func:`make_step`
+    does one; after the epoch's last batch the first again, for a run whose every epoch
+    has the same order) in a ``lax.while_loop``, ``count`` of them (``1 <= count <=
+    chunk``; a traced argument, so every count runs one compiled program), and stops early at a step whose
+    loss is not finite unless the method's acceptance skipped it (``stats["skipped"]``):
+    that step is not applied, so the parameters and state returned are those before it,
+    as a run that diverges reports them. Returns ``(params, state, taken, diverged,
+    stats)``: ``taken`` the steps applied (int32), ``diverged`` whether the loop stopped at
+    a divergent step, and ``stats`` the per-step statistics, each of shape ``(chunk,
+    *shape)``, valid in rows ``[0, taken)`` (row ``taken`` is the divergent step's when
+    ``diverged``).
+
+    Why: a step of a small problem takes a fraction of a millisecond, less than a host
+    round trip plus the Python work of the loop around it; one dispatch per chunk and one
+    read-back of its statistics cost the same per chunk however many steps it holds."""
+    step = _step(setup, batch_size, method)
+
+    def steps(params, state, data, order, start, count):
+        per_epoch = order.shape[0] // batch_size
+        shapes = jax.eval_shape(step, params, state, data, order, start)[2]
+        buffers = jax.tree.map(lambda s: jnp.zeros((chunk, *s.shape), s.dtype), shapes)
+
+        def go_on(carry):
+            i, _, _, _, stop = carry
+            return (i < count) & ~stop
+
+        def body(carry):
+            i, params, state, buffers, _ = carry
+            new_params, new_state, stats = step(params, state, data, order, (start + i) % per_epoch)
+            buffers = jax.tree.map(lambda b, v: b.at[i].set(v), buffers, stats)
+            bad = ~jnp.isfinite(stats["loss"])
+            if SKIPPED in stats:  # a step the acceptance refused left everything as it was
+                bad = bad & (stats[SKIPPED] == 0)
+            params, state = jax.lax.cond(bad, lambda: (params, state), lambda: (new_params, new_state))
+            return i + jnp.where(bad, 0, 1).astype(i.dtype), params, state, buffers, bad
+
+        carry = (jnp.zeros((), jnp.int32), params, state, buffers, jnp.zeros((), bool))
+        taken, params, state, buffers, diverged = jax.lax.while_loop(go_on, body, carry)
+        return tuple(distributed.replicated(x) for x in (params, state, taken, diverged, buffers))
+
+    return jax.jit(steps)
+
+
+def _step(setup: Setup, batch_size: int, method: AbstractMethod | None = None):
+    """One training step of batch ``index`` of ``order``, not jitted (:func:`make_step`)."""
     method = method or setup.method
 
     def step(params, state, data, order, index):
@@ -38,7 +99,7 @@ def make_step(setup: Setup, batch_size: int, method: AbstractMethod | None = Non
         params, state, stats = method.step(objective, params, state, batch)
         return distributed.replicated(params), distributed.replicated(state), stats
 
-    return jax.jit(step)
+    return step
 
 
 def make_evaluate(setup: Setup, chunk: int = 1024, per_sample: bool = False):
@@ -79,12 +140,12 @@ def _make_evaluate(setup: Setup, chunk: int, per_sample: bool):
 
 
 class Steps:
-    """The training data on the devices, each epoch's sample order, and each stage's step
-    compiled ahead of time (compilation is counted in ``compile_seconds``).
+    """The training data on the devices, each epoch's sample order, and each stage's steps
+    compiled ahead of time (:func:`make_steps`; compilation is counted in ``compile_seconds``).
 
     With ``settings.memory_guard`` a stage's step is checked before it first runs
     (:mod:`physgrad.memory`): the method's footprint before compiling, XLA's memory
-    analysis of the compiled step after; a step that cannot fit raises ConfigError."""
+    analysis of the compiled steps after; a step that cannot fit raises ConfigError."""
 
     def __init__(self, setup: Setup, placement: Placement, settings: TrainSettings, seed: int):
         self.placement, self.settings = placement, settings
@@ -99,6 +160,12 @@ class Steps:
         groups = setup.problem.batch_groups(setup.data["train"]) if self.shuffle else None
         self.groups = None if groups is None else np.asarray(groups)
         self.batch_sizes = [stage.batch_size for stage in setup.stages]
+
+    @property
+    def same_every_epoch(self) -> bool:
+        """Whether every epoch trains on the same data in the same order (neither shuffled
+        nor fresh), so that a chunk of steps may run on past an epoch's end."""
+        return not self.shuffle and not self.fresh
 
     def draw(self, setup: Setup, stage: int, epoch: int) -> None:
         """The training data of a stage's epoch in ``self.data``: the first epoch of the first
@@ -155,14 +222,15 @@ class Steps:
         """What the compiled step depends on (None: something unhashable, compile afresh).
         The epoch's sample order is not in it: its shape is the data's length, its placement
         the mesh's."""
-        return programs.key("step", setup.problem, stage.method, stage.batch_size, self.placement.mesh,
-                            self.settings.memory_guard, x64_enabled(), static=setup.static,
+        return programs.key("steps", setup.problem, stage.method, stage.batch_size, self.placement.mesh,
+                            self.settings.memory_guard, x64_enabled(), CHUNK, static=setup.static,
                             arguments=(state.params, state.opt_state, self.data))  # fmt: skip
 
     def _lower(self, state: TrainState, *, setup: Setup, stage: Stage, batch_size: int):
         with self.placement.scope():
-            fn = make_step(setup, batch_size, stage.method)
-            return fn.lower(state.params, state.opt_state, self.data, self.order(state.stage, 0), np.int32(0))
+            fn = make_steps(setup, batch_size, stage.method)
+            order = self.order(state.stage, 0)
+            return fn.lower(state.params, state.opt_state, self.data, order, np.int32(0), np.int32(1))
 
     def _check(self, setup: Setup, stage: Stage, *, compiled=None, measure=None):
         batch = memory.stand_in(setup.data["train"], stage.batch_size)

@@ -1,7 +1,8 @@
 """The strategies around the training loop, one decision each: :class:`StopRule` (when the
-budget is spent), :class:`EvalSchedule` (when to evaluate), :class:`Placement` (where
-arrays live: one device or a data mesh over devices and processes) and :class:`Fidelity`
-(PRDP's solver refinement). The progress meter is :mod:`physgrad.progress`'s."""
+budget is spent), :class:`EvalSchedule` (when to evaluate), :class:`ChunkSize` (how many
+steps one dispatch takes), :class:`Placement` (where arrays live: one device or a data
+mesh over devices and processes) and :class:`Fidelity` (PRDP's solver refinement). The
+progress meter is :mod:`physgrad.progress`'s."""
 
 from __future__ import annotations
 
@@ -41,6 +42,21 @@ class StopRule:
             return step >= amount
         return self.setup.epochs(step) >= amount - 1e-9
 
+    def steps_left(self, step: int, limit: int) -> int:
+        """The fewest steps after ``step`` that meet a steps or epochs budget, at most
+        ``limit`` (a seconds budget: ``limit``; time is :class:`ChunkSize`'s to bound)."""
+        if self.budget.kind == "seconds":
+            return limit
+        if self.budget.kind == "steps":
+            return max(1, min(limit, int(self.budget.amount) - step))
+        low, high = 1, limit  # epochs(step) grows with step: the first step that meets it
+        if not self.met(step + high, 0.0):
+            return limit
+        while low < high:
+            middle = (low + high) // 2
+            low, high = (low, middle) if self.met(step + middle, 0.0) else (middle + 1, high)
+        return low
+
 
 @dataclasses.dataclass
 class EvalSchedule:
@@ -70,6 +86,54 @@ class EvalSchedule:
             return step % self.settings.eval_every == 0
         return (step - stage.start) % stage.steps_per_epoch == 0
 
+    def steps_left(self, step: int, stage: Stage) -> int | None:
+        """Steps after ``step`` to the next evaluation a step schedule makes (every
+        ``eval_every`` steps, else every epoch of ``stage``); None for ``eval_seconds``."""
+        if self.settings.eval_seconds > 0:
+            return None
+        if self.settings.eval_every:
+            return self.settings.eval_every - step % self.settings.eval_every
+        return stage.steps_per_epoch - (step - stage.start) % stage.steps_per_epoch
+
+    def seconds_left(self, train_time: float) -> float:
+        """Training seconds to the next evaluation of an ``eval_seconds`` schedule (else inf)."""
+        return self.next_time - train_time if self.settings.eval_seconds > 0 else math.inf
+
+
+@dataclasses.dataclass
+class ChunkSize:
+    """How many steps the next dispatch takes (:func:`physgrad.engine.step.make_steps`).
+
+    As many as fit in ``target_seconds`` of training at the last chunk's time per step,
+    at most ``limit`` (what the step-counted events allow: the budget, the epoch, the stage,
+    the next evaluation) and within half the time left to a time-counted event (a seconds
+    budget, ``eval_seconds``, the next checkpoint), so a chunk never runs past one: the
+    chunks halve towards it and the last steps before it are taken one at a time, as a
+    step-by-step loop takes them. The first chunk after a new compiled step is one step
+    (its time per step is not known yet).
+
+    Why ``target_seconds`` (0.25 s): long enough that one dispatch and one read-back per
+    chunk cost nothing per step, short enough that Ctrl-C, SIGTERM and the progress meter
+    answer within it."""
+
+    target_seconds: float = 0.25
+    per_step: float | None = None  # training seconds per step of the last chunk
+
+    def reset(self):
+        """A new compiled step (a stage switch, PRDP's refinement): its speed is unknown."""
+        self.per_step = None
+
+    def observe(self, steps: int, seconds: float):
+        if steps > 0:
+            self.per_step = seconds / steps
+
+    def size(self, limit: int, *, seconds_left: float = math.inf) -> int:
+        """The next chunk's steps: ``1 <= size <= limit``."""
+        if self.per_step is None:
+            return 1
+        seconds = min(self.target_seconds, seconds_left / 2)
+        return max(1, min(limit, int(seconds / max(self.per_step, 1e-9))))
+
 
 @dataclasses.dataclass
 class Placement:
@@ -95,6 +159,15 @@ class Placement:
         from jax.experimental import multihost_utils
 
         return float(multihost_utils.broadcast_one_to_all(np.float64(seconds)))
+
+    def agree(self, count: int) -> int:
+        """Process 0's ``count`` on every process: every process must dispatch the same
+        chunk (its collectives run once per step)."""
+        if jax.process_count() == 1:
+            return count
+        from jax.experimental import multihost_utils
+
+        return int(multihost_utils.broadcast_one_to_all(np.int32(count)))
 
     def barrier(self, name: str):
         if jax.process_count() > 1:

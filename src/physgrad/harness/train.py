@@ -104,7 +104,7 @@ def train(
         problem_of(config), phases_of(config), budget=config.budget, out=run_dir, seed=config.seed,
         settings=settings_of(config), resume=resume, progress=progress, devices=devices,
         record=config.to_dict(), same_run=lambda old: _same_run(old, config), name=config.method,
-    )  # fmt: skip
+    ).summary  # fmt: skip
 
 
 def load_network(run_dir: str | Path, like=None):
