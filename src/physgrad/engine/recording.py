@@ -12,6 +12,7 @@ A run directory holds ``config.json`` (what the caller says identifies the run),
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import dataclasses
 import io
@@ -379,3 +380,25 @@ def is_final(summary: dict[str, Any]) -> bool:
     if summary.get("status") not in FINAL_STATUSES:
         return False
     return summary["status"] == "diverged" or summary.get("final_test_loss") is not None
+
+
+@contextlib.contextmanager
+def writer_lock(run_dir: Path, placement: Placement):
+    """The writer process locks the run directory (:func:`physgrad.rundir.one_writer`); in a
+    multi-process run every process learns whether it got the lock, so that none waits at a
+    collective for a writer that was refused."""
+    with contextlib.ExitStack() as stack:
+        refused = None
+        try:
+            stack.enter_context(rundir.one_writer(run_dir, "run", enabled=placement.writer))
+        except ConfigError as e:
+            refused = e
+        if jax.process_count() > 1:
+            from jax.experimental import multihost_utils
+
+            flags = np.asarray(multihost_utils.process_allgather(np.array([int(refused is not None)])))
+            if refused is None and flags.any():
+                refused = ConfigError(f"the writer process could not lock {run_dir} (see its error)")
+        if refused is not None:
+            raise refused
+        yield

@@ -20,7 +20,6 @@ excluded, so equal budgets compare update rules, not tracing.
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import json
 import math
@@ -50,6 +49,7 @@ from .recording import (
     read_json,
     read_summary,
     write_json,
+    writer_lock,
 )
 from .result import FitResult, history_from_metrics, history_of
 from .setup import build_setup, preflight
@@ -143,7 +143,7 @@ def fit(
         placement = Placement(devices)
         if run_dir is None:  # in memory: no lock, no files, no signal handler to install
             return _run(request, placement=placement, progress=progress or NoProgressMeter())
-        with _writer_lock(run_dir, placement), rundir.terminate_as_interrupt():  # SIGTERM: a checkpoint, then stop
+        with writer_lock(run_dir, placement), rundir.terminate_as_interrupt():  # SIGTERM: a checkpoint, then stop
             return _run(request, placement=placement, progress=progress or NoProgressMeter())
 
 
@@ -401,28 +401,6 @@ def _close(ending: Ending, *, request: Request, recorder: Recorder, checkpointer
     if writer and run_dir is not None:
         write_json(run_dir / "summary.json", summary)
     return summary
-
-
-@contextlib.contextmanager
-def _writer_lock(run_dir: Path, placement: Placement):
-    """The writer process locks the run directory (:func:`physgrad.rundir.one_writer`); in a
-    multi-process run every process learns whether it got the lock, so that none waits at a
-    collective for a writer that was refused."""
-    with contextlib.ExitStack() as stack:
-        refused = None
-        try:
-            stack.enter_context(rundir.one_writer(run_dir, "run", enabled=placement.writer))
-        except ConfigError as e:
-            refused = e
-        if jax.process_count() > 1:
-            from jax.experimental import multihost_utils
-
-            flags = np.asarray(multihost_utils.process_allgather(np.array([int(refused is not None)])))
-            if refused is None and flags.any():
-                refused = ConfigError(f"the writer process could not lock {run_dir} (see its error)")
-        if refused is not None:
-            raise refused
-        yield
 
 
 def _done_already(run_dir: Path, budget: Budget, wall_cap: float = 0.0) -> dict[str, Any] | None:

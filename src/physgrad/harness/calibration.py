@@ -178,7 +178,8 @@ def step_programs(config: RunConfig, devices: int | str | None = 1) -> tuple[lis
         with placement.scope():
             compiled, _ = steps.compile(state, setup)
             order = steps.order(i, 0)
-            program = functools.partial(compiled, params, opt_state, steps.data, order, np.int32(0))
+            # the run's chunked program (engine.step.make_steps), asked for one step
+            program = functools.partial(compiled, params, opt_state, steps.data, order, np.int32(0), np.int32(1))
             jax.block_until_ready(program())  # the first call: warm-up, not timed
         warmups.append(time.perf_counter() - t0)
         programs.append(lambda program=program: jax.block_until_ready(program()))
