@@ -74,8 +74,8 @@ ex = pytest.importorskip("exponax", reason="the user's solver is an exponax step
 
 N = 32
 FINE = Repeated(ex.stepper.Burgers(1, 1.0, N, 0.01, diffusivity=0.02, order=2), substeps=4)
-# built in float32 whatever the x64 setting (the suite runs with x64 on: exponax would build
-# float64 coefficients, which promote the float32 states; single_precision rounds them)
+# coefficients rounded to float32 (the suite runs with x64 on, so exponax builds float64 ones;
+# Repeated keeps the state's dtype either way, tested below)
 COARSE = single_precision(Repeated(ex.stepper.Burgers(1, 1.0, N, 0.04, diffusivity=0.02, order=1)))
 
 
@@ -189,3 +189,25 @@ def test_nog_trains_a_users_exponax_stepper_declared_without_derivatives_and_wig
     assert all(np.isfinite(leaf).all() for leaf in jax.tree.leaves(g)) and np.isfinite(float(stats["loss"]))
     with pytest.raises(Exception, match="differentiat"):
         physgrad.unrolled(external.system(external.apply), policy=R())(net, batch)
+
+
+def test_repeated_keeps_the_states_dtype_when_the_stepper_was_built_with_x64():
+    """The suite runs with x64 on, so exponax builds float64 coefficients: without the cast a
+    float32 state would come back float64 and a rollout's scan would refuse the carry."""
+    raw = Repeated(ex.stepper.Burgers(1, 1.0, N, 0.04, diffusivity=0.02, order=1), substeps=2)
+    assert any(getattr(a, "dtype", None) in (jnp.float64, jnp.complex128) for a in jax.tree.leaves(raw))
+    u = jnp.sin(2 * jnp.pi * jnp.arange(N, dtype=jnp.float32) / N)[None]
+    out = raw(u, None)
+    assert out.dtype == jnp.float32
+    np.testing.assert_allclose(out, raw.stepper(raw.stepper(u.astype(jnp.float64))), rtol=1e-5, atol=1e-6)
+
+    class RawBurgers(_UserBurgers):  # the solver as exponax built it, no single_precision
+        def solvers(self):
+            return raw
+
+    problem = RawBurgers(m=3)
+    frames = jnp.stack([u, out, out, out])[None]  # one window of m + 1 frames
+    batch = {"u": frames, "cond": jnp.zeros(1, jnp.float32), "index": jnp.zeros(1, jnp.int32)}
+    net = problem.initial_network(jax.random.key(0), {})
+    g, stats = physgrad.unrolled(problem.system(problem.apply), policy=R())(net, batch)
+    assert np.isfinite(float(stats["loss"])) and all(np.isfinite(leaf).all() for leaf in jax.tree.leaves(g))
