@@ -22,6 +22,11 @@ ROOT = Path(__file__).resolve().parents[1]
 EXAMPLES = ROOT / "examples"
 NOTEBOOKS = sorted(EXAMPLES.glob("*.ipynb"))
 TIMEOUT = 600  # seconds per cell; a notebook takes one to three minutes on one loaded core
+SESSION_ONLY_FLAGS = (
+    "--xla_backend_optimization_level",
+    "--xla_llvm_disable_expensive_passes",
+    "--xla_force_host_platform_device_count",
+)
 NEEDS = {  # notebook -> modules of its extra
     "01_hig_lm_kfac_own_loop.ipynb": ("kfac_jax",),
     "04_time_stepper_exponax.ipynb": ("exponax",),
@@ -39,6 +44,11 @@ def execute(path: Path, env: dict[str, str] | None = None, timeout: int = TIMEOU
     saved = dict(os.environ)
     os.environ.update(env or {})
     os.environ["PYTHONPATH"] = os.pathsep.join([str(ROOT / "src"), *filter(None, [saved.get("PYTHONPATH")])])
+    # XLA's own defaults for the kernel: not the test session's compile-time flags from
+    # conftest.py (optimisation level 0 made notebook 04's convolutions several times slower
+    # and ran it past the time limit) nor its four simulated devices
+    flags = [f for f in os.environ.get("XLA_FLAGS", "").split() if not f.startswith(SESSION_ONLY_FLAGS)]
+    os.environ["XLA_FLAGS"] = " ".join(flags)
     try:
         client = NotebookClient(notebook, timeout=timeout, kernel_name="python3",
                                 resources={"metadata": {"path": str(path.parent)}})  # fmt: skip
