@@ -159,12 +159,18 @@ def single_precision(tree):
 
 class Repeated(Solver):
     """``substeps`` applications of a per-sample stepper (e.g. an exponax ETDRK stepper on
-    one state (C, *N)); the conditioning value is not used (select the stepper instead)."""
+    one state (C, *N)); the conditioning value is not used (select the stepper instead).
+
+    The state keeps its dtype: a stepper built with x64 on (exponax then holds float64
+    coefficients) would promote a float32 state to float64 at every step, which a rollout's
+    ``lax.scan`` refuses (its carry changes type); each step's result is cast back to the
+    state's dtype (:func:`single_precision` rounds the coefficients themselves instead)."""
 
     stepper: Callable[[Array], Array]  # an equinox module
     substeps: int = eqx.field(static=True, default=1)
 
     def __call__(self, u, cond):
+        dtype = u.dtype
         for _ in range(self.substeps):
-            u = self.stepper(u)
+            u = self.stepper(u).astype(dtype)
         return u

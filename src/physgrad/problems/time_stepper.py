@@ -84,6 +84,19 @@ def solver_rollout(solver, u0, n: int):
     return jax.lax.scan(body, u0, None, length=n)
 
 
+def _output_layer(net):
+    """``net -> its output layer`` for :meth:`TimeStepperProblem.initial_network`'s ``zero_init``."""
+    if hasattr(net, "conv_out"):
+        return lambda n: n.conv_out
+    layers = getattr(net, "layers", None)
+    if isinstance(layers, tuple | list):
+        with_params = [i for i, layer in enumerate(layers) if jax.tree.leaves(eqx.filter(layer, eqx.is_inexact_array))]
+        if with_params:
+            index = with_params[-1]
+            return lambda n: n.layers[index]
+    return lambda n: n
+
+
 class TimeStepperProblem(AbstractProblem):
     """Base class: subclasses define the reference data, the coarse solver and the network."""
 
@@ -160,15 +173,16 @@ class TimeStepperProblem(AbstractProblem):
     training_only_settings: ClassVar[tuple[str, ...]] = ()
 
     def initial_network(self, key, data):
-        """The paper's network, or with ``zero_init`` its output layer zeroed (weights and bias)."""
+        """The paper's network, or with ``zero_init`` its output layer zeroed (weights and bias).
+
+        The output layer is the ResNets' ``conv_out``, the last layer with parameters of a
+        network with ``layers`` (``eqx.nn.Sequential``, ``eqx.nn.MLP``, :class:`physgrad.MLP`),
+        or a single-layer network itself. Zeroing every layer of a deeper network would leave
+        only the last bias with a gradient."""
         net = self.make_network(key)
         if not self.zero_init:
             return net
-
-        # the ResNets' output convolution, or a single-layer network itself
-        def last(n):
-            return n.conv_out if hasattr(n, "conv_out") else n
-
+        last = _output_layer(net)
         zeroed = jax.tree.map(jnp.zeros_like, eqx.filter(last(net), eqx.is_inexact_array))
         return eqx.tree_at(last, net, eqx.combine(zeroed, last(net)))
 
