@@ -48,6 +48,7 @@ def metric_rows(run_dir: Path) -> list[tuple[str, str, str, str]]:
         ]
 
 
+@pytest.mark.slow  # two fresh interpreters, each importing physgrad and training (~18 s)
 def test_the_command_line_and_fit_run_the_same_computation(tmp_path):
     """One configuration (Adam for 3 steps, then HIG, on hig_toy: HIG's Gram route computes in
     scoped float64; Adam's final network differs when x64 is on globally, so a CLI that turned it

@@ -12,6 +12,9 @@ import pytest
 
 pytest.importorskip("trainax", reason="the example trains with trainax (pip install trainax)")
 
+# an end-to-end example (two trainers, 15 steps each, ~22 s): the slow tier
+pytestmark = pytest.mark.slow
+
 EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "trainax_hig.py"
 
 

@@ -136,7 +136,11 @@ def _hand_rollout_loss(net, batch, modality, m=3):
     return total
 
 
-@pytest.mark.parametrize("modality", ["one", "nog", "wig"])
+# ONE and NOG in the slow tier (as in test_unrolling): WIG differentiates through network and
+# solver, the path the other two only cut; each case compiles a rollout and its gradient (~14 s)
+@pytest.mark.parametrize(
+    "modality", [pytest.param("one", marks=pytest.mark.slow), pytest.param("nog", marks=pytest.mark.slow), "wig"]
+)
 def test_one_nog_wig_of_a_users_exponax_corrector_are_the_hand_written_gradients(burgers, modality):
     """physgrad.unrolled on problem.system with the user's stepper gives the gradient of the
     user's own rollout written out by hand (ONE: teacher-forced, NOG: states stopped, WIG:
