@@ -27,7 +27,7 @@ DEMO = {
 
 # The bench profiles' one-line summaries (physgrad.harness.bench.choices.PROFILES), for --help
 # without importing the registries.
-QUICK_SUMMARY = ("6 fast open-loop problems, 9 candidates, small datasets, 6 s of calibrated training per run "
+QUICK_SUMMARY = ("6 fast open-loop problems, 10 candidates, small datasets, 6 s of calibrated training per run "
                  "(0.5-2 s on the 4 problems with sub-millisecond steps), 3 seeds (planned for at most 45 min on "
                  "2 CPU cores)")  # fmt: skip
 STANDARD_SUMMARY = ("every problem that fits a CPU at its paper settings and batch sizes, every applicable method, "

@@ -39,8 +39,9 @@ ZOO = ("optax:adamw", "optax:lion", "optax.contrib:muon")
 QUICK: dict[str, Any] = {
     "problems": ("hig_toy", "toy2d", "exp_inverse", "sine", "linear_oscillators", "oscillators"),
     # The DP baselines Adam and RMSprop (the best of the HIG paper's comparison), every
-    # curvature and inversion method, AdamW and Muon (the rollout methods apply to none).
-    "methods": ("adam", "rmsprop", "gn", "hig", "lm", "kfac", "sip", "optax:adamw", "optax.contrib:muon"),
+    # curvature and inversion method (Kronecker-factored HIG included), AdamW and Muon (the
+    # rollout methods apply to none).
+    "methods": ("adam", "rmsprop", "gn", "hig", "khig", "lm", "kfac", "sip", "optax:adamw", "optax.contrib:muon"),
     "settings": {
         "exp_inverse.n_train": "4096", "sine.n_train": "4096", "eval_seconds": "0.5", "toy2d.eval_seconds": "0.02",
         "hig_toy.eval_seconds": "0.05", "exp_inverse.eval_seconds": "0.1", "sine.eval_seconds": "0.1",
