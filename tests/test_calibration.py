@@ -205,6 +205,25 @@ def test_performance_profile_against_a_hand_written_numpy_dolan_more():
     assert scores["c"]["solved"] == 3 / 5 and scores["c"]["score_problems"] == 4
 
 
+def test_the_profile_tables_columns_are_the_profile_among_all_methods():
+    """ρ(1), ρ(2) and ρ(10) of the leaderboard are each method's ratio to the fastest of all
+    the methods (the hand-written NumPy profile), not to itself (which gives ρ(∞) everywhere)."""
+    from physgrad.harness.bench.report import profile_board
+
+    inf = math.inf
+    T = np.array([[1.0, 3.0, inf], [10.0, 5.0, 20.0], [4.0, 1.0, 8.0]])
+    methods = ["a", "b", "c"]
+    tables = {f"p{i}": [{"method": m, "status": "finished", "ttt": t, "budget_time": 100.0} for m, t in zip(methods, row)]
+              for i, row in enumerate(T.tolist())}  # fmt: skip
+    _, _, rows = profile_board(tables)
+    expected = dolan_more(T, [1.0, 2.0, 10.0])
+    for row in rows:
+        j = methods.index(row["method"])
+        assert [row["rho1"], row["rho2"], row["rho10"]] == pytest.approx(expected[:, j].tolist()), row["method"]
+    c = next(r for r in rows if r["method"] == "c")
+    assert (c["rho1"], c["rho2"], c["rho10"], c["solved"]) == (0.0, 0.0, 2 / 3, 2 / 3)  # ratios inf, 4, 8
+
+
 def test_bench_report_writes_the_profile_and_its_figure(tmp_path):
     out, lines = tmp_path / "bench", []
     result = bench.bench(["hig_toy"], ["adam", "hig"], [0], physgrad.Budget(steps=3), out, echo=lines.append,

@@ -149,8 +149,9 @@ def profile_board(
     rho = targets.profile(times, methods, taus)
     scores = targets.scores(times, methods, budgets, ran)
     loss = {b["method"]: b["score"] for b in board}
-    at = lambda tau, m: targets.profile(times, [m], [tau])[m][0]  # noqa: E731
-    rows = [{"method": m, **scores[m], "rho1": at(1.0, m), "rho2": at(2.0, m), "rho10": at(10.0, m),
+    # ρ at the table's τ among all the methods (each against the fastest of them, not itself)
+    at = targets.profile(times, methods, [1.0, 2.0, 10.0])
+    rows = [{"method": m, **scores[m], "rho1": at[m][0], "rho2": at[m][1], "rho10": at[m][2],
              "loss_score": loss.get(m, math.nan)} for m in methods]  # fmt: skip
     rows.sort(key=lambda b: (math.isnan(b["score"]), b["score"] if not math.isnan(b["score"]) else 0, -b["solved"]))
     return taus, rho, rows
