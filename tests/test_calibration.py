@@ -165,6 +165,13 @@ def test_time_to_target_is_the_first_evaluation_at_or_below_the_target_with_cens
     two = [runs["a", "0"], runs["a", "2"], {**runs["a", "2"], "seed": "3"}]  # 1 of 3 reached: the median is +inf
     (row,) = targets.method_times(two, ["a"])
     assert math.isinf(row["time"]["median"]) and targets.median_time_cell(row) == ">0.3 s (>budget) (1/3 reached)"
+    # from 3 seeds the median carries its interval: of 3 values a bootstrap median takes the smallest or the
+    # largest with probability 7/27 each, so the 95 % percentile interval is [min, max] (∞ for a censored seed)
+    three = [runs["a", "0"], runs["a", "1"], {**runs["a", "0"], "seed": "3", "time_to_target": 0.3}]
+    (row,) = targets.method_times(three, ["a"])
+    assert targets.median_time_cell(row) == "0.2 s [0.1, 0.3] (3/3 reached)"
+    (row,) = targets.method_times([runs["a", "0"], runs["a", "1"], runs["a", "2"]], ["a"])
+    assert targets.median_time_cell(row) == "0.2 s [0.1, ∞] (2/3 reached)"
 
 
 def test_every_problem_declares_a_target_with_its_origin():

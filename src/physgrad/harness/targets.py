@@ -35,7 +35,7 @@ from typing import Any
 import numpy as np
 
 from .papers import Target, protocol
-from .seeds import as_float, number, summarize
+from .seeds import MIN_SEEDS_INTERVAL, as_float, interval, number, summarize
 
 PENALTY = 2.0  # an unsolved problem counts as this many times the problem's budget (PAR-2)
 TTT_COLUMNS = ("problem", "method", "seed", "target", "status", "steps_to_target", "time_to_target",
@@ -129,12 +129,15 @@ def seed_cell(run: Mapping[str, Any]) -> str:
 
 
 def median_time_cell(t: Mapping[str, Any]) -> str:
-    """The median over seeds: a time, or ``>budget`` where it is +∞ (half the seeds or more
-    never got there: more than the budget, or ``never`` where every seed diverged), with
-    how many seeds reached it and how many diverged."""
+    """The median over seeds: a time (with its 95 % bootstrap interval from 3 seeds on), or
+    ``>budget`` where it is +∞ (half the seeds or more never got there: more than the
+    budget, or ``never`` where every seed diverged), with how many seeds reached it and how
+    many diverged."""
     median, budget = t["time"]["median"], t["budget_time"]
     if math.isinf(median):
         text = f">{budget:.3g} s (>budget)" if math.isfinite(budget) else "never"
+    elif t["time"]["n"] >= MIN_SEEDS_INTERVAL:  # with its bootstrap interval (∞ where censored seeds reach it)
+        text = f"{median:.3g} s {interval(t['time'], '.3g')}"
     else:
         text = f"{median:.3g} s"
     diverged = f", {t['diverged']} diverged" if t["diverged"] else ""

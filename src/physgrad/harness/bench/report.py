@@ -70,6 +70,7 @@ def problem_table(out: str | Path, verdicts: Sequence[Verdict]) -> list[dict[str
         ttt = by_method.get(t["method"])
         t["target"] = target.loss if target else math.nan
         t["ttt"] = ttt["time"]["median"] if ttt else math.inf
+        t["ttt_low"], t["ttt_high"] = (ttt["time"]["low"], ttt["time"]["high"]) if ttt else (math.nan, math.nan)
         t["ttt_reached"] = f"{ttt['reached']}/{ttt['seeds']}" if ttt else ""
         t["ttt_cell"] = targets.median_time_cell(ttt) if ttt else ""
         t["budget_time"] = ttt["budget_time"] if ttt else math.nan

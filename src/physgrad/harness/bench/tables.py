@@ -172,7 +172,7 @@ TABLE_COLUMNS = (
     "problem", "method", "status", "runs", "finished", "diverged", "failed", "final_test_loss_mean",
     "final_test_loss_std", "rank", "ratio_to_adam", "best", "p_vs_best", "pairs", "seeds_best_lower",
     "seeds_compared", "reason", "final_test_loss_median", "final_test_loss_low", "final_test_loss_high",
-    "target", "time_to_target_median", "target_reached",
+    "target", "time_to_target_median", "time_to_target_low", "time_to_target_high", "target_reached",
 )  # fmt: skip
 BOARD_COLUMNS = (
     "method",
@@ -207,6 +207,8 @@ def table_records(problem: str, table: Sequence[dict[str, Any]]) -> list[dict[st
         "final_test_loss_median": _number(t["median"], ".6e"), "final_test_loss_low": _number(t["low"], ".6e"),
         "final_test_loss_high": _number(t["high"], ".6e"), "target": _number(t.get("target", math.nan), ".6g"),
         "time_to_target_median": _number(t["ttt"], ".6g") if t.get("ttt_reached") else "",
+        "time_to_target_low": _number(t.get("ttt_low", math.nan), ".6g") if t.get("ttt_reached") else "",
+        "time_to_target_high": _number(t.get("ttt_high", math.nan), ".6g") if t.get("ttt_reached") else "",
         "target_reached": t.get("ttt_reached", ""),
     } for t in table]  # fmt: skip
 
