@@ -66,6 +66,45 @@ def test_time_programs_interleaves_the_methods_and_stops_each_at_its_time_limit(
     assert len(times["hig"][0]) == 3 and len(times["adam"][0]) == 5  # hig leaves after 3 rounds (0.3 s >= 0.25 s)
 
 
+def test_a_chunk_of_steps_is_timed_per_step_with_the_steps_it_computed():
+    """A program that returns an int took that many steps: its call's seconds are divided by
+    them (and its whole call counts towards the time limit); a chunk that stopped at a
+    divergent step counts the steps it computed, that one included."""
+    machine = FakeMachine({})
+
+    def chunk_of(n, seconds):
+        def run():
+            machine.now += seconds
+            return n
+
+        return run
+
+    times = time_programs({"cheap": [chunk_of(100, 0.01)], "dear": [chunk_of(None, 0.02)]}, repeats=4,
+                          max_seconds=0.035, clock=machine.clock)  # fmt: skip
+    assert times["cheap"] == [[pytest.approx(1e-4)] * 4]  # a call is 0.01 s: 0.035 s only after the 4th
+    assert times["dear"] == [[pytest.approx(0.02)] * 3]  # None: one step; 0.04 s after 2, but 3 rounds at least
+    # steps per call: about CALL_SECONDS of them, at most the run's chunk
+    from physgrad.engine.step import CHUNK
+    from physgrad.harness.calibration import CALL_SECONDS, _chunk_call, chunk_steps
+
+    assert chunk_steps(7e-5) == math.ceil(CALL_SECONDS / 7e-5) and chunk_steps(0.5) == 1
+    assert chunk_steps(1e-9) == CHUNK and chunk_steps(0.0) == 1 and chunk_steps(math.nan) == 1
+    as_run = lambda taken, diverged: lambda count: (None, None, np.int32(taken), np.bool_(diverged), None)  # noqa: E731
+    assert _chunk_call(as_run(7, False), 7) == 7 and _chunk_call(as_run(3, True), 7) == 4
+
+
+def test_the_calibration_times_the_runs_chunk_and_a_diverging_chunk_counts_its_steps():
+    """calibrate() on a real problem: each method's call is a chunk of the run's compiled
+    loop, and the per-step time times the steps it took is the call's time (so a cheap
+    step is not charged a whole dispatch); the record says how it was measured."""
+    from physgrad.harness.calibration import calibrate
+
+    record = calibrate(configs("hig_toy", ["adam"]), repeats=3, echo=lambda *_: None)
+    (stage,) = record["methods"]["adam"]["stages"]
+    assert 0 < stage["seconds"] < 0.01 and stage["rounds"] == 3
+    assert "chunk of the run's loop" in record["rule"]
+
+
 def test_calibrated_budgets_are_seconds_over_the_calibrated_step_time():
     machine = FakeMachine({"adam": 0.004, "hig": 0.1})
     record = calibrate(configs("hig_toy", ["adam", "hig", "adam:10,hig"]), repeats=4, clock=machine.clock,

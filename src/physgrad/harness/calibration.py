@@ -7,10 +7,13 @@ seconds budget first **calibrates**: it builds each method's run (seed 0, the st
 settings), compiles its step with the engine's own :class:`~physgrad.engine.step.Steps`
 (the compiled program is kept in :data:`physgrad.programs.STEPS`, so the runs that follow
 do not compile it again), calls it once more to warm it up, and then times it in
-**interleaved rounds** (one step of every method per round, so that a change of load
-touches every method alike) under the thread setting the study runs with. The median over
-the rounds is the method's seconds per step (the quartiles and the extremes are kept as
-its spread). Each run then trains for
+**interleaved rounds** (one call of every method per round, so that a change of load
+touches every method alike) under the thread setting the study runs with. A call is a
+chunk of the run's own loop, as many steps as take about 10 ms (:func:`chunk_steps`; one
+where a step takes longer), so that a step of a fraction of a millisecond is charged its
+share of a dispatch, as in the run, not a whole one. The median over the rounds of the
+seconds per step is the method's cost (the quartiles and the extremes are kept as its
+spread). Each run then trains for
 
     steps = floor(seconds / calibrated seconds per step)           (at least 1)
 
@@ -53,9 +56,11 @@ CSV_COLUMNS = ("problem", "method", "route", "batch", "ms_per_step", "measured",
 EXTRA_COLUMNS = ("spec", "stage", "ms_q25", "ms_q75", "ms_min", "ms_max", "rounds", "compile_seconds", "threads",
                  "load")  # fmt: skip
 REPEATS = 15  # rounds of interleaved timing, at most
+CALL_SECONDS = 0.01  # a timed call takes at least this many steps' worth (chunk_steps)
 MIN_REPEATS = 3  # every method gets at least this many rounds
 MAX_SECONDS = 10.0  # a method leaves the rounds once its timed steps add up to this (after MIN_REPEATS)
-RULE = ("median over interleaved rounds (one step of every method per round) of the compiled step's wall-clock; "
+RULE = ("median over interleaved rounds (one call of every method per round) of the compiled step's wall-clock per "
+        "step, each call a chunk of the run's loop of about 10 ms (one step where a step takes longer); "
         "compilation and the first call excluded; seed 0's data and network")  # fmt: skip
 
 Program = Callable[[], Any]  # one training step, blocking until its results are ready
@@ -116,21 +121,26 @@ def time_programs(
     max_seconds: float = MAX_SECONDS,
     clock: Callable[[], float] = time.perf_counter,
 ) -> dict[str, list[list[float]]]:
-    """Seconds per call of each program, in interleaved rounds: every round calls each
+    """Seconds per step of each program, in interleaved rounds: every round calls each
     key's programs (a sequence's stages) once, in order; a key leaves the rounds once it
-    has ``MIN_REPEATS`` rounds and its timed calls add up to ``max_seconds``. Returns
-    ``{key: [per-program list of seconds]}``. ``clock`` is the timer (a fake one makes the
-    tests deterministic)."""
+    has ``MIN_REPEATS`` rounds and its timed calls add up to ``max_seconds``. A program
+    that returns a Python ``int`` n took n steps in that call (a chunk of the run's loop),
+    and its call's seconds are divided by n; any other return value is one step. Returns
+    ``{key: [per-program list of seconds per step]}``. ``clock`` is the timer (a fake one
+    makes the tests deterministic)."""
     times: dict[str, list[list[float]]] = {k: [[] for _ in progs] for k, progs in programs.items()}
+    spent = dict.fromkeys(programs, 0.0)
     active = list(programs)
     for r in range(max(repeats, 1)):
         for key in list(active):
             for i, program in enumerate(programs[key]):
                 t0 = clock()
-                program()
-                times[key][i].append(clock() - t0)
-            spent = sum(sum(t) for t in times[key])
-            if r + 1 >= min(MIN_REPEATS, repeats) and spent >= max_seconds:
+                steps = program()
+                seconds = clock() - t0
+                spent[key] += seconds
+                n = steps if isinstance(steps, int) and not isinstance(steps, bool) and steps > 0 else 1
+                times[key][i].append(seconds / n)
+            if r + 1 >= min(MIN_REPEATS, repeats) and spent[key] >= max_seconds:
                 active.remove(key)
         if not active:
             break
@@ -178,12 +188,40 @@ def step_programs(config: RunConfig, devices: int | str | None = 1) -> tuple[lis
         with placement.scope():
             compiled, _ = steps.compile(state, setup)
             order = steps.order(i, 0)
-            # the run's chunked program (engine.step.make_steps), asked for one step
-            program = functools.partial(compiled, params, opt_state, steps.data, order, np.int32(0), np.int32(1))
-            jax.block_until_ready(program())  # the first call: warm-up, not timed
+            # the run's chunked program (engine.step.make_steps), first asked for one step
+            chunk = functools.partial(compiled, params, opt_state, steps.data, order, np.int32(0))
+            jax.block_until_ready(chunk(np.int32(1)))  # the first call: warm-up, not timed
         warmups.append(time.perf_counter() - t0)
-        programs.append(lambda program=program: jax.block_until_ready(program()))
+        t1 = time.perf_counter()
+        jax.block_until_ready(chunk(np.int32(1)))
+        count = chunk_steps(time.perf_counter() - t1)
+        programs.append(functools.partial(_chunk_call, chunk, np.int32(count)))
     return programs, warmups, list(setup.stages)
+
+
+def chunk_steps(seconds_per_call: float) -> int:
+    """How many steps one timed call takes: enough for :data:`CALL_SECONDS` at the measured
+    seconds of a one-step call (at most the run's chunk, :data:`physgrad.engine.step.CHUNK`).
+
+    Why: a run takes its steps in chunks of up to 1,024 per dispatch, so a step below a
+    millisecond costs the run its compiled work plus a share of one dispatch. A one-step
+    call adds a whole dispatch and host round trip (0.1–0.6 ms on a CPU) to every step: it
+    read a 0.07 ms Adam step on ``hig_toy`` as 0.67 ms, and cheap methods' steps as more
+    alike than they are."""
+    from ..engine.step import CHUNK
+
+    if not math.isfinite(seconds_per_call) or seconds_per_call <= 0:
+        return 1
+    return int(min(CHUNK, max(1, math.ceil(CALL_SECONDS / seconds_per_call))))
+
+
+def _chunk_call(chunk: Callable[[Any], Any], count: Any) -> int:
+    """One timed call of a chunk of ``count`` steps; the steps it computed (those applied,
+    and a divergent one where the chunk stopped at it) for :func:`time_programs`."""
+    import jax
+
+    _, _, taken, diverged, _ = jax.block_until_ready(chunk(count))
+    return int(taken) + int(bool(diverged))
 
 
 def machine() -> dict[str, Any]:
