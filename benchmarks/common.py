@@ -58,9 +58,9 @@ def training_step(problem: str, method: str, settings: dict[str, str]):
 
 
 def median_seconds(fn, args, repeats: int) -> float:
-    """Median seconds per call over ``repeats`` calls after a warm-up call: the harness's
-    step timing (:func:`physgrad.harness.calibration.time_programs`, which a calibrated
-    study uses too), for one program."""
+    """Median seconds per call over ``repeats`` calls after a warm-up call, timed by the
+    harness's :func:`physgrad.harness.calibration.time_programs` (a calibrated study uses it
+    too, with each call a chunk of the run's loop; here a call is one call of ``fn``)."""
     jax.block_until_ready(fn(*args))  # compile and warm up
     times = time_programs({"step": [lambda: jax.block_until_ready(fn(*args))]}, repeats=repeats, max_seconds=math.inf)
     return statistics.median(times["step"][0])

@@ -79,7 +79,7 @@ def test_a_chunk_of_steps_is_timed_per_step_with_the_steps_it_computed():
 
         return run
 
-    times = time_programs({"cheap": [chunk_of(100, 0.01)], "dear": [chunk_of(None, 0.02)]}, repeats=4,
+    times = time_programs({"cheap": [chunk_of(100, 0.01)], "dear": [chunk_of(None, 0.02)]}, repeats=6,
                           max_seconds=0.035, clock=machine.clock)  # fmt: skip
     assert times["cheap"] == [[pytest.approx(1e-4)] * 4]  # a call is 0.01 s: 0.035 s only after the 4th
     assert times["dear"] == [[pytest.approx(0.02)] * 3]  # None: one step; 0.04 s after 2, but 3 rounds at least
@@ -93,16 +93,35 @@ def test_a_chunk_of_steps_is_timed_per_step_with_the_steps_it_computed():
     assert _chunk_call(as_run(7, False), 7) == 7 and _chunk_call(as_run(3, True), 7) == 4
 
 
-def test_the_calibration_times_the_runs_chunk_and_a_diverging_chunk_counts_its_steps():
-    """calibrate() on a real problem: each method's call is a chunk of the run's compiled
-    loop, and the per-step time times the steps it took is the call's time (so a cheap
-    step is not charged a whole dispatch); the record says how it was measured."""
-    from physgrad.harness.calibration import calibrate
+def test_the_chunk_grows_until_a_call_takes_about_ten_milliseconds():
+    """A call of n steps costing 0.5 ms of dispatch + n x 0.01 ms: one step reads 0.51 ms per
+    step, so the first estimate (20 steps) is still mostly dispatch; the count is measured
+    again until a call takes at least half of CALL_SECONDS, and never passes ``longest``."""
+    from physgrad.harness.calibration import CALL_SECONDS, sized_chunk
+
+    machine = FakeMachine({})
+    calls = []
+
+    def call(n):
+        calls.append(n)
+        machine.now += 5e-4 + n * 1e-5
+        return n
+
+    count = sized_chunk(call, clock=machine.clock)
+    assert calls[:2] == [1, 20] and 5e-4 + count * 1e-5 >= CALL_SECONDS / 2 and count > 500
+    calls.clear()
+    assert sized_chunk(call, longest=40, clock=machine.clock) == 40 and max(calls) == 40
+
+
+def test_calibrate_times_a_chunk_of_the_runs_loop_on_a_real_problem():
+    """calibrate() on hig_toy: Adam's step (well below a millisecond) is timed in calls of
+    many steps, and the record says so (steps per call, the rule, version 2)."""
+    from physgrad.harness.calibration import VERSION, calibrate
 
     record = calibrate(configs("hig_toy", ["adam"]), repeats=3, echo=lambda *_: None)
     (stage,) = record["methods"]["adam"]["stages"]
-    assert 0 < stage["seconds"] < 0.01 and stage["rounds"] == 3
-    assert "chunk of the run's loop" in record["rule"]
+    assert stage["steps_per_call"] > 1 and 0 < stage["seconds"] < 0.01 and stage["rounds"] == 3
+    assert "chunk of the run's loop" in record["rule"] and record["version"] == VERSION == 2
 
 
 def test_calibrated_budgets_are_seconds_over_the_calibrated_step_time():

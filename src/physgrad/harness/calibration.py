@@ -57,6 +57,9 @@ EXTRA_COLUMNS = ("spec", "stage", "ms_q25", "ms_q75", "ms_min", "ms_max", "round
                  "load")  # fmt: skip
 REPEATS = 15  # rounds of interleaved timing, at most
 CALL_SECONDS = 0.01  # a timed call takes at least this many steps' worth (chunk_steps)
+# 2: a timed call is a chunk of the run's loop (1: one step per call, which charged a cheap
+# step a whole dispatch). A resumed study keeps its record (its runs were budgeted by it).
+VERSION = 2
 MIN_REPEATS = 3  # every method gets at least this many rounds
 MAX_SECONDS = 10.0  # a method leaves the rounds once its timed steps add up to this (after MIN_REPEATS)
 RULE = ("median over interleaved rounds (one call of every method per round) of the compiled step's wall-clock per "
@@ -84,6 +87,7 @@ class StageCost:
     high: float
     rounds: int
     compile_seconds: float = 0.0
+    steps_per_call: int = 1  # steps in each timed call (a chunk of the run's loop; 1 before version 2)
 
 
 def steps_for(seconds: float, stages: Sequence[StageCost]) -> int:
@@ -192,11 +196,34 @@ def step_programs(config: RunConfig, devices: int | str | None = 1) -> tuple[lis
             chunk = functools.partial(compiled, params, opt_state, steps.data, order, np.int32(0))
             jax.block_until_ready(chunk(np.int32(1)))  # the first call: warm-up, not timed
         warmups.append(time.perf_counter() - t0)
-        t1 = time.perf_counter()
-        jax.block_until_ready(chunk(np.int32(1)))
-        count = chunk_steps(time.perf_counter() - t1)
-        programs.append(functools.partial(_chunk_call, chunk, np.int32(count)))
+        # the run's longest chunk in this stage: an epoch where each epoch has a new order or
+        # new data (engine.run._steps_left), the stage's length in a sequence, else CHUNK
+        limits = [n for n in (None if steps.same_every_epoch else stage.steps_per_epoch, stage.steps) if n]
+        count = sized_chunk(lambda n: _chunk_call(chunk, np.int32(n)), min(limits) if limits else None)
+        program = functools.partial(_chunk_call, chunk, np.int32(count))
+        program.steps_per_call = count  # type: ignore[attr-defined]  # recorded with the stage's cost
+        programs.append(program)
     return programs, warmups, list(setup.stages)
+
+
+def sized_chunk(
+    call: Callable[[int], int], longest: int | None = None, tries: int = 4, clock: Callable[[], float] = time.perf_counter
+) -> int:
+    """The steps per timed call: grown from one step until a call takes about
+    :data:`CALL_SECONDS` (:func:`chunk_steps` from each call's seconds per step; a call of
+    one step is mostly dispatch, so the first estimate is short and is measured again), at
+    most ``longest`` (the run's longest chunk in the stage) and CHUNK."""
+    count = 1
+    for _ in range(tries):
+        t0 = clock()
+        done = max(call(count), 1)
+        seconds = clock() - t0
+        grown = chunk_steps(seconds / done)
+        grown = min(grown, longest) if longest else grown
+        if grown <= count or seconds >= CALL_SECONDS / 2:
+            break
+        count = grown
+    return count
 
 
 def chunk_steps(seconds_per_call: float) -> int:
@@ -288,7 +315,7 @@ def calibrate(
                 echo(f"calibration: {spec}: could not build its step ({entries[spec]['error']})")
         times = time_programs({k: v[0] for k, v in built.items()}, repeats=repeats, max_seconds=max_seconds,
                               clock=clock)  # fmt: skip
-    for spec, (_, warmups, stages) in built.items():
+    for spec, (programs_of_spec, warmups, stages) in built.items():
         config = configs[spec]
         costs = []
         for i, (phase, values) in enumerate(zip(config.phases, times[spec])):
@@ -296,13 +323,14 @@ def calibrate(
             batch = getattr(stage, "batch_size", phase.batch_size)
             costs.append(StageCost(method=phase.method, batch_size=int(batch), steps=phase.steps,
                                    route=str(phase.hyperparameters.get("route", "")), compile_seconds=warmups[i],
+                                   steps_per_call=int(getattr(programs_of_spec[i], "steps_per_call", 1)),
                                    **summarize_times(values)))  # fmt: skip
         entries[spec] = {"fingerprint": fingerprint(config), "stages": [dataclasses.asdict(c) for c in costs],
                          "error": None}  # fmt: skip
     threads = report()
     setting = threads.get("setting")
     return {
-        "version": 1,
+        "version": VERSION,
         "problem": first.problem if first is not None else None,
         "measured": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
         "machine": machine() if programs is None else {},
@@ -385,8 +413,13 @@ def study_calibration(
          "compilation excluded)")  # fmt: skip
     fresh = calibrate(missing, echo=echo, devices=devices, record_failures=record_failures, **options)
     if record is not None:  # keep the earlier measurements, with their own conditions
+        if record.get("version", 1) != VERSION:
+            echo(f"calibration: {out / CALIBRATION_FILE} was timed one step per call (version {record.get('version', 1)}); "
+                 f"{', '.join(missing)} are timed per chunk of the run's loop, so cheap steps read lower than the "
+                 "recorded ones (move the file away to time every method again)")  # fmt: skip
         merged = dict(record)
-        merged["methods"] = {**known, **{k: {**v, "measured": fresh["measured"], "load": fresh["load_before"]}
+        merged["methods"] = {**known, **{k: {**v, "measured": fresh["measured"], "load": fresh["load_before"],
+                                             "version": VERSION}
                                          for k, v in fresh["methods"].items()}}  # fmt: skip
         fresh = merged
     rundir.atomic_write(out / CALIBRATION_FILE, json.dumps(fresh, indent=2, default=str) + "\n")
