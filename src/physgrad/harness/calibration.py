@@ -199,7 +199,7 @@ def step_programs(config: RunConfig, devices: int | str | None = 1) -> tuple[lis
         # the run's longest chunk in this stage: an epoch where each epoch has a new order or
         # new data (engine.run._steps_left), the stage's length in a sequence, else CHUNK
         limits = [n for n in (None if steps.same_every_epoch else stage.steps_per_epoch, stage.steps) if n]
-        count = sized_chunk(lambda n: _chunk_call(chunk, np.int32(n)), min(limits) if limits else None)
+        count = sized_chunk(lambda n, chunk=chunk: _chunk_call(chunk, np.int32(n)), min(limits) if limits else None)
         program = functools.partial(_chunk_call, chunk, np.int32(count))
         program.steps_per_call = count  # type: ignore[attr-defined]  # recorded with the stage's cost
         programs.append(program)
@@ -207,7 +207,10 @@ def step_programs(config: RunConfig, devices: int | str | None = 1) -> tuple[lis
 
 
 def sized_chunk(
-    call: Callable[[int], int], longest: int | None = None, tries: int = 4, clock: Callable[[], float] = time.perf_counter
+    call: Callable[[int], int],
+    longest: int | None = None,
+    tries: int = 4,
+    clock: Callable[[], float] = time.perf_counter,
 ) -> int:
     """The steps per timed call: grown from one step until a call takes about
     :data:`CALL_SECONDS` (:func:`chunk_steps` from each call's seconds per step; a call of

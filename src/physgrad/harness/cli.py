@@ -300,7 +300,11 @@ def cmd_bench(args, console):
                          calibrate=not args.no_calibrate, budgets=budgets)  # fmt: skip
     for problem in problems:
         table = result.tables[problem]
-        _print_table(console, bench.table_lines(table, inapplicable=False), title=f"{problem}: {budgets.get(problem, budget)} per run")
+        _print_table(
+            console,
+            bench.table_lines(table, inapplicable=False),
+            title=f"{problem}: {budgets.get(problem, budget)} per run",
+        )
         for status in ("skipped", "not applicable"):
             names = [t["method"] for t in table if t["status"] == status]
             if names:
