@@ -369,6 +369,26 @@ def test_physgrad_calibrate_writes_the_long_study_table(tmp_path, capsys):
     assert float(rows[0]["ms_per_step"]) > 0 and rows[0]["threads"] == "1" and "calibrate hig_toy" in rows[0]["command"]
 
 
+def test_compare_calibrate_only_times_and_trains_nothing_and_the_study_then_reuses_it(tmp_path, capsys):
+    """``physgrad compare --calibrate-only`` (calibrate on a quiet machine, train anywhere):
+    calibration.json and no run; the same study without the flag reuses that record, so
+    its runs' step budgets are seconds / the recorded cost."""
+    out = tmp_path / "study"
+    argv = ["compare", "hig_toy", "--methods", "adam", "--seconds", "0.02", "--out", str(out), "--quiet"]
+    assert main([*argv, "--calibrate-only"]) == 0
+    printed = capsys.readouterr().out
+    assert "nothing was trained" in printed and "adam: adam" in printed
+    record = json.loads((out / "calibration.json").read_text())
+    assert not (out / "runs").exists() and record["version"] == 2
+    cost = record["methods"]["adam"]["stages"][0]["seconds"]
+    assert main(argv) == 0
+    assert "calibration: reusing" in capsys.readouterr().out
+    (run,) = json.loads((out / "study.json").read_text())["run_budgets"].values()
+    assert run == {"steps": max(1, math.floor(0.02 / cost))}
+    assert main([*argv, "--calibrate-only", "--no-calibrate"]) == 2  # a wall-clock budget has nothing to calibrate
+    assert "needs a calibrated --seconds budget" in capsys.readouterr().err
+
+
 def test_a_wall_cap_stops_a_run_before_its_budget_and_a_larger_cap_resumes_it(tmp_path):
     out, lines = tmp_path / "capped", []
     budget = physgrad.Budget(steps=10**7)

@@ -203,6 +203,9 @@ def build_parser() -> Parser:
     p.add_argument("--devices", default="1", metavar="N|all", help="devices to split each batch over (default 1)")
     p.add_argument("--out", help="study directory (default studies/PROBLEM)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
+    p.add_argument("--calibrate-only", action="store_true",
+                   help="time each method's step into --out (calibration.json) and train nothing: run it on a quiet "
+                        "machine, then the same command without it trains with those step counts under any load")  # fmt: skip
     _add_budget(p, calibrated=True)
 
     p = sub.add_parser("report", help="re-draw a study's (or a sweep's) table and figure from its files")

@@ -176,6 +176,7 @@ def _print_targets(console, out):
 
 
 def cmd_compare(args, console):
+    from .calibration import steps_for as calibration_steps
     from .config import split_methods
 
     methods = split_methods(args.methods) if args.methods else None
@@ -185,6 +186,21 @@ def cmd_compare(args, console):
     settings = run_settings(args)
     from .study import split_grid
 
+    if args.calibrate_only:
+        budget = budget_of(args)
+        if budget.kind != "seconds" or args.no_calibrate:
+            raise UsageError("--calibrate-only needs a calibrated --seconds budget")
+        if split_grid(settings)[1]:
+            raise UsageError("--calibrate-only takes one study, not a sweep (a comma-separated --set value)")
+        from .study import calibrate_study
+
+        calibration = calibrate_study(args.problem, methods, budget, out, settings=settings, echo=console.print,
+                                      devices=args.devices)  # fmt: skip
+        for method, stages in calibration.items():
+            costs = ", ".join(f"{s.method} {1e3 * s.seconds:.4g} ms/step" for s in stages)
+            console.print(f"{method}: {costs} -> {calibration_steps(float(budget.amount), stages)} steps for {budget}")
+        console.print(f"wrote {Path(out) / 'calibration.json'}; nothing was trained")
+        return 0
     if split_grid(settings)[1]:
         _run_grid(console, args.problem, methods, range(args.seeds), budget_of(args), settings, out, args.quiet,
                   args.devices, calibrate=not args.no_calibrate)  # fmt: skip

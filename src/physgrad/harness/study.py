@@ -159,6 +159,32 @@ def compare(
         return collect(out)
 
 
+def calibrate_study(
+    problem: str,
+    methods: Sequence[str] | None,
+    budget: Budget,
+    out: str | Path,
+    *,
+    settings: dict[str, Any] | None = None,
+    echo: Callable[[str], None] = print,
+    devices: int | str | None = 1,
+) -> dict[str, list[Any]]:
+    """The calibration phase of :func:`compare` alone: each method's step timed into
+    ``out/calibration.json`` (or the recorded one read back), nothing trained. ``compare``
+    on the same directory then reuses it, so a study calibrated on a quiet machine trains
+    with the same step counts under any load. Returns each method's stage costs."""
+    from .calibration import study_calibration
+
+    out = Path(out)
+    firsts: dict[str, RunConfig] = {}
+    for c in plan(problem, methods, [0], budget, settings):
+        firsts.setdefault(c.method, c)
+    out.mkdir(parents=True, exist_ok=True)
+    with rundir.one_writer(out, "study"):
+        calibration = study_calibration(out, firsts, echo=echo, devices=devices)
+    return {m: calibration.stages(m) for m in firsts if calibration.has(m)}
+
+
 def cap_raised(summary: dict[str, Any], wall_cap: float) -> bool:
     """Whether a run that a wall-clock cap stopped may train on: the cap is now higher, or gone."""
     return bool(summary.get("wall_capped")) and (wall_cap <= 0 or wall_cap > summary.get("train_seconds", 0.0))
