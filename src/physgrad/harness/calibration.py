@@ -229,9 +229,9 @@ def sized_chunk(
     return count
 
 
-def chunk_steps(seconds_per_call: float) -> int:
+def chunk_steps(seconds_per_step: float) -> int:
     """How many steps one timed call takes: enough for :data:`CALL_SECONDS` at the measured
-    seconds of a one-step call (at most the run's chunk, :data:`physgrad.engine.step.CHUNK`).
+    seconds per step (at most the run's chunk, :data:`physgrad.engine.step.CHUNK`).
 
     Why: a run takes its steps in chunks of up to 1,024 per dispatch, so a step below a
     millisecond costs the run its compiled work plus a share of one dispatch. A one-step
@@ -240,9 +240,9 @@ def chunk_steps(seconds_per_call: float) -> int:
     alike than they are."""
     from ..engine.step import CHUNK
 
-    if not math.isfinite(seconds_per_call) or seconds_per_call <= 0:
+    if not math.isfinite(seconds_per_step) or seconds_per_step <= 0:
         return 1
-    return int(min(CHUNK, max(1, math.ceil(CALL_SECONDS / seconds_per_call))))
+    return int(min(CHUNK, max(1, math.ceil(CALL_SECONDS / seconds_per_step))))
 
 
 def _chunk_call(chunk: Callable[[Any], Any], count: Any) -> int:

@@ -176,7 +176,6 @@ def _print_targets(console, out):
 
 
 def cmd_compare(args, console):
-    from .calibration import steps_for as calibration_steps
     from .config import split_methods
 
     methods = split_methods(args.methods) if args.methods else None
@@ -192,6 +191,7 @@ def cmd_compare(args, console):
             raise UsageError("--calibrate-only needs a calibrated --seconds budget")
         if split_grid(settings)[1]:
             raise UsageError("--calibrate-only takes one study, not a sweep (a comma-separated --set value)")
+        from .calibration import steps_for as calibration_steps
         from .study import calibrate_study
 
         calibration = calibrate_study(args.problem, methods, budget, out, settings=settings, echo=console.print,

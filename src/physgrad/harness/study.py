@@ -126,13 +126,8 @@ def compare(
     with rundir.one_writer(out, "study"):  # one writer per study directory, for the whole study
         calibrated = budget.kind == "seconds" and calibrate
         if calibrated:
-            from .calibration import study_calibration
-
-            firsts: dict[str, RunConfig] = {}
-            for c in configs:  # each method's seed-0 run: the seeds share its step program
-                firsts.setdefault(c.method, dataclasses.replace(c, seed=0))
-            calibration = study_calibration(out, firsts, echo=echo, devices=devices,
-                                            record_failures=record_failures, **(calibration_options or {}))  # fmt: skip
+            calibration = _calibration(out, configs, echo=echo, devices=devices, record_failures=record_failures,
+                                       **(calibration_options or {}))  # fmt: skip
             configs = [calibrated_config(c, calibration, float(budget.amount)) for c in configs]
         names = [run_name(c) for c in configs]
         rundir.atomic_write(out / "study.json", json.dumps({
@@ -173,16 +168,23 @@ def calibrate_study(
     ``out/calibration.json`` (or the recorded one read back), nothing trained. ``compare``
     on the same directory then reuses it, so a study calibrated on a quiet machine trains
     with the same step counts under any load. Returns each method's stage costs."""
-    from .calibration import study_calibration
-
     out = Path(out)
-    firsts: dict[str, RunConfig] = {}
-    for c in plan(problem, methods, [0], budget, settings):
-        firsts.setdefault(c.method, c)
+    configs = plan(problem, methods, [0], budget, settings)
     out.mkdir(parents=True, exist_ok=True)
     with rundir.one_writer(out, "study"):
-        calibration = study_calibration(out, firsts, echo=echo, devices=devices)
-    return {m: calibration.stages(m) for m in firsts if calibration.has(m)}
+        calibration = _calibration(out, configs, echo=echo, devices=devices)
+    return {c.method: calibration.stages(c.method) for c in configs if calibration.has(c.method)}
+
+
+def _calibration(out: Path, configs: Sequence[RunConfig], **options: Any):
+    """The study's calibration (:func:`physgrad.harness.calibration.study_calibration`) of
+    each method's seed-0 run: the seeds share its step program."""
+    from .calibration import study_calibration
+
+    firsts: dict[str, RunConfig] = {}
+    for c in configs:
+        firsts.setdefault(c.method, dataclasses.replace(c, seed=0))
+    return study_calibration(out, firsts, **options)
 
 
 def cap_raised(summary: dict[str, Any], wall_cap: float) -> bool:
