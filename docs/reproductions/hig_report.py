@@ -2,8 +2,10 @@
 
 Run the studies first (docs/reproductions/hig_runs.sh), then
 
-    python docs/reproductions/hig_report.py [--studies studies/hig]
+    python docs/reproductions/hig_report.py [--studies docs/reproductions/data/short/hig]
 
+reads the study-level files that keep_studies.py copied into docs/reproductions/data/short/hig
+(committed, so a clone redraws the report; ``--studies studies/hig`` reads a fresh run's), and
 prints one Markdown table per problem (final test loss mean ± std over seeds, best test
 loss, steps, ms/step, ratio to Adam) and writes the figures to docs/reproductions/figures/.
 Studies of one problem that differ only in a setting (Poisson at the paper's batch and at
@@ -18,6 +20,8 @@ from pathlib import Path
 from physgrad.harness.study import study_section
 
 FIGURES = Path(__file__).parent / "figures"
+# the committed study-level files of its studies (keep_studies.py copies them there)
+KEPT = Path(__file__).parent / "data" / "short" / "hig"
 
 # figure name -> (title, [(study directory, label suffix for its methods)], metrics to plot)
 REPORTS = {
@@ -36,12 +40,15 @@ REPORTS = {
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--studies", default="studies/hig", help="directory holding the study directories")
+    parser.add_argument(
+        "--studies", default=str(KEPT), help="directory holding the study directories (default: the committed ones)"
+    )
     args = parser.parse_args()
     root = Path(args.studies)
     FIGURES.mkdir(parents=True, exist_ok=True)
     for key, (title, parts, metrics) in REPORTS.items():
         print(study_section(root, title, parts, metrics, FIGURES, key))
+
 
 if __name__ == "__main__":
     main()

@@ -21,8 +21,8 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from physgrad.harness.train import build, load_network  # noqa: E402
 from physgrad.harness.config import RunConfig  # noqa: E402
+from physgrad.harness.train import build, load_network  # noqa: E402
 
 
 def velocity_panel(ax, v, dx, title, vmax):

@@ -2,8 +2,10 @@
 
 Run the studies first (docs/reproductions/sip_runs.sh), then
 
-    python docs/reproductions/sip_report.py [--studies studies/sip]
+    python docs/reproductions/sip_report.py [--studies docs/reproductions/data/short/sip]
 
+reads the study-level files that keep_studies.py copied into docs/reproductions/data/short/sip
+(committed, so a clone redraws the report; ``--studies studies/sip`` reads a fresh run's), and
 prints one Markdown table per problem (final test loss and x-space errors, mean ± std over
 seeds) and writes the figures to docs/reproductions/figures/sip_*.png: the 2D toy's
 trajectories in x and y, the sine sweeps over ξ and φ, and error-vs-wall-clock curves.
@@ -19,6 +21,8 @@ import numpy as np
 from physgrad.harness.study import final_metric, load_studies, markdown, read_csv, study_section
 
 FIGURES = Path(__file__).parent / "figures"
+# the committed study-level files of its studies (keep_studies.py copies them there)
+KEPT = Path(__file__).parent / "data" / "short" / "sip"
 XI_SWEEP = (1, 4, 16, 64)  # at φ = 0
 PHI_SWEEP = (0, 15, 30, 45)  # at ξ = 32
 
@@ -30,7 +34,11 @@ REPORTS = {
     "sip_poisson_300s": ("Poisson 64×64, 300 s", "poisson-300s", ["loss", "x_l1"]),
     "sip_heat": ("Heat 64×64 (SIP Fig. 6c,d)", "heat", ["loss", "x_l1", "x_l1_clamped"]),
     "sip_heat_400s": ("Heat 64×64, 400 s", "heat-400s", ["loss", "x_l1", "x_l1_clamped"]),
-    "sip_heat_direct": ("Heat without a network (direct optimisation)", "heat-direct", ["loss", "x_l1", "x_l1_clamped"]),
+    "sip_heat_direct": (
+        "Heat without a network (direct optimisation)",
+        "heat-direct",
+        ["loss", "x_l1", "x_l1_clamped"],
+    ),
     "sip_sine_xi32_phi45": ("Sine ξ = 32, φ = 45°", "sine-xi32-phi45", ["loss", "x_dist"]),
 }
 
@@ -128,7 +136,9 @@ def sine_sweeps(root: Path):
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--studies", default="studies/sip", help="directory holding the study directories")
+    parser.add_argument(
+        "--studies", default=str(KEPT), help="directory holding the study directories (default: the committed ones)"
+    )
     root = Path(parser.parse_args().studies)
     FIGURES.mkdir(parents=True, exist_ok=True)
     toy(root)

@@ -2,8 +2,10 @@
 
 Run the sweeps first (docs/reproductions/stable_bptt_runs.sh), then
 
-    python docs/reproductions/stable_bptt_report.py [--studies studies/stable_bptt] [--smooth 10]
+    python docs/reproductions/stable_bptt_report.py [--studies docs/reproductions/data/short/stable_bptt] [--smooth 10]
 
+reads the study-level files that keep_studies.py copied into docs/reproductions/data/short/stable_bptt
+(committed, so a clone redraws the report; ``--studies studies/stable_bptt`` reads a fresh run's), and
 prints, per task, a Markdown table of the final test loss (each seed's mean over its last
 10 % of epochs, then mean ± std over seeds) per
 complexity setting × method × clip mode, the best method per setting, and writes the panel
@@ -24,6 +26,8 @@ import numpy as np
 from physgrad.harness.study import cell_name, grid_cells, grid_report, markdown, read_csv
 
 FIGURES = Path(__file__).parent / "figures"
+# the committed study-level files of its studies (keep_studies.py copies them there)
+KEPT = Path(__file__).parent / "data" / "short" / "stable_bptt"
 TASKS = {  # directory: (title, the complexity setting)
     "cartpole": ("Cart-pole swing-up (paper Fig. 4)", "poles"),
     "cartpole-1000ep": ("Cart-pole, 4 poles, R vs C at the paper's 1000 epochs", "poles"),
@@ -84,7 +88,13 @@ def task_section(root: Path, task: str, smooth: int) -> str:
     if not (out / "grid.json").exists():
         return f"## {title}: no sweep under {out} yet\n"
     info = json.loads((out / "grid.json").read_text())
-    report = grid_report(out, panel=setting, smooth=smooth, methods=list(LABELS), figure=FIGURES / f"stable_bptt_{task.replace('-', '_')}.png")
+    report = grid_report(
+        out,
+        panel=setting,
+        smooth=smooth,
+        methods=list(LABELS),
+        figure=FIGURES / f"stable_bptt_{task.replace('-', '_')}.png",
+    )
     grid_report(out, panel=setting, metric="step_grad_norm2", split="train", smooth=smooth, methods=list(LABELS),
                 figure=FIGURES / f"stable_bptt_{task.replace('-', '_')}_grad_norm2.png")  # fmt: skip
     clips = info["grid"].get("clip", [""])
@@ -140,7 +150,9 @@ def task_section(root: Path, task: str, smooth: int) -> str:
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--studies", default="studies/stable_bptt")
+    parser.add_argument(
+        "--studies", default=str(KEPT), help="directory holding the study directories (default: the committed ones)"
+    )
     parser.add_argument("--smooth", type=int, default=10, help="moving-average window of the figures (epochs)")
     args = parser.parse_args()
     FIGURES.mkdir(exist_ok=True)

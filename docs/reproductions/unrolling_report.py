@@ -2,8 +2,10 @@
 
 Run the studies first (docs/reproductions/unrolling_runs.sh LANE), then
 
-    python docs/reproductions/unrolling_report.py [--studies studies/unrolling]
+    python docs/reproductions/unrolling_report.py [--studies docs/reproductions/data/short/unrolling]
 
+reads the study-level files that keep_studies.py copied into docs/reproductions/data/short/unrolling
+(committed, so a clone redraws the report; ``--studies studies/unrolling`` reads a fresh run's), and
 prints Markdown sections (KS, Kolmogorov, advection, PRDP) and writes the figures to
 docs/reproductions/figures/unrolling_*.png. Errors are each run's final metrics on every
 test case (``test_cases.json``): per seed the mean over test cases, then mean ± std over
@@ -23,6 +25,8 @@ from physgrad.harness.stats import case_values, format_p, format_ratio, paired_t
 from physgrad.harness.study import collect, markdown, read_csv
 
 FIGURES = Path(__file__).parent / "figures"
+# the committed study-level files of its studies (keep_studies.py copies them there)
+KEPT = Path(__file__).parent / "data" / "short" / "unrolling"
 METHODS = ("one", "nog", "wig")
 SETUPS = ("correction", "prediction")
 
@@ -62,7 +66,17 @@ def modality_section(root: Path, problem: str, title: str) -> str:
     cells = {s: root / f"{problem}_{s}" / f"setup{s}" for s in SETUPS}
     if not any(runs(c) for c in cells.values()):
         return f"## {title}: no results under {root} yet\n"
-    head = ["setup", "method", "seeds", f"rel_error (12 steps)", "/ ONE", "corr_time (steps)", "diverged", "steps", "ms/step"]
+    head = [
+        "setup",
+        "method",
+        "seeds",
+        "rel_error (12 steps)",
+        "/ ONE",
+        "corr_time (steps)",
+        "diverged",
+        "steps",
+        "ms/step",
+    ]
     lines = [head]
     for setup, cell in cells.items():
         rel, corr, div = seed_means(cell, "rel_error"), seed_means(cell, "corr_time"), seed_means(cell, "diverged")
@@ -86,7 +100,11 @@ def modality_section(root: Path, problem: str, title: str) -> str:
     if cross:
         tests.append(["NOG-correction vs WIG-prediction", "nog vs wig", str(cross["pairs"]),
                       f"{100 * cross['a_lower']:.0f}%", cross["seeds"], format_ratio(cross["ratio"]), format_p(cross["p_value"])])  # fmt: skip
-    out += ["Paired tests on rel_error (two-sided Wilcoxon signed-rank over seeds × test cases):\n", markdown(tests), ""]
+    out += [
+        "Paired tests on rel_error (two-sided Wilcoxon signed-rank over seeds × test cases):\n",
+        markdown(tests),
+        "",
+    ]
 
     fig, axes = plt.subplots(1, 2, figsize=(11, 4), sharey=True)
     for ax, (setup, cell) in zip(axes, cells.items()):
@@ -125,8 +143,8 @@ def cross_test(cell_a: Path, method_a: str, cell_b: Path, method_b: str):
 
 
 def advection_section(root: Path) -> str:
-    from physgrad.problems.advection_1d import fou_distance
     from physgrad.harness.train import load_network
+    from physgrad.problems.advection_1d import fou_distance
 
     out = ["## Advection (trainax quick-start)\n"]
     quick = root / "advection_quickstart"
@@ -136,7 +154,9 @@ def advection_section(root: Path) -> str:
         dist = [fou_distance(load_network(cell / r["run_dir"])) for r in runs(cell)]
         rel = seed_means(cell, "rel_error").get("wig")
         if dist:
-            lines.append([m, str(len(dist)), f"{np.mean(dist):.3f} ± {np.std(dist, ddof=1):.3f}", readme, fmt(*rel[:2])])
+            lines.append(
+                [m, str(len(dist)), f"{np.mean(dist):.3f} ± {np.std(dist, ddof=1):.3f}", readme, fmt(*rel[:2])]
+            )
     out += [markdown(lines), ""]
     modalities = root / "advection_modalities"
     lines = [["setup", "one", "nog", "wig"]]
@@ -182,10 +202,16 @@ def prdp_section(root: Path) -> str:
                 full = result
     out = ["## PRDP on the advection corrector\n", markdown(lines), ""]
     if full:
-        out.append(f"PRDP against fixed full fidelity (K = 20): {100 * (1 - prdp_time / full[0]):.0f} % less training "
-                   f"time, {100 * (1 - prdp_its / full[1]):.0f} % fewer solver iterations.\n")
+        out.append(
+            f"PRDP against fixed full fidelity (K = 20): {100 * (1 - prdp_time / full[0]):.0f} % less training "
+            f"time, {100 * (1 - prdp_its / full[1]):.0f} % fewer solver iterations.\n"
+        )
     fig, (ax, axk) = plt.subplots(2, 1, figsize=(7, 6), sharex=True)
-    for label, cell, colour in (("PRDP", prdp_cell, "C3"), ("K = 20", fixed / "iterations20", "C0"), ("K = 1", fixed / "iterations1", "C2")):
+    for label, cell, colour in (
+        ("PRDP", prdp_cell, "C3"),
+        ("K = 20", fixed / "iterations20", "C0"),
+        ("K = 1", fixed / "iterations1", "C2"),
+    ):
         for i, (xs, ys) in enumerate(curve(cell, "wig", "rel_error", "val").values()):
             ax.plot(xs, ys, color=colour, alpha=0.8, label=label if i == 0 else None)
         for i, (xs, ys) in enumerate(curve(cell, "wig", "solver_iterations", "train").values()):
@@ -232,7 +258,9 @@ def solver_baselines() -> str:
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--studies", default="studies/unrolling")
+    parser.add_argument(
+        "--studies", default=str(KEPT), help="directory holding the study directories (default: the committed ones)"
+    )
     args = parser.parse_args()
     root = Path(args.studies)
     print(modality_section(root, "ks", "Kuramoto–Sivashinsky (N = 48, m = 3)"))

@@ -1,0 +1,72 @@
+"""Copy the study-level result files of finished studies into the repository.
+
+A study directory (``physgrad compare --out DIR``) holds its runs (parameters, checkpoints,
+per-case test results) and a few small study-level files from which every table and figure of
+the reproduction reports is drawn: ``summary.csv`` (one row per run), ``results.csv`` (every
+evaluation of every run: the curves), ``study.json`` (problem, methods, settings, budget),
+the calibration (``calibration.json|csv``: seconds per step of each method) and the tests
+(``paired_tests.csv``, ``time_to_target.csv``). A sweep adds ``grid.json`` above its cells.
+
+    python docs/reproductions/keep_studies.py studies/hig docs/reproductions/data/short/hig
+
+copies those files of every study under the first directory (at any depth, keeping the
+relative paths) to the second, and leaves the runs out. With ``--runs`` it also keeps each
+run's small files (config, summary, metrics, per-test-case results, final parameters; not the
+checkpoint), which unrolling_report.py reads (per-case paired tests, the learned stencils). The report scripts read them back:
+``python docs/reproductions/hig_report.py`` redraws hig.md's tables and figures from a clone.
+A study without ``summary.csv`` (not finished) is skipped with a line that says so.
+"""
+
+from __future__ import annotations
+
+import argparse
+import shutil
+from pathlib import Path
+
+STUDY_FILES = (
+    "summary.csv", "results.csv", "study.json", "calibration.json", "calibration.csv",
+    "paired_tests.csv", "time_to_target.csv", "grid.json",
+)  # fmt: skip
+
+
+def keep(source: Path, target: Path, runs: bool = False) -> list[Path]:
+    """Copy the study-level files of each finished study under ``source`` to the same relative
+    path under ``target`` (and, with ``runs``, every run's files but its checkpoint); return
+    the copied files' targets."""
+    copied = []
+    for study in sorted(p.parent for p in source.rglob("study.json")):
+        if "runs" in study.relative_to(source).parts:
+            continue
+        rel = study.relative_to(source)
+        if not (study / "summary.csv").exists():
+            print(f"{rel}: not finished (no summary.csv), skipped")
+            continue
+        for name in STUDY_FILES:
+            if (study / name).exists():
+                (target / rel).mkdir(parents=True, exist_ok=True)
+                copied.append(Path(shutil.copy2(study / name, target / rel / name)))
+        for run in sorted((study / "runs").glob("*/")) if runs else ():
+            (target / rel / "runs" / run.name).mkdir(parents=True, exist_ok=True)
+            for f in run.iterdir():
+                if f.is_file():  # the checkpoint directory stays behind
+                    copied.append(Path(shutil.copy2(f, target / rel / "runs" / run.name / f.name)))
+        print(f"{rel}: kept")
+    for grid in source.rglob("grid.json"):  # a sweep's own record, above its cells
+        rel = grid.relative_to(source)
+        (target / rel.parent).mkdir(parents=True, exist_ok=True)
+        copied.append(Path(shutil.copy2(grid, target / rel)))
+    return copied
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("source", type=Path, help="directory holding study directories (e.g. studies/hig)")
+    parser.add_argument("target", type=Path, help="where to keep them (e.g. docs/reproductions/data/short/hig)")
+    parser.add_argument("--runs", action="store_true", help="also keep each run's files but its checkpoint")
+    args = parser.parse_args()
+    copied = keep(args.source, args.target, args.runs)
+    print(f"{len(copied)} files under {args.target}")
+
+
+if __name__ == "__main__":
+    main()
