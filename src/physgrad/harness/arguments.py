@@ -31,7 +31,8 @@ QUICK_SUMMARY = ("6 fast open-loop problems, 10 candidates, small datasets, 6 s 
                  "(0.5-2 s on the 4 problems with sub-millisecond steps), 3 seeds (planned for at most 45 min on "
                  "2 CPU cores)")  # fmt: skip
 STANDARD_SUMMARY = ("every problem that fits a CPU at its paper settings and batch sizes, every applicable method, "
-                    "5 min of calibrated training per run, 5 seeds (a resumable long study: days on 2 CPU cores)")  # fmt: skip
+                    "5 min of calibrated training per run (5-20 s on the 4 problems with sub-millisecond steps), 5 seeds "
+                    "(a resumable long study: days on 2 CPU cores)")  # fmt: skip
 
 
 class UsageError(Exception):

@@ -353,7 +353,7 @@ def _bench_plan(console, args, problems, methods, seeds, budget, settings, out, 
                              devices=args.devices, budgets=budgets)  # fmt: skip
     rows = bench.estimate(problems, verdicts, seeds, budget, out, budgets)
     _print_table(console, bench.plan_lines(rows), title=f"plan: {budget} per run, {len(seeds)} seeds -> {out}",
-                 caption=f"a calibrated method: steps x (calibrated s/step + {1e3 * LOOP_SECONDS_PER_STEP:g} ms of "
+                 caption=f"a calibrated method: steps x (calibrated s/step + {1e6 * LOOP_SECONDS_PER_STEP:g} us of "
                          f"loop per step) + {RUN_OVERHEAD_SECONDS:g} s per run; not calibrated: its budget + "
                          f"{RUN_OVERHEAD_SECONDS:g} s per run and {UNCALIBRATED_COMPILE_SECONDS:g} s to calibrate it; "
                          "on an idle machine")  # fmt: skip
