@@ -275,6 +275,23 @@ def _curvature_output(objective, y, batch, loss_hessian: LossHessian):
     return scale[:, None] * flat
 
 
+def _refuse_complex(objective, params, batch) -> None:
+    """Raise the one-line ValueError for complex parameters or a complex simulator output,
+    which kfac-jax's real losses and curvature blocks do not support; from shapes alone
+    (``params`` and ``batch`` may be ``jax.ShapeDtypeStruct`` stand-ins)."""
+    if any(jnp.issubdtype(leaf.dtype, jnp.complexfloating) for leaf in jax.tree.leaves(params)):
+        raise ValueError(
+            "kfac: the network has complex parameters, which kfac-jax does not support; use gn, hig or adam"
+        )
+    predict = required(objective.predict, "predict")
+    sample = jax.tree.map(lambda a: jax.ShapeDtypeStruct(a.shape[1:], a.dtype), batch)
+    y = jax.eval_shape(predict, params, sample)
+    if any(jnp.issubdtype(leaf.dtype, jnp.complexfloating) for leaf in jax.tree.leaves(y)):
+        dtype = next(leaf.dtype for leaf in jax.tree.leaves(y) if jnp.issubdtype(leaf.dtype, jnp.complexfloating))
+        raise ValueError(f"kfac: the simulator output is complex ({dtype}) and kfac-jax's losses are real; "
+                         "use gn, hig or adam")  # fmt: skip
+
+
 class KFACState(NamedTuple):
     """kfac-jax's optimizer state as a flat tuple of arrays, and the PRNG key data (uint32)
     for its curvature sampling."""
@@ -316,6 +333,14 @@ class KFAC(AbstractMethod):
 
     def check(self, objective):
         objective.require(OPEN_LOOP, "kfac")
+
+    def footprint(self, objective, params, batch, devices: int = 1) -> int:
+        """0 (kfac-jax's curvature blocks are not counted); refuses, from shapes alone, the
+        complex parameters or simulator outputs that :meth:`step` would refuse, so that a
+        run or a bench says so before any data exist."""
+        params, static = trainable(params)
+        _refuse_complex(objective.bind_static(static), params, batch)
+        return 0
 
     # --- kfac-jax's optimizer, configured ---------------------------------------------------
     def _optimizer(self, func):
@@ -363,17 +388,10 @@ class KFAC(AbstractMethod):
         params, static = trainable(params)  # the array leaves (a whole module's others come back unchanged)
         objective = objective.bind_static(static)
         real = jnp.result_type(*[leaf.dtype for leaf in jax.tree.leaves(params)])
-        if any(jnp.iscomplexobj(leaf) for leaf in jax.tree.leaves(params)):
-            raise ValueError(
-                "kfac: the network has complex parameters, which kfac-jax does not support; use gn, hig or adam"
-            )
-        # Checked on one sample before kfac-jax traces anything (a plain call: no JAX
-        # boundary adds to the message when the step is called outside a jit).
+        # Checked before kfac-jax traces anything (a plain call: no JAX boundary adds to the
+        # message when the step is called outside a jit).
+        _refuse_complex(objective, params, batch)
         predict, loss = required(objective.predict, "predict"), required(objective.loss, "loss")
-        y = predict(params, jax.tree.map(lambda a: a[0], batch))
-        if jnp.iscomplexobj(y):
-            raise ValueError(f"kfac: the simulator output is complex ({y.dtype}) and kfac-jax's losses are real; "
-                             "use gn, hig or adam")  # fmt: skip
 
         def func(kparams, batch):
             y = jax.vmap(predict, (None, 0))(_transpose_kernels(kparams), batch)

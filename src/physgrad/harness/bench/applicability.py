@@ -88,8 +88,9 @@ def applicability(problem: str, methods: Sequence[str], settings: dict[str, Any]
                         shapes.n_train,
                         shapes.parameter_count,
                         problem_obj.objective(shapes.static),
+                        shapes,
                     )
-                n_train, size, objective = objectives[cache_key]
+                n_train, size, objective, shapes = objectives[cache_key]
                 for phase in phases:
                     batch_size = phase.batch_size
                     assert batch_size is not None  # the config's, resolved
@@ -97,6 +98,7 @@ def applicability(problem: str, methods: Sequence[str], settings: dict[str, Any]
                     phase.method.check_batch_size(batch_size)
                     if n_train is not None and batch_size > n_train:
                         raise ValueError(f"batch_size {batch_size} exceeds the {n_train} training samples")
+                    _refused_by_footprint(phase.method, objective, shapes, batch_size)
         # the contract of check(): one line saying what to use instead; ConfigError (a ValueError)
         # e.g. for SIP's solver resolution on a problem without an inverse
         except ValueError as e:
@@ -108,6 +110,21 @@ def applicability(problem: str, methods: Sequence[str], settings: dict[str, Any]
         reason = next((r for r in (rule(method, size) for rule in POLICY) if r), "")
         verdicts.append(Verdict(method, "skipped", reason) if reason else Verdict(method, "applicable"))
     return verdicts
+
+
+def _refused_by_footprint(method, objective, shapes, batch_size: int) -> None:
+    """A method's footprint from the shapes alone, which raises ``ValueError`` where the
+    method refuses what only shapes and dtypes show (kfac: a complex simulator output), as
+    the run's memory preflight would; a footprint that needs concrete values is left to the run."""
+    from ...engine.setup import NOT_TRACEABLE
+    from ...memory import stand_in
+
+    if shapes.data is None:
+        return
+    try:
+        method.footprint(objective, shapes.params, stand_in(shapes.data["train"], batch_size))
+    except NOT_TRACEABLE:
+        return
 
 
 def plan(
