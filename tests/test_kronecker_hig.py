@@ -255,3 +255,111 @@ def test_khig_is_registered_with_hig_defaults_and_trains_oscillators_from_the_cl
         test = [float(r["value"]) for r in csv.DictReader(f) if r["split"] == "test" and r["metric"] == "loss"]
     assert len(test) == 3 and all(np.isfinite(test))
     assert test[0] > test[1] > test[2], test
+
+
+# --- running averages of the factors (K-FAC's way): AveragedKronecker ------------------------
+def _second_batch(batch):
+    keys = jax.random.split(jax.random.key(11), 2)
+    return {"x": jax.random.normal(keys[0], batch["x"].shape), "t": jax.random.normal(keys[1], batch["t"].shape)}
+
+
+def _power_of(A, G, grad_full, power, damping, b):
+    """φ(kron(G, A)/b) vec(∇W̄) with NumPy's eigh of the explicit Kronecker matrix."""
+    lam, q = np.linalg.eigh(np.kron(G, A) / b)
+    phi = (np.maximum(lam, 0) + damping * lam.max()) ** power
+    return (q @ (phi * (q.T @ grad_full.ravel()))).reshape(grad_full.shape)
+
+
+def _full(tree, name):
+    return np.concatenate([np.asarray(tree[name]["W"]), np.asarray(tree[name]["b"])[:, None]], axis=1)
+
+
+def test_averaged_factors_without_averaging_equal_the_fresh_rule(mlp):
+    import optax
+
+    params, batch, predict, loss, _ = mlp
+    objective = physgrad.Objective(predict, loss)
+    rule = physgrad.methods.KroneckerPower(-0.75, 1e-6, 1e-4)
+    fresh = physgrad.Method(rule, optax.sgd(0.05))
+    averaged = physgrad.methods.AveragedKronecker(rule, optax.sgd(0.05), curvature_ema=0.0, inverse_every=1)
+    p_f, s_f, p_a, s_a = params, fresh.init(params), params, averaged.init(params)
+    for b in (batch, _second_batch(batch)):
+        p_f, s_f, _ = jax.jit(fresh.step, static_argnums=0)(objective, p_f, s_f, b)
+        p_a, s_a, stats = jax.jit(averaged.step, static_argnums=0)(objective, p_a, s_a, b)
+        assert int(stats["refreshed"]) == 1
+    for a, f in zip(jax.tree.leaves(p_a), jax.tree.leaves(p_f)):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(f), rtol=1e-10, atol=1e-12)
+
+
+@pytest.mark.parametrize("inverse_every", [1, 2])
+def test_running_factors_and_their_refresh_period(mlp, inverse_every):
+    """Second step: G = β G(θ₀, b₁) + (1 − β) G(θ₁, b₂) (A likewise) in the state; the direction
+    is the power of that average (k = 1) or of the first step's factors (k = 2: not refreshed),
+    applied to this batch's gradient; checked with NumPy's eigh of the explicit kron(G, A)."""
+    import optax
+
+    params, batch, predict, loss, _ = mlp
+    beta, lr, damping = 0.6, 0.05, 1e-3
+    objective = physgrad.Objective(predict, loss)
+    rule = physgrad.methods.KroneckerPower(-0.75, 0.0, damping)
+    method = physgrad.methods.AveragedKronecker(rule, optax.sgd(lr), curvature_ema=beta, inverse_every=inverse_every)
+    step = jax.jit(method.step, static_argnums=0)
+    second = _second_batch(batch)
+    p1, state, _ = step(objective, params, method.init(params), batch)
+    p2, state, stats = step(objective, p1, state, second)
+    assert int(stats["refreshed"]) == (inverse_every == 1)
+
+    factors = jax.jit(lambda p, b: layer_factors(predict, p, b))
+    first, now = factors(params, batch), factors(p1, second)
+    grad = jax.jit(jax.grad(lambda p: jnp.mean(jax.vmap(lambda s: loss(predict(p, s), s))(second))))(p1)
+    for k, name in enumerate(("l1", "l2")):
+        A = beta * np.asarray(first[k].A) + (1 - beta) * np.asarray(now[k].A)
+        G = beta * np.asarray(first[k].G) + (1 - beta) * np.asarray(now[k].G)
+        left, right = state.factors[2 * k]  # leaf 2k: the layer's W (d_out × d_in): G left, A right
+        np.testing.assert_allclose(np.asarray(left)[: G.shape[0], : G.shape[0]], G, rtol=1e-10)
+        np.testing.assert_allclose(np.asarray(right)[: A.shape[0], : A.shape[0]], A, rtol=1e-10)
+        used = (A, G) if inverse_every == 1 else (np.asarray(first[k].A), np.asarray(first[k].G))
+        want = _power_of(*used, _full(grad, name), -0.75, damping, BATCH)
+        got = (_full(p1, name) - _full(p2, name)) / lr
+        np.testing.assert_allclose(got, want, rtol=1e-7, atol=1e-9 * np.abs(want).max())
+
+
+@pytest.mark.slow  # ~8 s of compilation: the fast tier's budget is tight
+def test_running_factors_of_a_transposed_layer_without_bias():
+    """``x @ W`` (W stored d_in × d_out) keeps A in the left factor and G in the right one."""
+    import optax
+
+    keys = jax.random.split(jax.random.key(5), 4)
+    params = {"W1": jax.random.normal(keys[0], (3, 4)) / 2, "W2": jax.random.normal(keys[1], (2, 4)) / 2}
+    batch = {"x": jax.random.normal(keys[2], (6, 3)), "t": jax.random.normal(keys[3], (6, 2))}
+
+    def predict(p, s):
+        return jnp.sin(p["W2"] @ jnp.tanh(s["x"] @ p["W1"]))
+
+    def loss(y, s):
+        return jnp.sum((y - s["t"]) ** 2)
+
+    objective = physgrad.Objective(predict, loss)
+    rule = physgrad.methods.KroneckerPower(-0.75, 1e-6, 1e-4)
+    fresh, averaged = (
+        physgrad.Method(rule, optax.sgd(0.1)),
+        physgrad.methods.AveragedKronecker(rule, optax.sgd(0.1), 0.0, 1),
+    )
+    p_f, _, _ = jax.jit(fresh.step, static_argnums=0)(objective, params, fresh.init(params), batch)
+    p_a, state, _ = jax.jit(averaged.step, static_argnums=0)(objective, params, averaged.init(params), batch)
+    for name in ("W1", "W2"):
+        np.testing.assert_allclose(np.asarray(p_a[name]), np.asarray(p_f[name]), rtol=1e-10)
+    (f1,) = [f for f in layer_factors(predict, params, batch) if f.weight == 0]
+    left, right = state.factors[0]  # W1 (3 × 4) as x @ W1: A (3 × 3, no bias) left, G (4 × 4) right
+    np.testing.assert_allclose(np.asarray(left)[:3, :3], np.asarray(f1.A), rtol=1e-10)
+    np.testing.assert_allclose(np.asarray(right)[:4, :4], np.asarray(f1.G), rtol=1e-10)
+    assert not np.any(np.asarray(left)[3]) and not np.any(np.asarray(right)[4])  # the unused bias slots
+
+
+def test_khig_running_averages_from_the_registry():
+    method = METHODS["khig"](curvature_ema=0.95, inverse_every=5)
+    assert isinstance(method, physgrad.methods.AveragedKronecker)
+    assert (method.curvature_ema, method.inverse_every) == (0.95, 5)
+    assert isinstance(METHODS["khig"](), physgrad.Method)  # fresh factors by default (HIG's way)
+    with pytest.raises(ValueError, match=r"^curvature_ema must be in \[0, 1\), got 1.0$"):
+        METHODS["khig"](curvature_ema=1.0)

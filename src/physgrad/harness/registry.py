@@ -36,7 +36,7 @@ from ..methods import (
     UnrolledGradient,
 )
 from ..methods.kfac import kfac
-from ..methods.kronecker_hig import KroneckerPower
+from ..methods.kronecker_hig import AveragedKronecker, KroneckerPower
 from ..methods.sip import L1Proxy, L2Proxy
 from ..rollout import Combined, M, R, S
 from .papers import protocol
@@ -129,7 +129,7 @@ def _lm(*, lr: float = 1.0, damping: float = 1e-3, truncation: float = 1e-6, rou
 
 
 def _khig(*, lr: float = 1.0, power: float = -0.75, truncation: float = 1e-6, damping: float = 1e-4,
-         explicit_max: int = 1024):  # fmt: skip
+          explicit_max: int = 1024, curvature_ema: float = 0.0, inverse_every: int = 1):  # fmt: skip
     """Kronecker-factored HIG: −η b^{−p} G^p ∇W A^p per dense layer (K-FAC's factors, HIG's power p = −3/4), by SGD.
 
     ``power`` −1 is Kronecker-factored Gauss–Newton; ``truncation`` τ drops eigenvalue products
@@ -137,8 +137,13 @@ def _khig(*, lr: float = 1.0, power: float = -0.75, truncation: float = 1e-6, da
     damping·λ_max before the power (0: the pure analogue, equal to HIG where the factors are
     exact, diverges off that case); parameters outside the dense layers it sees form one
     exact block, refused beyond an ``explicit_max``-wide eigendecomposition; convolutions are
-    refused (use hig)."""
-    return Method(KroneckerPower(power, truncation, damping, explicit_max), optax.sgd(lr))
+    refused (use hig). The factors are fresh per batch (HIG's way) unless ``curvature_ema`` β > 0
+    or ``inverse_every`` k > 1: then running averages β·old + (1 − β)·new, eigendecomposed
+    every k steps (K-FAC's way)."""
+    rule = KroneckerPower(power, truncation, damping, explicit_max)
+    if curvature_ema == 0.0 and inverse_every == 1:
+        return Method(rule, optax.sgd(lr))
+    return AveragedKronecker(rule, optax.sgd(lr), curvature_ema, inverse_every)
 
 
 def _check_route_sizes(blocks, lanczos_steps):

@@ -24,8 +24,8 @@ time-stepper's windows: ONE / NOG / WIG); its ``check`` refuses a problem withou
 
 What the engine runs is a rule with an optax transformation and, optionally, an acceptance
 test that may refuse a step (:class:`Method`, :mod:`physgrad.acceptance`);
-:class:`LevenbergMarquardt` (with :class:`GainRatio`) and :class:`Unrolled` are such
-compositions, :func:`LossAwareDP` a constructor of one. The registry of names for the
+:class:`LevenbergMarquardt` (with :class:`GainRatio`), :class:`Unrolled` and
+:class:`AveragedKronecker` (KHIG with K-FAC's running factors) are such compositions, :func:`LossAwareDP` a constructor of one. The registry of names for the
 command line is :mod:`physgrad.harness.registry`.
 """
 
@@ -46,7 +46,7 @@ from .base import (
 )
 from .dp import Gradient, LossAwareDP, dp
 from .hig import JacobianPower, gauss_newton, hig
-from .kronecker_hig import KroneckerPower, kronecker_hig
+from .kronecker_hig import AveragedKronecker, KroneckerPower, kronecker_hig
 from .lm import GainRatio, LevenbergMarquardt, adapt_damping, levenberg_marquardt, predicted_decrease
 from .newton import Newton, newton
 from .sip import AbstractProxy, L1Proxy, L2Proxy, ScaleInvariantPhysics, sip
@@ -57,6 +57,7 @@ __all__ = [
     "AbstractMethod",
     "AbstractProxy",
     "AbstractRule",
+    "AveragedKronecker",
     "Estimator",
     "GainRatio",
     "Gradient",
