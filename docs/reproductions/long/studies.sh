@@ -165,7 +165,7 @@ lane_ks_screen_grouped() {
 }
 lane_u1_screen_grouped() {
   grouped
-  lane_study ks_prediction_2ep_grouped ks "wig@5616@2808 nog@5616@2808" --set setup=prediction
+  lane_study ks_prediction_2ep_grouped ks "wig@5616@2808 nog@5616@2808 one@5616@2808" --set setup=prediction
 }
 lane_kolmogorov_screen_grouped() {
   grouped
