@@ -7,7 +7,8 @@ from pathlib import Path
 
 import pytest
 
-from physgrad.harness.study import load_studies, read_csv
+from physgrad.harness.calibration import read
+from physgrad.harness.study import load_studies
 
 ROOT = Path(__file__).resolve().parent.parent
 KEPT = ROOT / "docs" / "reproductions" / "data" / "short"
@@ -63,6 +64,6 @@ def test_each_kept_study_is_complete(study):
     assert all(r["status"] in ("finished", "diverged") for r in rows)
     curves = {(r["method"], r["seed"]) for r in results if r["split"] == "test"}
     assert curves == planned
-    if "seconds" in record["budget"]:  # a calibrated budget: each method's step was timed
-        calibrated = {r["method"] for r in read_csv(study / "calibration.csv")}
-        assert set(order) <= calibrated
+    if "seconds" in record["budget"]:  # a calibrated budget: each method's step (each stage's) was timed
+        calibration = read(study)
+        assert calibration is not None and all(calibration.has(m) for m in order)
