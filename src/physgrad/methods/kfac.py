@@ -286,10 +286,10 @@ def _refuse_complex(objective, params, batch) -> None:
     predict = required(objective.predict, "predict")
     sample = jax.tree.map(lambda a: jax.ShapeDtypeStruct(a.shape[1:], a.dtype), batch)
     y = jax.eval_shape(predict, params, sample)
-    if any(jnp.issubdtype(leaf.dtype, jnp.complexfloating) for leaf in jax.tree.leaves(y)):
-        dtype = next(leaf.dtype for leaf in jax.tree.leaves(y) if jnp.issubdtype(leaf.dtype, jnp.complexfloating))
-        raise ValueError(f"kfac: the simulator output is complex ({dtype}) and kfac-jax's losses are real; "
-                         "use gn, hig or adam")  # fmt: skip
+    complex_outputs = [leaf.dtype for leaf in jax.tree.leaves(y) if jnp.issubdtype(leaf.dtype, jnp.complexfloating)]
+    if complex_outputs:
+        raise ValueError(f"kfac: the simulator output is complex ({complex_outputs[0]}) and kfac-jax's losses are "
+                         "real; use gn, hig or adam")  # fmt: skip
 
 
 class KFACState(NamedTuple):
