@@ -291,3 +291,71 @@ def test_chunks_end_at_every_event_the_loop_must_see():
     for step in range(0, 8):
         first = next(k for k in range(1, 100) if rule.met(step + k, 0.0))
         assert rule.steps_left(step, 1000) == first and rule.steps_left(step, 2) == min(first, 2), step
+
+
+class ConvSquare(Square):
+    """Square with a convolutional network: the two components as a one-channel signal of
+    length two, through two 1-D convolutions (so the step holds a convolution)."""
+
+    def make_network(self, key):
+        k1, k2 = jax.random.split(key)
+        return (
+            eqx.nn.Conv1d(1, 4, 2, padding="SAME", dtype=jnp.float32, key=k1),
+            eqx.nn.Conv1d(4, 1, 2, padding="SAME", dtype=jnp.float32, key=k2),
+        )
+
+    def network_output(self, network, sample):
+        first, second = network
+        return second(jnp.tanh(first(sample["y"][None])))[0]
+
+
+def test_loop_chunk_is_one_for_a_convolution_on_a_cpu_and_the_whole_chunk_otherwise():
+    from physgrad.engine.step import CHUNK, loop_chunk
+
+    x, w = jnp.ones((1, 2, 8)), jnp.ones((3, 2, 3))
+    conv = jax.jit(lambda x, w: jax.lax.conv_general_dilated(x, w, (1,), "SAME")).lower(x, w)
+    dense = jax.jit(lambda a, b: jnp.tanh(a @ b)).lower(jnp.ones((4, 4)), jnp.ones((4, 4)))
+    assert loop_chunk(conv, "cpu") == 1
+    assert loop_chunk(conv, "gpu") == loop_chunk(dense, "cpu") == loop_chunk(dense, "gpu") == CHUNK
+
+
+def test_a_convolutional_step_runs_one_per_dispatch_and_trains_as_a_hand_written_loop():
+    """On a CPU a convolution inside a loop body runs many times slower (engine.step.loop_chunk),
+    so the run compiles the step alone, with no loop (not even a one-iteration one), and
+    dispatches it once per step: the history is still the hand-written loop's."""
+    from physgrad.engine.step import Program, Steps
+    from physgrad.engine.strategies import Placement
+    from physgrad.engine.types import TrainState
+
+    steps, eval_at = 25, [0, 10, 20, 25]
+    result = physgrad.fit(ConvSquare(), ADAM, budget=physgrad.Budget(steps=steps), batch_size=BATCH,
+                          settings=SETTINGS, seed=3)  # fmt: skip
+    expected = hand_written(ConvSquare(), steps, eval_at, seed=3)
+    assert result.history["step"].tolist() == eval_at
+    for name, values in expected.items():
+        np.testing.assert_allclose(result.history[name], values, rtol=2e-5, err_msg=name)
+
+    setup = physgrad.engine.setup.build_setup(ConvSquare(), [physgrad.Phase(ADAM, None, BATCH)], 0)
+    engine_steps = Steps(setup, Placement(), physgrad.TrainSettings(), 0)
+    state = TrainState(setup.params, ADAM.init(setup.params))
+    program, _ = engine_steps.compile(state, setup)
+    assert isinstance(program, Program) and program.chunk == (1 if jax.default_backend() == "cpu" else 1024)
+    if program.chunk == 1:
+        assert "while" not in program.compiled.as_text()
+        # asked for more steps, the program takes one (the run never asks: its chunk is 1)
+        out = program(state.params, state.opt_state, engine_steps.data, engine_steps.order(0, 0), np.int32(0),
+                      np.int32(5))  # fmt: skip
+        assert int(out[2]) == 1 and not bool(out[3]) and out[4]["loss"].shape == (1,)
+
+
+def test_a_divergent_convolutional_step_is_not_applied():
+    """The one-step program keeps the loop's rule: a step whose loss is not finite leaves the
+    parameters as they were and ends the run as diverged at that step."""
+    lr = 1e4
+    result = physgrad.fit(ConvSquare(), physgrad.Method(Gradient(), optax.sgd(lr)), budget=physgrad.Budget(steps=40),
+                          batch_size=BATCH, settings=physgrad.TrainSettings(eval_every=40))  # fmt: skip
+    assert result["status"] == "diverged" and result["diverged_step"] == result["steps"] > 0
+    assert np.isfinite(result["last_finite_loss"])
+    assert all(
+        bool(jnp.all(jnp.isfinite(leaf))) for leaf in jax.tree.leaves(eqx.filter(result.network, eqx.is_inexact_array))
+    )

@@ -204,7 +204,7 @@ def loop(state: TrainState, *, setup: Setup, compiled: Any, strategies: Strategi
             if (index, 0 if steps.same_every_epoch else epoch) != order_key:
                 steps.draw(setup, index, epoch)
                 order, order_key = steps.order(index, epoch), (index, 0 if steps.same_every_epoch else epoch)
-            limit = _steps_left(state, stage, stop, schedule, epoch_end=not steps.same_every_epoch)
+            limit = min(compiled.chunk, _steps_left(state, stage, stop, schedule, epoch_end=not steps.same_every_epoch))
             count = placement.agree(chunks.size(limit, seconds_left=min(
                 stop.budget.amount - state.train_time if stop.budget.kind == "seconds" else math.inf,
                 schedule.seconds_left(state.train_time), checkpointer.seconds_left())))  # fmt: skip

@@ -9,7 +9,7 @@ dominated by a host round trip and Python work per step."""
 from __future__ import annotations
 
 import time
-from typing import Any
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -55,10 +55,31 @@ def make_steps(setup: Setup, batch_size: int, method: AbstractMethod | None = No
     *shape)``, valid in rows ``[0, taken)`` (row ``taken`` is the divergent step's when
     ``diverged``).
 
+    With ``chunk == 1`` the program is the step alone, with no loop around it (``count``
+    is then ignored and one step taken): what the run compiles where a loop would slow the
+    step down (:func:`loop_chunk`).
+
     Why: a step of a small problem takes a fraction of a millisecond, less than a host
     round trip plus the Python work of the loop around it; one dispatch per chunk and one
     read-back of its statistics cost the same per chunk however many steps it holds."""
     step = _step(setup, batch_size, method)
+
+    def applied(stats, params, state, new_params, new_state):
+        """Whether the step is not applied (its loss not finite, unless the acceptance skipped
+        it), and the parameters and state after it."""
+        bad = ~jnp.isfinite(stats["loss"])
+        if SKIPPED in stats:  # a step the acceptance refused left everything as it was
+            bad = bad & (stats[SKIPPED] == 0)
+        params, state = jax.lax.cond(bad, lambda: (params, state), lambda: (new_params, new_state))
+        return bad, params, state
+
+    def one_step(params, state, data, order, start, count):
+        del count  # always one step: the run never asks this program for more (its chunk is 1)
+        new_params, new_state, stats = step(params, state, data, order, start % (order.shape[0] // batch_size))
+        bad, params, state = applied(stats, params, state, new_params, new_state)
+        buffers = jax.tree.map(lambda v: v[None], stats)
+        taken = jnp.where(bad, 0, 1).astype(jnp.int32)
+        return tuple(distributed.replicated(x) for x in (params, state, taken, bad, buffers))
 
     def steps(params, state, data, order, start, count):
         per_epoch = order.shape[0] // batch_size
@@ -73,17 +94,44 @@ def make_steps(setup: Setup, batch_size: int, method: AbstractMethod | None = No
             i, params, state, buffers, _ = carry
             new_params, new_state, stats = step(params, state, data, order, (start + i) % per_epoch)
             buffers = jax.tree.map(lambda b, v: b.at[i].set(v), buffers, stats)
-            bad = ~jnp.isfinite(stats["loss"])
-            if SKIPPED in stats:  # a step the acceptance refused left everything as it was
-                bad = bad & (stats[SKIPPED] == 0)
-            params, state = jax.lax.cond(bad, lambda: (params, state), lambda: (new_params, new_state))
+            bad, params, state = applied(stats, params, state, new_params, new_state)
             return i + jnp.where(bad, 0, 1).astype(i.dtype), params, state, buffers, bad
 
         carry = (jnp.zeros((), jnp.int32), params, state, buffers, jnp.zeros((), bool))
         taken, params, state, buffers, diverged = jax.lax.while_loop(go_on, body, carry)
         return tuple(distributed.replicated(x) for x in (params, state, taken, diverged, buffers))
 
-    return jax.jit(steps)
+    return jax.jit(one_step if chunk == 1 else steps)
+
+
+def loop_chunk(lowered, backend: str | None = None) -> int:
+    """The most steps one dispatch should take for the program ``lowered`` (a chunk of
+    :func:`make_steps`, lowered): :data:`CHUNK`, or 1 where the step convolves and runs on
+    a CPU.
+
+    Why: XLA's CPU backend runs a convolution inside a loop body 5–70× slower than the same
+    convolution outside one (measured with jax 0.10.2 on one core: a 2-D NCHW convolution
+    and its gradient 47 ms alone against 657 ms in a one-iteration ``while_loop``, NHWC
+    43 against 2,920 ms, 1-D 1.2 against 6.4 ms; FFTs and matrix products are not
+    affected; jax-ml/jax issue 12868). A chunked loop made the heat U-Net's Adam step ~10×
+    slower (5.6 s → 57 s), so convolutional steps on a CPU are dispatched one at a time:
+    their steps take milliseconds or more, where a dispatch costs a fraction of one."""
+    backend = backend or jax.default_backend()
+    if backend == "cpu" and "stablehlo.convolution" in lowered.as_text():
+        return 1
+    return CHUNK
+
+
+class Program(NamedTuple):
+    """A stage's compiled steps (:func:`make_steps`) and the most steps one call of it takes
+    (``chunk``: :data:`CHUNK`, or 1 for a step without a loop, :func:`loop_chunk`). Called as
+    the compiled function is: ``(params, state, data, order, start, count)``."""
+
+    compiled: Any
+    chunk: int
+
+    def __call__(self, *args):
+        return self.compiled(*args)
 
 
 def _step(setup: Setup, batch_size: int, method: AbstractMethod | None = None):
@@ -197,23 +245,26 @@ class Steps:
         rng = np.random.default_rng(np.asarray(jax.random.key_data(key)))
         return self.placement.put(jnp.asarray(grouped_order(self.groups, self.batch_sizes[stage], rng)))
 
-    def compile(self, state: TrainState, setup: Setup) -> tuple[Any, TrainState]:
-        """The current stage's step, compiled (and checked by the memory guard), or the
+    def compile(self, state: TrainState, setup: Setup) -> tuple[Program, TrainState]:
+        """The current stage's steps, compiled (and checked by the memory guard) with the
+        chunk :func:`loop_chunk` chooses, or the
         same program compiled earlier in this process by a run that differs only in its
         seed (:mod:`physgrad.programs`)."""
         stage = setup.stages[state.stage]
         t0 = time.perf_counter()
-        lower = lambda size: self._lower(state, setup=setup, stage=stage, batch_size=size)  # noqa: E731
+        lower = lambda size, chunk: self._lower(state, setup=setup, stage=stage, batch_size=size, chunk=chunk)  # noqa: E731
         guard = self.settings.memory_guard
 
         def build():
             if guard:  # the footprint alone, before spending time on compilation
                 self._check(setup, stage)
-            compiled = lower(stage.batch_size).compile()
+            lowered = lower(stage.batch_size, CHUNK)
+            chunk = loop_chunk(lowered)
+            compiled = (lowered if chunk == CHUNK else lower(stage.batch_size, chunk)).compile()
             if guard:
-                measure = lambda size: memory.compiled_bytes(lower(size).compile(), arguments=False)  # noqa: E731
+                measure = lambda size: memory.compiled_bytes(lower(size, chunk).compile(), arguments=False)  # noqa: E731
                 self._check(setup, stage, compiled=compiled, measure=measure)
-            return compiled
+            return Program(compiled, chunk)
 
         compiled, _ = programs.STEPS.get(self._key(state, setup, stage), build)
         return compiled, state._replace(compile_seconds=state.compile_seconds + time.perf_counter() - t0)
@@ -226,9 +277,9 @@ class Steps:
                             self.settings.memory_guard, x64_enabled(), CHUNK, static=setup.static,
                             arguments=(state.params, state.opt_state, self.data))  # fmt: skip
 
-    def _lower(self, state: TrainState, *, setup: Setup, stage: Stage, batch_size: int):
+    def _lower(self, state: TrainState, *, setup: Setup, stage: Stage, batch_size: int, chunk: int):
         with self.placement.scope():
-            fn = make_steps(setup, batch_size, stage.method)
+            fn = make_steps(setup, batch_size, stage.method, chunk)
             order = self.order(state.stage, 0)
             return fn.lower(state.params, state.opt_state, self.data, order, np.int32(0), np.int32(1))
 

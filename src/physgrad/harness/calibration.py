@@ -197,8 +197,10 @@ def step_programs(config: RunConfig, devices: int | str | None = 1) -> tuple[lis
             jax.block_until_ready(chunk(np.int32(1)))  # the first call: warm-up, not timed
         warmups.append(time.perf_counter() - t0)
         # the run's longest chunk in this stage: an epoch where each epoch has a new order or
-        # new data (engine.run._steps_left), the stage's length in a sequence, else CHUNK
-        limits = [n for n in (None if steps.same_every_epoch else stage.steps_per_epoch, stage.steps) if n]
+        # new data (engine.run._steps_left), the stage's length in a sequence, the program's
+        # own chunk (1 for a convolutional step on a CPU, engine.step.loop_chunk), else CHUNK
+        limits = [n for n in (None if steps.same_every_epoch else stage.steps_per_epoch, stage.steps,
+                              compiled.chunk) if n]  # fmt: skip
         count = sized_chunk(lambda n, chunk=chunk: _chunk_call(chunk, np.int32(n)), min(limits) if limits else None)
         program = functools.partial(_chunk_call, chunk, np.int32(count))
         program.steps_per_call = count  # type: ignore[attr-defined]  # recorded with the stage's cost
