@@ -47,6 +47,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .. import loops
 from ..cache import cached_arrays
 from ..rollout import System
 from ..steppers import NonDifferentiable, Solver, check_composition, select, stepper_step
@@ -285,7 +286,7 @@ class TimeStepperProblem(AbstractProblem):
             u_next, _ = self.step(fn, u, u, sample["cond"], sample["index"], solvers)
             return u_next, u_next
 
-        _, states = jax.lax.scan(body, sample["u"][0], None, length=sample["u"].shape[0] - 1)
+        _, states = loops.scan(body, sample["u"][0], None, length=sample["u"].shape[0] - 1)
         return states
 
     def simulate(self, x, sample):

@@ -44,6 +44,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, PyTree
 
+from .. import loops
 from .policy import GradientFlow, R
 
 Transition = Callable[[PyTree, PyTree, PyTree, Array], tuple[PyTree, Array]]
@@ -98,16 +99,16 @@ def _segment_length(m: int) -> int:
 def _scan(body, carry, steps: Array, checkpoint: bool):
     """``lax.scan(body, carry, steps)``, rematerialised in segments of ≈ √m when asked."""
     if not checkpoint:
-        return jax.lax.scan(body, carry, steps)
+        return loops.scan(body, carry, steps)
     m = steps.shape[0]
     length = _segment_length(m)
     inner = jax.checkpoint(body)
 
     @jax.checkpoint
     def segment(c, ks):
-        return jax.lax.scan(inner, c, ks)
+        return loops.scan(inner, c, ks)
 
-    carry, ys = jax.lax.scan(segment, carry, steps.reshape(m // length, length))
+    carry, ys = loops.scan(segment, carry, steps.reshape(m // length, length))
     return carry, jax.tree.map(lambda y: y.reshape(m, *y.shape[2:]), ys)
 
 
@@ -194,7 +195,7 @@ def joint_gradients(
         (s_next, step_loss), pullback = linearise(s, k)
         return s_next, (step_loss, s if checkpoint else split(pullback))
 
-    _, (step_losses, saved) = jax.lax.scan(forward, s0, steps)
+    _, (step_losses, saved) = loops.scan(forward, s0, steps)
     masks = jax.vmap(lambda k: jnp.stack([base.loss_mask(k) * jnp.ones(()), comparison.loss_mask(k) * jnp.ones(())]))(
         steps
     )
@@ -219,7 +220,7 @@ def joint_gradients(
 
     pair = lambda tree: jax.tree.map(lambda a: jnp.zeros((2,) + a.shape, a.dtype), tree)  # noqa: E731
     init = (pair(s0), pair(params))
-    (_, grads), _ = jax.lax.scan(backward, init, (steps, weights, saved), reverse=True)
+    (_, grads), _ = loops.scan(backward, init, (steps, weights, saved), reverse=True)
     g_base = jax.tree.map(lambda g: g[0], grads)
     g_comparison = jax.tree.map(lambda g: g[1], grads)
     return loss, g_base, g_comparison
