@@ -135,10 +135,11 @@ lane_guidance() {
 }
 # Claim 2, List et al. KS correction: ONE / NOG / WIG, 26×8 ResNet, 20 epochs (2,808 updates per epoch
 # at batch 16, the lr decayed ×0.9 every 2,000 updates as the authors), evaluated every epoch;
-# ≈ 85–100 ms per update on one core, so ≈ 1.5 h per run, 9 runs.
+# ≈ 35 ms per update on one core at FAST_COMMIT (85–130 ms before), so ≈ 35 min per run, 9 runs;
+# ks_correction_20ep holds the fixed-order runs of LATE_COMMIT.
 lane_ks() {
-  late
-  lane_study ks_correction_20ep ks "one@56160@2808 nog@56160@2808 wig@56160@2808" --set setup=correction
+  fast
+  lane_study ks_correction_20ep_grouped ks "one@56160@2808 nog@56160@2808 wig@56160@2808" --set setup=correction
 }
 # Claim 2 after the scale fix, a screen before the 20-epoch lane: ONE / NOG / WIG correction at
 # 2 epochs (5,616 updates), evaluated after each epoch; ≈ 8–10 min per run on one core, 9 runs.
@@ -158,6 +159,10 @@ lane_ks_screen_shuffled() {
 # ks_screen_shuffled above used a plain permutation across sizes (SHUFFLE_COMMIT). U1's
 # NOG-correction vs WIG-prediction at the same 2 epochs; Kolmogorov 16² (U2, U4) at the earlier
 # study's size, 2 epochs (594 updates), correction and prediction.
+# FAST_COMMIT: the authors' batching (as GROUPED_COMMIT) and convolutional rollouts unrolled on a CPU
+# (physgrad.loops: KS steps 3.4x, Kolmogorov 16² 6x faster than at GROUPED_COMMIT, the same numbers);
+# the longer lanes (ks: 20 epochs ≈ 35 min per run; kolmogorov 32²; heat, sip_poisson) run it.
+fast() { use_commit "$ROOT/../studycode-fast" "${FAST_COMMIT:-31224aa}"; }
 grouped() { use_commit "$ROOT/../studycode-grouped" "${GROUPED_COMMIT:-4a90e34}"; }
 lane_ks_screen_grouped() {
   grouped
@@ -190,8 +195,10 @@ lane_khig_quantum_dipole() {
 }
 # Claims 5 and 6, SIP Fig. 6: heat and Poisson 64², SIP vs Adam for the paper's 10,000 steps, test
 # x-error on 128 samples every 250 steps; ≈ 1.7–2 s per SIP step on one core: ≈ 5 h per run.
-lane_heat() { late; lane_study sip_heat_10k heat "sip@10000@250 adam@10000@250" --set eval_samples=128; }
-lane_sip_poisson() { late; lane_study sip_poisson_10k poisson "sip@10000@250 adam@10000@250" --set eval_samples=128; }
+# At FAST_COMMIT (below): fresh samples every epoch as the authors draw them (issue 32 item 6), and
+# the U-Net's step dispatched without the chunked loop (10x faster on a CPU than at 4a90e34-7a671bf^).
+lane_heat() { fast; lane_study sip_heat_10k heat "sip@10000@250 adam@10000@250" --set eval_samples=128; }
+lane_sip_poisson() { fast; lane_study sip_poisson_10k poisson "sip@10000@250 adam@10000@250" --set eval_samples=128; }
 
 # Claim 7, List et al. Kolmogorov: does a corrector whose output layer starts at zero (zero_init:
 # the bare solver at step 0) beat the solver, where the paper's initialisation did not after 2 epochs?
@@ -206,7 +213,7 @@ lane_kolmogorov_zero() {
 # unrolling curriculum (1, 2, 4 steps, 5 epochs each: 15 epochs ≈ 6,700 updates at batch 8);
 # ≈ 0.6–1 s per update on one core: ≈ 1.5–2 h per run, 9 runs.
 lane_kolmogorov() {
-  late
+  fast
   lane_study kolmogorov_32 kolmogorov \
     "one@6700@447 nog@6700@447@nog.curriculum=1/2/4@nog.stage_epochs=5 wig@6700@447@wig.curriculum=1/2/4@wig.stage_epochs=5" \
     --set n=32 --set forcing_mode=6 --set width=16 --set blocks=3 --set setup=correction --set m=4
