@@ -101,6 +101,10 @@ def sine_sweeps(root: Path):
         "xi": ("ξ (φ = 0°)", [(xi, f"sine-xi{xi}-phi0") for xi in XI_SWEEP], "x_dist_rel"),
         "phi": ("φ [°] (ξ = 32)", [(phi, f"sine-xi32-phi{phi}") for phi in PHI_SWEEP], "x_dist"),
     }
+    if not any(load_studies(root, [(study, "")])[1] for _, points, _ in sweeps.values() for _, study in points):
+        # no sweep has results: keep the committed figure rather than draw empty axes over it
+        print(f"## Sine sweeps: no results under {root} yet\n")
+        return
     fig, axes = plt.subplots(1, 2, figsize=(9, 4), dpi=120)
     for ax, (name, (label, points, metric)) in zip(axes, sweeps.items()):
         lines = [[label, "Adam", "SIP", "Adam / SIP"]]
