@@ -57,3 +57,27 @@ def test_scan_gives_lax_scans_results_and_gradients_without_a_loop_for_a_convolu
     # a dense body keeps its loop
     dense = jax.jit(lambda c, xs: loops.scan(dense_body, c, xs))
     assert "while" in dense.lower(jnp.ones((8,)), jnp.zeros((5, 8))).as_text()
+
+
+def test_scan_runs_as_lax_scan_under_disable_jit_and_says_what_lax_scan_says():
+    """Under disable_jit the body runs eagerly (Python control flow on values is allowed), so
+    no abstract trace of it is made; a scan with neither xs nor length fails in lax.scan's words."""
+
+    def body(c, _):
+        if float(jnp.sum(c)) > 1e9:  # concrete values only
+            return c, c
+        return conv_body(c, 0.0)
+
+    c = jnp.ones((1, 2, 8))
+    with jax.disable_jit():
+        got = loops.scan(body, c, None, length=3)
+        ref = jax.lax.scan(body, c, None, length=3)
+    np.testing.assert_allclose(got[0], ref[0], rtol=1e-6)
+    for scan in (loops.scan, jax.lax.scan):
+        try:
+            scan(conv_body, c)
+        except ValueError as error:
+            message = str(error)
+        else:
+            raise AssertionError("no error")
+        assert "length" in message, message

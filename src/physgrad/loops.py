@@ -31,14 +31,15 @@ def scan(f: Callable, init: Any, xs: Any = None, length: int | None = None, reve
 def unrolls(f: Callable, init: Any, xs: Any = None, length: int | None = None, backend: str | None = None) -> bool:
     """Whether a scan of ``f`` is unrolled: on a CPU backend, at most :data:`MAX_UNROLL`
     steps, and ``f`` (traced once on the first step's shapes) holds a convolution."""
-    if (backend or jax.default_backend()) != "cpu":
-        return False
-    steps = length if length is not None else jax.tree.leaves(xs)[0].shape[0]
-    if steps > MAX_UNROLL or steps < 2:
-        return False
+    if (backend or jax.default_backend()) != "cpu" or jax.config.jax_disable_jit:
+        return False  # under disable_jit the scan runs eagerly, and an abstract trace of f may fail
+    leaves = jax.tree.leaves(xs)
+    steps = length if length is not None else (leaves[0].shape[0] if leaves else None)
+    if steps is None or steps > MAX_UNROLL or steps < 2:
+        return False  # (no length at all: lax.scan says so in its own words)
     x0 = None if xs is None else jax.tree.map(lambda a: jax.ShapeDtypeStruct(a.shape[1:], a.dtype), xs)
     jaxpr = jax.make_jaxpr(f)(init, x0)
-    return "conv_general_dilated" in set(primitives(jaxpr.jaxpr))
+    return any(name == "conv_general_dilated" for name in primitives(jaxpr.jaxpr))
 
 
 def primitives(jaxpr) -> Iterator[str]:
