@@ -31,7 +31,7 @@ def scan(f: Callable, init: Any, xs: Any = None, length: int | None = None, reve
 def unrolls(f: Callable, init: Any, xs: Any = None, length: int | None = None, backend: str | None = None) -> bool:
     """Whether a scan of ``f`` is unrolled: on a CPU backend, at most :data:`MAX_UNROLL`
     steps, and ``f`` (traced once on the first step's shapes) holds a convolution."""
-    if (backend or jax.default_backend()) != "cpu" or jax.config.jax_disable_jit:
+    if (backend or jax.default_backend()) != "cpu" or jax.config.jax_disable_jit:  # pyright: ignore[reportAttributeAccessIssue]
         return False  # under disable_jit the scan runs eagerly, and an abstract trace of f may fail
     leaves = jax.tree.leaves(xs)
     steps = length if length is not None else (leaves[0].shape[0] if leaves else None)
