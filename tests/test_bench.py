@@ -3,6 +3,7 @@
 import csv
 import json
 import math
+from pathlib import Path
 
 import pytest
 
@@ -11,6 +12,8 @@ from physgrad.harness import bench
 from physgrad.harness.bench import Verdict, applicability, leaderboard, method_rows
 from physgrad.harness.cli import main
 from physgrad.harness.config import split_methods
+
+ROOT = Path(__file__).resolve().parent.parent
 
 
 def rows(path):
@@ -289,6 +292,21 @@ def test_bench_cli_end_to_end_and_resume(tmp_path, capsys):
     # the same command again: every run is skipped, the report is rewritten
     assert main(argv) == 0
     assert capsys.readouterr().out.count("done already") == 4  # 2 problems x 2 methods x 1 seed
+    # kept without its runs (docs/reproductions/keep_studies.py), the bench is redrawn from its files
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("keep_studies", ROOT / "docs/reproductions/keep_studies.py")
+    keep_studies = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(keep_studies)
+    for runs in (False, True):
+        kept = tmp_path / f"kept-{runs}"
+        keep_studies.keep(out, kept, runs=runs)
+        assert main(["report", str(kept)]) == 0 and "leaderboard" in capsys.readouterr().out
+        for problem in ("hig_toy", "toy2d"):
+            again = {r["method"]: r for r in rows(kept / problem / "bench_table.csv")}
+            first = {r["method"]: r for r in rows(out / problem / "bench_table.csv")}
+            assert again == first, (problem, runs)
+        assert rows(kept / "leaderboard.csv") == rows(out / "leaderboard.csv")
 
 
 @pytest.mark.parametrize(

@@ -67,3 +67,60 @@ def test_each_kept_study_is_complete(study):
     if "seconds" in record["budget"]:  # a calibrated budget: each method's step (each stage's) was timed
         calibration = read(study)
         assert calibration is not None and all(calibration.has(m) for m in order)
+
+
+def test_keep_merges_the_bench_records_of_lanes_into_one(tmp_path):
+    """A bench split over lanes (one directory each) is gathered into one: its bench.json
+    lists every lane's problems, verdicts, budgets and per-problem settings; a lane of a
+    different bench is refused."""
+    keep = _keep_module().keep
+
+    def lane(name, problem, **extra):
+        info = {"problems": [problem], "methods": ["adam", "hig"], "seeds": [0, 1], "budget": {"seconds": 300.0},
+                "profile": "standard", "settings": {"eval_seconds": "10", **extra.pop("settings", {})},
+                "budgets": extra.pop("budgets", {}),
+                "verdicts": {problem: [{"method": "adam", "status": "applicable", "reason": ""}]}, **extra}  # fmt: skip
+        _write(tmp_path / name / "bench.json", json.dumps(info))
+        return tmp_path / name
+
+    dst = tmp_path / "kept"
+    keep(lane("a", "toy2d", budgets={"toy2d": {"seconds": 5.0}}, settings={"toy2d.eval_seconds": "0.1"}), dst)
+    keep(lane("b", "oscillators"), dst)
+    merged = json.loads((dst / "bench.json").read_text())
+    assert merged["problems"] == ["toy2d", "oscillators"]
+    assert set(merged["verdicts"]) == {"toy2d", "oscillators"}
+    assert merged["budgets"] == {"toy2d": {"seconds": 5.0}}
+    assert merged["settings"] == {"eval_seconds": "10", "toy2d.eval_seconds": "0.1"}
+    with pytest.raises(SystemExit, match="seeds"):
+        keep(lane("c", "sine", seeds=[0]), dst)
+    with pytest.raises(SystemExit, match="setting eval_seconds"):
+        keep(lane("d", "sine", settings={"eval_seconds": "1"}), dst)
+
+
+BENCHES = ROOT / "docs" / "benchmark"
+
+
+@pytest.mark.parametrize("kept", ["dense"])
+def test_a_kept_bench_is_redrawn_from_its_files(kept, tmp_path, capsys):
+    """The committed bench (its problems kept without their runs, or with their small files)
+    redraws its tables and leaderboard with `physgrad report` from a clone: the same ranks and
+    final losses as the committed tables, every kept problem ranked."""
+    import csv
+    import shutil
+
+    from physgrad.harness.cli import main
+
+    copy = shutil.copytree(BENCHES / kept, tmp_path / kept)
+    assert main(["report", str(copy)]) == 0
+    assert "leaderboard" in capsys.readouterr().out
+    info = json.loads((copy / "bench.json").read_text())
+    for problem in info["problems"]:
+        if not (copy / problem / "summary.csv").exists():
+            continue  # a lane still running: its table says pending
+        with (copy / problem / "bench_table.csv").open() as f:
+            table = {r["method"]: r for r in csv.DictReader(f)}
+        with (BENCHES / kept / problem / "bench_table.csv").open() as f:
+            committed = {r["method"]: r for r in csv.DictReader(f)}
+        assert {m: (r["rank"], r["final_test_loss_median"]) for m, r in table.items()} == {
+            m: (r["rank"], r["final_test_loss_median"]) for m, r in committed.items()}, problem  # fmt: skip
+        assert any(r["rank"] == "1" for r in table.values()), problem

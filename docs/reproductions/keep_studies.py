@@ -14,12 +14,15 @@ relative paths) to the second, and leaves the runs out. With ``--runs`` it also 
 run's small files (config, summary, metrics, per-test-case results, final parameters; not the
 checkpoint), which unrolling_report.py reads (per-case paired tests, the learned stencils). The report scripts read them back:
 ``python docs/reproductions/hig_report.py`` redraws hig.md's tables and figures from a clone.
+A bench's ``bench.json`` is kept too, merged into one already there (a bench run in
+lanes, one directory each), so that ``physgrad report TARGET`` redraws the whole bench.
 A study without ``summary.csv`` (not finished) is skipped with a line that says so.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import shutil
 from pathlib import Path
 
@@ -55,7 +58,34 @@ def keep(source: Path, target: Path, runs: bool = False) -> list[Path]:
         rel = grid.relative_to(source)
         (target / rel.parent).mkdir(parents=True, exist_ok=True)
         copied.append(Path(shutil.copy2(grid, target / rel)))
+    for info in source.rglob("bench.json"):  # a bench's own record, above its problems' studies
+        rel = info.relative_to(source)
+        (target / rel.parent).mkdir(parents=True, exist_ok=True)
+        copied.append(keep_bench(info, target / rel))
     return copied
+
+
+def keep_bench(source: Path, target: Path) -> Path:
+    """Copy a bench's ``bench.json``; where ``target`` already holds one (the same bench split
+    over lanes or machines, each with its own directory, gathered into one), add the source's
+    problems, verdicts and per-problem budgets to it, so that ``physgrad report TARGET`` draws
+    every problem gathered so far. The two must agree on methods, seeds, budget, profile and
+    the settings they share (a profile's settings differ by problem)."""
+    new = json.loads(source.read_text())
+    if not target.exists():
+        shutil.copy2(source, target)
+        return target
+    old = json.loads(target.read_text())
+    clash = [k for k in ("methods", "seeds", "budget", "profile") if old.get(k) != new.get(k)]
+    clash += [f"setting {k}" for k, v in new.get("settings", {}).items() if old.get("settings", {}).get(k, v) != v]
+    if clash:
+        raise SystemExit(f"{source} and {target} are different benches: their {', '.join(clash)} differ")
+    old["settings"] = {**old.get("settings", {}), **new.get("settings", {})}
+    old["problems"] = list(dict.fromkeys([*old["problems"], *new["problems"]]))
+    old["verdicts"] = {**old["verdicts"], **new["verdicts"]}
+    old["budgets"] = {**old.get("budgets", {}), **new.get("budgets", {})}
+    target.write_text(json.dumps(old, indent=2) + "\n")
+    return target
 
 
 def main():

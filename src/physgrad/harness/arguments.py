@@ -209,8 +209,15 @@ def build_parser() -> Parser:
                         "machine, then the same command without it trains with those step counts under any load")  # fmt: skip
     _add_budget(p, calibrated=True)
 
-    p = sub.add_parser("report", help="re-draw a study's (or a sweep's) table and figure from its files")
-    p.add_argument("dir")
+    p = sub.add_parser(
+        "report",
+        help="re-draw a study's (a sweep's, a bench's) tables and figures from its files",
+        description="Re-draw the tables and figures of a study (physgrad compare --out DIR), a sweep (its "
+        "grid.json) or a bench (its bench.json: every problem's table, the leaderboards, the heat map) from "
+        "the directory's files alone; nothing trains. A bench whose problems were kept without their runs "
+        "(docs/reproductions/keep_studies.py) is redrawn from the kept summary.csv and results.csv.",
+    )
+    p.add_argument("dir", help="the study, sweep or bench directory")
     p.add_argument("--panel", help="sweeps: the swept setting with one panel per value (default: the first)")
     p.add_argument(
         "--metric",

@@ -256,6 +256,11 @@ def _print_paired_tests(console, out):
 def cmd_report(args, console):
     from .study import grid_report, report
 
+    if (Path(args.dir) / "bench.json").exists():  # a bench directory: every problem's table, the leaderboard
+        from . import bench
+
+        _print_bench(console, bench.report(args.dir))
+        return 0
     if (Path(args.dir) / "grid.json").exists():
         result = grid_report(args.dir, panel=args.panel, metric=args.metric, split=args.split, smooth=args.smooth)
         _print_table(console, result.lines, title=str(args.dir))
@@ -314,7 +319,24 @@ def cmd_bench(args, console):
     result = bench.bench(problems, methods, range(seeds), budget, out, settings=settings, progress=meter,
                          echo=console.print, devices=args.devices, profile=name,
                          calibrate=not args.no_calibrate, budgets=budgets)  # fmt: skip
-    for problem in problems:
+    _print_bench(console, result, out)
+    return 0
+
+
+def _print_bench(console, result, out=None):
+    """A bench's tables per problem, its two leaderboards and the files written
+    (:class:`physgrad.harness.bench.BenchReport`; the budgets and seeds from its bench.json)."""
+    import json
+
+    from . import bench
+    from .config import Budget
+
+    out = Path(out or result.files["markdown"].parent)
+    info = json.loads((out / "bench.json").read_text())
+    budget = Budget(**info["budget"])
+    budgets = {p: Budget(**b) for p, b in info.get("budgets", {}).items()}
+    seeds = len(info["seeds"])
+    for problem in info["problems"]:
         table = result.tables[problem]
         _print_table(
             console,
@@ -335,7 +357,7 @@ def cmd_bench(args, console):
     files = _files(*(result.files[k] for k in ("markdown", "leaderboard", "profile", "table", "heatmap",
                                                "profile_figure")))  # fmt: skip
     console.print(f"wrote {files} and per problem {out}/PROBLEM/bench_table.csv")
-    return 0
+    return result
 
 
 def _bench_plan(console, args, problems, methods, seeds, budget, settings, out, budgets):

@@ -57,11 +57,15 @@ class BenchReport(NamedTuple):
 def problem_table(out: str | Path, verdicts: Sequence[Verdict]) -> list[dict[str, Any]]:
     """One problem's method rows from its study directory, with the paired tests against
     the best method (written to its ``paired_tests.csv``: metric ``loss``, best first) and
-    its loss-vs-time figure redrawn."""
+    its loss-vs-time figure redrawn. A study kept without its runs (``keep_studies.py``:
+    ``summary.csv``, ``results.csv``, ``study.json``...) gives the same rows from those files,
+    and its kept ``paired_tests.csv`` where it has one (no runs: nothing to pair again)."""
     out = Path(out)
     rows = []
     if (out / "runs").exists():
         collect(out)  # the files may predate runs finished since (or a bench interrupted)
+        rows = read_csv(out / "summary.csv")
+    elif (out / "summary.csv").exists():  # a kept study (keep_studies.py): its files, no runs
         rows = read_csv(out / "summary.csv")
     table = method_rows(rows, verdicts, read_failures(out))
     target, _, times = targets.study_times(out) if rows else (None, [], [])
@@ -79,8 +83,10 @@ def problem_table(out: str | Path, verdicts: Sequence[Verdict]) -> list[dict[str
         study_report(out)  # loss_vs_time.png, as compare draws it
         best = best_method(table)
         others = [t["method"] for t in table if t["method"] != best and t["finished"]]
-        if best and others:
+        if best and others and (out / "runs").exists():
             tests = paired_tests(out, metric="loss", order=[best, *others])
+        elif (out / "paired_tests.csv").exists():  # kept without its runs' test cases: the tests as run
+            tests = read_csv(out / "paired_tests.csv")
     return add_paired_tests(table, tests)
 
 
