@@ -7,6 +7,10 @@
 # again to go on. Results: python -m physgrad bench ... prints the tables again from the
 # finished runs; the study-level files are kept with docs/reproductions/keep_studies.py.
 #   PG="taskset -c 0 physgrad" OUT=bench-dense bash docs/benchmark/khig_dense.sh
+# Split over cores (each lane its own directory, committed as it grows):
+# docs/benchmark/lanes/run.sh; then gather every finished problem into docs/benchmark/dense with
+#   python docs/reproductions/keep_studies.py docs/benchmark/lanes/coreN docs/benchmark/dense --runs
+# and redraw the whole bench from the clone: physgrad report docs/benchmark/dense
 set -e
 PG="${PG:-physgrad}"
 $PG bench --standard --problems hig_toy,toy2d,exp_inverse,sine,oscillators,linear_oscillators,quantum_dipole \
