@@ -70,6 +70,10 @@ STUDIES = {
     "sip_navier_stokes": Study("navier_stokes", metric="v0_l1"),
     "sip_navier_stokes_ws": Study("navier_stokes", metric="v0_l1"),
     "quantum_control_1000ep": Study("quantum_control", baseline="bptt", axis="steps", tail=0.1, smooth=30),
+    # B9: M and C under value and no clipping (the norm runs are quantum_control_1000ep)
+    "quantum_control_1000ep_clip": Study(
+        "quantum_control", baseline="sbptt_m-clipvalue", axis="steps", tail=0.1, smooth=30
+    ),
     "guidance_1000ep": Study("guidance", baseline="bptt-clipnorm", axis="steps", tail=0.1, smooth=30),
     "ks_correction_2ep": Study("ks", metric="rel_error", baseline="one", axis="steps"),
     "ks_correction_2ep_shuffled": Study("ks", metric="rel_error", baseline="one", axis="steps"),

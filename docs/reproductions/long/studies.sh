@@ -16,7 +16,7 @@
 # Usage (one core, niced; runs lanes in priority order until all are done):
 #   bash docs/reproductions/long/studies.sh [lane ...]      # default: oscillators dipole
 # Lanes: oscillators, dipole, poisson (HIG, core 0); navier_stokes, dipole_screen, dipole_screen_cheap,
-# quantum_control, guidance, ks_screen, ks_screen_shuffled, ks_screen_grouped, u1_screen_grouped,
+# quantum_control, quantum_control_clip, guidance, ks_screen, ks_screen_shuffled, ks_screen_grouped, u1_screen_grouped,
 # kolmogorov_screen_grouped, ks, kolmogorov_zero, kolmogorov, heat, sip_poisson, khig_oscillators,
 # khig_quantum_dipole (core 1: CORE=1).
 # Environment: CORE (default 0), SEEDS (default 3: grow every lane to this many seeds), STUDY_COMMIT,
@@ -125,6 +125,15 @@ lane_quantum_control() {
   late
   lane_study quantum_control_1000ep quantum_control \
     "bptt@32000@32 sbptt_m@32000@32 sbptt_c@32000@32 no_temporal@32000@32" --set eigenstate=5 --set clip=norm
+}
+# B9 (issue 32 item 5): the paper plots value, norm and no clipping; the norm runs above put M ahead
+# of C. The other two modes for M and C (the C-vs-M claim; R fails at eigenstate 5 in every mode
+# tried), same physgrad, budget and evaluation as the norm runs: 12 runs, ≈ 3 h on one core.
+lane_quantum_control_clip() {
+  late
+  lane_study quantum_control_1000ep_clip quantum_control \
+    "sbptt_m@32000@32@clip=value sbptt_c@32000@32@clip=value sbptt_m@32000@32@clip=none sbptt_c@32000@32@clip=none" \
+    --set eigenstate=5
 }
 # Claim 4b, StableBPTT Fig. 3: guidance at the hardest rc = 0.001, R / M / C at 1000 epochs, clipped
 # by norm (R's best mode at 200 epochs) and by value; ≈ 1–2 min per run, 18 runs.
