@@ -336,4 +336,6 @@ def test_report_of_a_bench_interrupted_before_a_problem(tmp_path):
     result = bench.report(tmp_path)
     assert [t["status"] for t in result.tables["toy2d"]] == ["pending", "not applicable"]
     assert (tmp_path / "toy2d" / "bench_table.md").exists() and (tmp_path / "heatmap.png").exists()
-    assert "5 s of training wall-clock per run" in (tmp_path / "bench.md").read_text()
+    text = (tmp_path / "bench.md").read_text()
+    assert "5 s of training wall-clock per run" in text
+    assert "toy2d/loss_vs_time.png" not in text and "none yet" in text  # no link to a figure not drawn

@@ -258,8 +258,11 @@ def bench_markdown(
             reached = [f"{t['method']} {t['ttt_cell']}" for t in table if t.get("ttt_cell")]
             out += [f"Target: test loss ≤ {target.loss:g} ({target.origin}: {target.why}). Time to target, median "
                     f"over seeds: {'; '.join(reached) or 'no runs yet'}.", ""]  # fmt: skip
-        out += [f"Curves: [{problem}/loss_vs_time.png]({problem}/loss_vs_time.png); "
-                f"files: `{problem}/summary.csv`, `{problem}/paired_tests.csv`, `{problem}/bench_table.csv`.", ""]  # fmt: skip
+        if any(t.get("runs") for t in table):  # a problem not started yet has no curves to link
+            out += [f"Curves: [{problem}/loss_vs_time.png]({problem}/loss_vs_time.png); "
+                    f"files: `{problem}/summary.csv`, `{problem}/paired_tests.csv`, `{problem}/bench_table.csv`.", ""]  # fmt: skip
+        else:
+            out += ["Curves: none yet (no finished runs).", ""]
     out += [
         "## Longer budgets",
         "",
