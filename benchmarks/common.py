@@ -57,6 +57,17 @@ def training_step(problem: str, method: str, settings: dict[str, str]):
     return config, setup, step, (setup.params, setup.method.init(setup.params), data, order, jnp.int32(0))
 
 
+def problem_precision(problem: str, settings: dict[str, str]):
+    """``jax.enable_x64(True)`` where the configured problem computes in float64
+    (``needs_float64``: heat; the HIG problems' float64 settings), else a no-op context: build,
+    trace and time a step inside it, as a run and ``physgrad.fit`` scope it."""
+    from physgrad.harness.train import problem_of
+    from physgrad.precision import float64_scope
+
+    config = make_config(problem, "adam", budget=Budget(steps=1), settings=settings)
+    return float64_scope(problem_of(config).needs_float64)
+
+
 def median_seconds(fn, args, repeats: int) -> float:
     """Median seconds per call over ``repeats`` calls after a warm-up call, timed by the
     harness's :func:`physgrad.harness.calibration.time_programs` (a calibrated study uses it

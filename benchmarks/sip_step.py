@@ -24,7 +24,7 @@ from __future__ import annotations
 import platform
 
 import jax
-from common import benchmark_parser, median_seconds, settings_from, training_step
+from common import benchmark_parser, median_seconds, problem_precision, settings_from, training_step
 
 from physgrad.harness.config import ConfigError
 
@@ -61,12 +61,13 @@ def main():
         label = f", {name}={settings[name]}" if name else ""
         for method, extra in cases:
             try:
-                config, _, step, step_args = training_step(args.problem, method, {**settings, **extra})
+                with problem_precision(args.problem, settings):  # heat computes in float64
+                    config, _, step, step_args = training_step(args.problem, method, {**settings, **extra})
+                    t = median_seconds(step, step_args, args.repeats)
+                    stats = step(*step_args)[2]
             except ConfigError as e:
                 rows.append((method, extra.get("solver", ""), None, str(e) + label))
                 continue
-            t = median_seconds(step, step_args, args.repeats)
-            stats = step(*step_args)[2]
             failed = f", {int(stats['inverse_failures'])} failed solves" if "inverse_failures" in stats else ""
             rows.append((method, extra.get("solver", ""), t, f"batch {config.phases[0].batch_size}{failed}{label}"))
 
