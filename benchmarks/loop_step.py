@@ -23,14 +23,12 @@ import argparse
 
 import jax
 import numpy as np
-from common import median_seconds, training_step
+from common import median_seconds, problem_precision, training_step
 
 from physgrad.engine.step import CHUNK, Steps, make_steps
 from physgrad.engine.strategies import Placement
 from physgrad.engine.types import TrainState
-from physgrad.harness.registry import PROBLEMS
 from physgrad.harness.train import settings_of
-from physgrad.precision import float64_scope
 
 # small data splits, so a problem builds in seconds (the step's cost does not depend on them)
 SETTINGS = {"heat": {"n_train": "256", "n_test": "16"}, "poisson": {"n_train": "256", "n_test": "16"}}
@@ -45,7 +43,7 @@ def main() -> None:
     print(f"jax {jax.__version__}, backend {jax.default_backend()}; ms per step, median of {args.repeats}")
     print(f"{'problem':14s} {'chunk':>5s} {'bare':>10s} {'run':>10s} {'loop':>10s} {'run/bare':>9s} {'loop/bare':>9s}")
     for name in args.problems.split(","):
-        with float64_scope(PROBLEMS[name]().needs_float64):  # as the run trains it (heat: float64)
+        with problem_precision(name, SETTINGS.get(name, {})):  # as the run trains it (heat: float64)
             config, setup, step, step_args = training_step(name, args.method, SETTINGS.get(name, {}))
             batch_size = config.phases[0].batch_size
             steps = Steps(setup, Placement(), settings_of(config), 0)
