@@ -319,11 +319,11 @@ def cmd_bench(args, console):
     result = bench.bench(problems, methods, range(seeds), budget, out, settings=settings, progress=meter,
                          echo=console.print, devices=args.devices, profile=name,
                          calibrate=not args.no_calibrate, budgets=budgets)  # fmt: skip
-    _print_bench(console, result, out)
+    _print_bench(console, result)
     return 0
 
 
-def _print_bench(console, result, out=None):
+def _print_bench(console, result) -> None:
     """A bench's tables per problem, its two leaderboards and the files written
     (:class:`physgrad.harness.bench.BenchReport`; the budgets and seeds from its bench.json)."""
     import json
@@ -331,7 +331,7 @@ def _print_bench(console, result, out=None):
     from . import bench
     from .config import Budget
 
-    out = Path(out or result.files["markdown"].parent)
+    out = result.files["markdown"].parent
     info = json.loads((out / "bench.json").read_text())
     budget = Budget(**info["budget"])
     budgets = {p: Budget(**b) for p, b in info.get("budgets", {}).items()}
@@ -357,7 +357,6 @@ def _print_bench(console, result, out=None):
     files = _files(*(result.files[k] for k in ("markdown", "leaderboard", "profile", "table", "heatmap",
                                                "profile_figure")))  # fmt: skip
     console.print(f"wrote {files} and per problem {out}/PROBLEM/bench_table.csv")
-    return result
 
 
 def _bench_plan(console, args, problems, methods, seeds, budget, settings, out, budgets):

@@ -61,12 +61,10 @@ def problem_table(out: str | Path, verdicts: Sequence[Verdict]) -> list[dict[str
     ``summary.csv``, ``results.csv``, ``study.json``...) gives the same rows from those files,
     and its kept ``paired_tests.csv`` where it has one (no runs: nothing to pair again)."""
     out = Path(out)
-    rows = []
-    if (out / "runs").exists():
+    runs = (out / "runs").exists()  # else not started, or kept without its runs (keep_studies.py)
+    if runs:
         collect(out)  # the files may predate runs finished since (or a bench interrupted)
-        rows = read_csv(out / "summary.csv")
-    elif (out / "summary.csv").exists():  # a kept study (keep_studies.py): its files, no runs
-        rows = read_csv(out / "summary.csv")
+    rows = read_csv(out / "summary.csv") if (out / "summary.csv").exists() else []
     table = method_rows(rows, verdicts, read_failures(out))
     target, _, times = targets.study_times(out) if rows else (None, [], [])
     by_method = {t["method"]: t for t in times}
@@ -83,8 +81,9 @@ def problem_table(out: str | Path, verdicts: Sequence[Verdict]) -> list[dict[str
         study_report(out)  # loss_vs_time.png, as compare draws it
         best = best_method(table)
         others = [t["method"] for t in table if t["method"] != best and t["finished"]]
-        if best and others and (out / "runs").exists():
-            tests = paired_tests(out, metric="loss", order=[best, *others])
+        if runs:
+            if best and others:
+                tests = paired_tests(out, metric="loss", order=[best, *others])
         elif (out / "paired_tests.csv").exists():  # kept without its runs' test cases: the tests as run
             tests = read_csv(out / "paired_tests.csv")
     return add_paired_tests(table, tests)
@@ -258,7 +257,7 @@ def bench_markdown(
             reached = [f"{t['method']} {t['ttt_cell']}" for t in table if t.get("ttt_cell")]
             out += [f"Target: test loss ≤ {target.loss:g} ({target.origin}: {target.why}). Time to target, median "
                     f"over seeds: {'; '.join(reached) or 'no runs yet'}.", ""]  # fmt: skip
-        if any(t.get("runs") for t in table):  # a problem not started yet has no curves to link
+        if any(t["runs"] > t["failed"] for t in table):  # curves are drawn from summary.csv's runs only
             out += [f"Curves: [{problem}/loss_vs_time.png]({problem}/loss_vs_time.png); "
                     f"files: `{problem}/summary.csv`, `{problem}/paired_tests.csv`, `{problem}/bench_table.csv`.", ""]  # fmt: skip
         else:
