@@ -40,6 +40,10 @@ class DirectOptimisation(AbstractProblem):
     def name(self) -> str:  # the wrapped problem's: summaries and errors name what was run
         return self.problem.name
 
+    @property
+    def needs_float64(self) -> bool:  # the wrapped problem's physics keeps its precision
+        return self.problem.needs_float64
+
     def make_data(self, key):
         samples = self.problem.make_data(key)["test"]
         n = jax.tree.leaves(samples)[0].shape[0]
