@@ -4,6 +4,8 @@
 # so a later session resumes it). physgrad 195663f (worktree /work/studycode-bench), nice 5.
 #   bash docs/benchmark/lanes/run.sh 0 oscillators,linear_oscillators [--calibrate-only]
 #   bash docs/benchmark/lanes/run.sh 1 quantum_dipole
+# Finished 2026-11-27 (all 7 problems); every lane directory was kept, runs included, into
+# docs/benchmark/dense (keep_studies.py --runs) and then removed here.
 set -euo pipefail
 ROOT="$(cd "$(dirname "$0")/../../.." && pwd)"
 core=$1 problems=$2; shift 2
