@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from physgrad import Budget
+from physgrad.errors import ConfigError
 from physgrad.harness.config import make_config
 from physgrad.harness.registry import METHODS, PROBLEMS
 from physgrad.harness.train import build, make_step, train
@@ -219,8 +220,14 @@ def test_no_network_optimises_each_test_sample_directly(tmp_path):
     samples = setup.data["train"]["sample"]
     np.testing.assert_allclose(params.x, samples["x_gt"], rtol=1e-5, atol=1e-5)
     assert params.x.shape == (16, 1)
+    # three epochs on the same samples: exp_inverse draws fresh training samples each epoch
+    # with a network, which without one would swap the targets under their variables
+    config = make_config("exp_inverse", "sip", budget=Budget(steps=3), settings=settings)
+    assert config.fresh_samples is False
     summary = train(config, tmp_path)
     assert summary["final_test_metrics"]["x_l1"] < 1e-4
+    with pytest.raises(ConfigError, match="fresh_samples=true cannot go with no_network"):
+        make_config("exp_inverse", "sip", budget=Budget(steps=1), settings={**settings, "fresh_samples": "true"})
 
 
 def test_no_network_keeps_the_wrapped_problems_float64(tmp_path):

@@ -297,6 +297,12 @@ def make_config(
         phases.append(Phase(name, hyper, batch_size, steps))
     defaults = train_settings(problem)
     train = {k: setting(k, run_level.get(k, d), d) for k, d in defaults.items() if k != "batch_size"}
+    if train["no_network"]:
+        # Direct optimisation trains one x per test sample: a fresh draw every epoch would
+        # swap the samples under their variables (the heat comparison then never converged).
+        if "fresh_samples" in run_level and train["fresh_samples"]:
+            raise ConfigError("fresh_samples=true cannot go with no_network: the samples are the variables' targets")
+        train["fresh_samples"] = False
     return RunConfig(
         problem=problem,
         method=method,
