@@ -2,8 +2,10 @@
 
 import csv
 import json
+import re
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -12,6 +14,7 @@ import physgrad
 from physgrad import Budget
 from physgrad.harness.cli import main
 from physgrad.harness.config import make_config
+from physgrad.harness.registry import METHODS
 from physgrad.harness.train import train
 from physgrad.progress import NoProgressMeter
 
@@ -50,11 +53,6 @@ def test_list(capsys):
 
 def test_readme_method_table_names_every_registered_method():
     """Each registered method has a row in the README's method table (khig once had none)."""
-    import re
-    from pathlib import Path
-
-    from physgrad.harness.registry import METHODS
-
     readme = (Path(__file__).parents[1] / "README.md").read_text()
     cells = re.findall(r"^\| ((?:`[^`]+`(?:, )?)+) \|", readme, flags=re.M)
     listed = {name for cell in cells for name in re.findall(r"`([^`]+)`", cell)}
