@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from physgrad import Budget
+from physgrad.engine import Placement, Steps, TrainSettings
 from physgrad.errors import ConfigError
 from physgrad.harness.config import make_config
 from physgrad.harness.registry import METHODS, PROBLEMS
@@ -228,6 +229,10 @@ def test_no_network_optimises_each_test_sample_directly(tmp_path):
     assert summary["final_test_metrics"]["x_l1"] < 1e-4
     with pytest.raises(ConfigError, match="fresh_samples=true cannot go with no_network"):
         make_config("exp_inverse", "sip", budget=Budget(steps=1), settings={**settings, "fresh_samples": "true"})
+    # the library path too: the engine refuses fresh samples for a user's own direct optimisation
+    with pytest.raises(ConfigError, match="fresh_samples cannot be on"):
+        Steps(setup, Placement(), TrainSettings(fresh_samples=True), 0)
+    assert not Steps(setup, Placement(), TrainSettings(), 0).fresh  # the wrapper's default: fixed
 
 
 def test_no_network_keeps_the_wrapped_problems_float64(tmp_path):

@@ -203,6 +203,8 @@ class Steps:
         self.shuffle = setup.problem.default_shuffle if settings.shuffle is None else settings.shuffle
         fresh = settings.fresh_samples
         self.fresh = setup.problem.default_fresh_samples if fresh is None else fresh
+        if self.fresh and setup.problem.fixed_samples:
+            raise ConfigError(f"{setup.problem.name}: fresh_samples cannot be on: its samples are what is trained")
         self.fresh_key = jax.random.fold_in(jax.random.key(seed), 3)
         self.first = self.data
         groups = setup.problem.batch_groups(setup.data["train"]) if self.shuffle else None

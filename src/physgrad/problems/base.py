@@ -134,6 +134,10 @@ class AbstractProblem(eqx.Module):
     # the first trains on a new ``make_data`` train split (same size, new key), so no sample
     # is seen twice; ``make_data`` must then be cheap next to an epoch of training.
     default_fresh_samples: ClassVar[bool] = False
+    # True where the samples are what is being trained (direct optimisation: one free x per
+    # sample): a fresh draw would swap the targets under their variables, so the engine refuses
+    # ``fresh_samples=True`` on such a problem.
+    fixed_samples: ClassVar[bool] = False
 
     def batch_groups(self, train: Sample) -> np.ndarray | None:
         """One label per training sample (``train`` is the data's train split), or None: when

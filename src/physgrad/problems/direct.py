@@ -35,6 +35,7 @@ class DirectOptimisation(AbstractProblem):
 
     description: ClassVar[str] = "direct optimisation of x per sample (no network)"
     source: ClassVar[str] = "Holl, Koltun, Thuerey, NeurIPS 2022 (direct optimisation of the inverse problem)"
+    fixed_samples: ClassVar[bool] = True  # the samples are the variables' targets
 
     @property
     def name(self) -> str:  # the wrapped problem's: summaries and errors name what was run
