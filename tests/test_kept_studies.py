@@ -49,6 +49,43 @@ def test_keep_copies_study_files_and_leaves_checkpoints_and_unfinished_studies(t
     assert not any("checkpoint" in p for p in with_runs)
 
 
+def test_keep_gzips_the_curves_and_the_study_reads_them_back(tmp_path):
+    """--gzip keeps results.csv as results.csv.gz, byte-identical when kept again; the study
+    functions (read_csv, load_studies, report) read the packed copy where the plain one is gone."""
+    import csv
+
+    from physgrad.harness.study import read_csv, report
+
+    src, dst = tmp_path / "studies", tmp_path / "kept"
+    study = src / "cell"
+    rows = [{"problem": "toy2d", "method": "adam", "seed": str(s), "step": str(t), "wall_time": str(0.1 * t),
+             "split": split, "metric": "loss", "value": str(1.0 / (1 + t + s))}
+            for s in (0, 1) for t in range(0, 30, 10) for split in ("train", "test")]  # fmt: skip
+    study.mkdir(parents=True)
+    with (study / "results.csv").open("w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+    _write(study / "study.json", json.dumps({"problem": "toy2d", "methods": ["adam"], "seeds": [0, 1]}))
+    summary = [{"problem": "toy2d", "method": "adam", "seed": str(s), "status": "finished", "steps": "20",
+                "final_train_loss": "0.05", "final_test_loss": "0.05", "best_test_loss": "0.04",
+                "time_per_step": "0.01", "train_seconds": "0.2", "run_dir": f"runs/{s}"} for s in (0, 1)]  # fmt: skip
+    with (study / "summary.csv").open("w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=list(summary[0]))
+        writer.writeheader()
+        writer.writerows(summary)
+    keep = _keep_module().keep
+    _write(dst / "cell" / "results.csv")  # a plain copy kept earlier goes: one copy of the curves
+    copied = {p.relative_to(dst).as_posix() for p in keep(src, dst, packed=True)}
+    assert "cell/results.csv.gz" in copied and not (dst / "cell" / "results.csv").exists()
+    first = (dst / "cell" / "results.csv.gz").read_bytes()
+    keep(src, dst, packed=True)
+    assert (dst / "cell" / "results.csv.gz").read_bytes() == first
+    assert read_csv(dst / "cell" / "results.csv") == read_csv(study / "results.csv") == rows
+    assert load_studies(dst, [("cell", "")])[1] == rows
+    report(dst / "cell")  # finds its curves packed (it refused: "results.csv is missing")
+
+
 def _kept_studies():
     return sorted(p.parent for p in KEPT.rglob("study.json") if "runs" not in p.relative_to(KEPT).parts)
 

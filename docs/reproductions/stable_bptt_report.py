@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from physgrad.harness.study import cell_name, grid_cells, grid_report, markdown, read_csv
+from physgrad.harness.study import cell_name, grid_cells, grid_report, kept_path, markdown, read_csv
 
 FIGURES = Path(__file__).parent / "figures"
 # the committed study-level files of its studies (keep_studies.py copies them there)
@@ -67,7 +67,7 @@ def tail_losses(out: Path, grid: dict, methods) -> dict:
     noisy per epoch; the authors' plots smooth over 30 epochs)."""
     table = {}
     for values in grid_cells(grid):
-        path = out / cell_name(values) / "results.csv"
+        path = kept_path(out / cell_name(values) / "results.csv")  # or results.csv.gz
         if not path.exists():
             continue
         results = read_csv(path)

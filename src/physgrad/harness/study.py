@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import gzip
 import io
 import json
 import math
@@ -261,8 +262,18 @@ def write_csv(path: Path, columns: Sequence[str], rows: list[dict[str, Any]]):
     rundir.atomic_write(path, text.getvalue())
 
 
+def kept_path(path: str | Path) -> Path:
+    """``path``, or its gzipped copy ``path.gz`` where only that exists (a kept study's large
+    ``results.csv`` is committed compressed: docs/reproductions/keep_studies.py --gzip)."""
+    path = Path(path)
+    packed = path.with_name(path.name + ".gz")
+    return packed if not path.exists() and packed.exists() else path
+
+
 def read_csv(path: str | Path) -> list[dict[str, Any]]:  # str values; callers add numbers
-    with Path(path).open() as f:
+    """The rows of a CSV file, or of its gzipped copy where only that exists (:func:`kept_path`)."""
+    path = kept_path(path)
+    with gzip.open(path, "rt", newline="") if path.suffix == ".gz" else path.open(newline="") as f:
         return list(csv.DictReader(f))
 
 
@@ -310,7 +321,7 @@ def report(out: str | Path) -> Report:
 
     out = Path(out)
     for name in ("summary.csv", "results.csv"):
-        if not (out / name).exists():
+        if not kept_path(out / name).exists():
             raise ConfigError(f"{out} is not a study directory: {name} is missing")
     study = json.loads((out / "study.json").read_text()) if (out / "study.json").exists() else {}
     rows = read_csv(out / "summary.csv")
