@@ -17,7 +17,7 @@
 #   bash docs/reproductions/long/studies.sh [lane ...]      # default: oscillators dipole
 # Lanes: oscillators, dipole, poisson (HIG, core 0); navier_stokes, dipole_screen, dipole_screen_cheap,
 # quantum_control, quantum_control_clip, guidance, ks_screen, ks_screen_shuffled, ks_screen_grouped, u1_screen_grouped,
-# kolmogorov_screen_grouped, ks, kolmogorov_zero, kolmogorov, heat, sip_poisson, khig_oscillators,
+# kolmogorov_screen_grouped, ks, kolmogorov_zero, kolmogorov_zero_grouped, kolmogorov, heat, sip_poisson, khig_oscillators,
 # khig_quantum_dipole (core 1: CORE=1).
 # Environment: CORE (default 0), SEEDS (default 3: grow every lane to this many seeds), STUDY_COMMIT,
 # LATE_COMMIT, PY (python of an env with physgrad's deps).
@@ -218,9 +218,17 @@ lane_kolmogorov_zero() {
   lane_study kolmogorov_zero_init kolmogorov "nog@594@99 nog@594@99@zero_init=true wig@594@99 wig@594@99@zero_init=true" \
     --set n=16 --set forcing_mode=4 --set width=16 --set blocks=3 --set frames=400 --set setup=correction --set m=4
 }
+# The same with the authors' batching (physgrad's default since issue 32) at FAST_COMMIT: ≈ 1 min per run.
+lane_kolmogorov_zero_grouped() {
+  fast
+  lane_study kolmogorov_zero_init_grouped kolmogorov "nog@594@99 nog@594@99@zero_init=true wig@594@99 wig@594@99@zero_init=true" \
+    --set n=16 --set forcing_mode=4 --set width=16 --set blocks=3 --set frames=400 --set setup=correction --set m=4
+}
 # Claim 7 at the paper's size: 32² (128² reference), forcing mode 6, ONE / NOG / WIG with the paper's
 # unrolling curriculum (1, 2, 4 steps, 5 epochs each: 15 epochs ≈ 6,700 updates at batch 8);
-# ≈ 0.6–1 s per update on one core: ≈ 1.5–2 h per run, 9 runs.
+# at FAST_COMMIT ≈ 0.29 s per 4-step update on a shared core (0.6–1 s before the unrolled CPU
+# loops), ≈ 10 min per ONE run and ≈ 25 min per NOG/WIG run: 9 runs ≈ 3–4 h; the data (a 128²
+# reference run, ≈ 7 min) is generated once into the dataset cache.
 lane_kolmogorov() {
   fast
   lane_study kolmogorov_32 kolmogorov \
