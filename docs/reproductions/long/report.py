@@ -83,6 +83,8 @@ STUDIES = {
     "kolmogorov_16_2ep_correction": Study("kolmogorov", metric="rel_error", baseline="one", axis="steps"),
     "kolmogorov_16_2ep_prediction": Study("kolmogorov", metric="rel_error", baseline="one", axis="steps"),
     "kolmogorov_zero_init": Study("kolmogorov", metric="rel_error", baseline="nog", axis="steps"),
+    "kolmogorov_zero_init_grouped": Study("kolmogorov", metric="rel_error", baseline="nog", axis="steps"),
+    "ks_correction_20ep_grouped": Study("ks", metric="rel_error", baseline="one", axis="steps"),
     "kolmogorov_32": Study("kolmogorov", metric="rel_error", baseline="one", axis="steps"),
     "sip_heat_10k": Study("heat", metric="x_l1_clamped", axis="steps"),
     "sip_poisson_10k": Study("poisson", metric="x_l1", axis="steps"),
