@@ -13,12 +13,15 @@
 #    resumes with the same command (the budget is a step count, so the curve is step-indexed
 #    and machine-free). Ran once on an H200 (4,950 updates; docs/reproductions/data/poisson_hig_b64_gpu).
 # 4. WHAT=sip (the default): the SIP paper's 10,000-step heat and Poisson 64x64 runs (long
-#    rows 5 and 6; ≈ 15 h per run on a CPU core), SIP and Adam, seed 0, four processes at
-#    once on the one GPU, each stopped by SIGTERM before the time is up (a checkpoint every
-#    60 s). The runs resume from docs/reproductions/data/gpu_lanes (the working tree travels
-#    to the device), and come back as gpu_lanes.tgz: unpack it here with
-#      tar xzf FILES_AT/gpu_lanes.tgz -C docs/reproductions/data
-#    and commit; the next GPU session goes on from there.
+#    rows 5 and 6; ≈ 15 h per run on a CPU core), SIP and Adam, seed 0 only (2 of each
+#    study's 6 runs), four processes at once on the one GPU, each stopped by SIGTERM before
+#    the time is up (a checkpoint every 60 s). physgrad runs at the checkout's commit (the CPU
+#    lanes of long/studies.sh pin FAST_COMMIT; the U-Net step is the same). The runs resume
+#    from docs/reproductions/data/sip_{heat,poisson}_10k_gpu when the checkout holds them,
+#    and everything comes back as gpu_lanes.tgz in OUT: copy it to the checkout, unpack it
+#    with `tar xzf gpu_lanes.tgz -C docs/reproductions/data`, commit, and draw it with
+#    `python docs/reproductions/long/report.py sip_heat_10k_gpu sip_poisson_10k_gpu`;
+#    the next GPU session goes on from there.
 #
 # physgrad runs from src/ against the machine's own jax (no install: the GPU machine has no
 # network). kfac-jax is absent there, so K-FAC is left out of the step benchmark.
@@ -48,33 +51,37 @@ timeout 120 "$PY" benchmarks/khig_step.py --problems oscillators,quantum_dipole,
 fi
 
 if [ "$WHAT" = sip ]; then
-  KEEP=docs/reproductions/data/gpu_lanes
-  budget=$(( $(left) - 40 ))
+  KEEP=docs/reproductions/data
+  LANES=/tmp/gpu_lanes
+  # 75 s kept back: SIGTERM, up to 15 s to checkpoint and exit (then SIGKILL), the tarball
+  budget=$(( $(left) - 75 ))
   echo "sip lanes: ${budget} s left for the runs" | tee -a "$OUT/versions.txt"
-  for problem in heat poisson; do
+  [ "$budget" -gt 60 ] || { echo "too little time left for the sip lanes" | tee -a "$OUT/versions.txt"; exit 1; }
+  for study in sip_heat_10k_gpu sip_poisson_10k_gpu; do
+    problem=${study#sip_}; problem=${problem%_10k_gpu}
     for method in sip adam; do
-      dir=/tmp/gpu_lanes/${problem}_10k/$method
+      dir=$LANES/$study/$method
       mkdir -p "$dir"
-      [ -d "$KEEP/${problem}_10k/$method" ] && cp -r "$KEEP/${problem}_10k/$method/." "$dir/"
-      timeout -s TERM -k 30 "$budget" "$PY" -m physgrad compare "$problem" --methods "$method" --seeds 1 \
+      if [ -d "$KEEP/$study/$method" ]; then cp -r "$KEEP/$study/$method/." "$dir/"; fi
+      timeout -s TERM -k 15 "$budget" "$PY" -m physgrad compare "$problem" --methods "$method" --seeds 1 \
         --steps 10000 --set eval_every=250 --set eval_samples=128 --set checkpoint_seconds=60 \
         --out "$dir" --quiet > "$dir.log" 2>&1 &
     done
   done
   wait
-  for log in /tmp/gpu_lanes/*/*.log; do echo "== $log"; tail -5 "$log"; done 2>&1 | tee "$OUT/gpu_lanes.txt"
-  tar czf "$OUT/gpu_lanes.tgz" -C /tmp --exclude='*.log' gpu_lanes
+  for log in "$LANES"/*/*.log; do echo "== $log"; tail -5 "$log"; done 2>&1 | tee "$OUT/gpu_lanes.txt"
+  tar czf "$OUT/gpu_lanes.tgz" -C "$LANES" --exclude='*.log' sip_heat_10k_gpu sip_poisson_10k_gpu
   echo "done after $(( $(date +%s) - START )) s" | tee -a "$OUT/versions.txt"
   exit 0
 fi
 
 RUN=/tmp/poisson_hig_gpu
 budget=$(( $(left) - 25 ))
-echo "poisson_hig hig: ${budget} s left for the run" | tee -a "$OUT/versions.txt"
 if [ "$WHAT" = poisson_hig ] && [ "$budget" -gt 60 ]; then
+  echo "poisson_hig hig: ${budget} s left for the run" | tee -a "$OUT/versions.txt"
   timeout -s TERM -k 20 "$budget" "$PY" -m physgrad compare poisson_hig --methods hig --seeds 1 \
     --steps 5000 --set eval_every=25 --set checkpoint_seconds=30 --out "$RUN" 2>&1 \
     | tail -40 | tee "$OUT/poisson_hig_gpu.txt"
+  tar czf "$OUT/poisson_hig_gpu.tgz" -C /tmp poisson_hig_gpu
 fi
-tar czf "$OUT/poisson_hig_gpu.tgz" -C /tmp poisson_hig_gpu 2>/dev/null
 echo "done after $(( $(date +%s) - START )) s" | tee -a "$OUT/versions.txt"

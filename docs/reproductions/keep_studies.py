@@ -49,7 +49,11 @@ def keep(source: Path, target: Path, runs: bool = False, packed: bool = False) -
             print(f"{rel}: not finished (no summary.csv), skipped")
             continue
         for name in STUDY_FILES:
-            if (study / name).exists():
+            if name == "results.csv" and not (study / name).exists() and (study / (name + ".gz")).exists():
+                (target / rel).mkdir(parents=True, exist_ok=True)  # a kept study kept again: its curves packed
+                copied.append(Path(shutil.copy2(study / (name + ".gz"), target / rel / (name + ".gz"))))
+                (target / rel / name).unlink(missing_ok=True)
+            elif (study / name).exists():
                 (target / rel).mkdir(parents=True, exist_ok=True)
                 if packed and name == "results.csv":
                     copied.append(pack(study / name, target / rel / (name + ".gz")))

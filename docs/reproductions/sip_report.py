@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from physgrad.harness.study import final_metric, load_studies, markdown, read_csv, study_section
+from physgrad.harness.study import final_metric, kept_path, load_studies, markdown, read_csv, study_section
 
 FIGURES = Path(__file__).parent / "figures"
 # the committed study-level files of its studies (keep_studies.py copies them there)
@@ -49,7 +49,7 @@ def problem_tables(root: Path):
 
 def toy(root: Path):
     """End points and the trajectory figure of the 2D toy (10 iterations from (3, 3))."""
-    path = root / "toy2d" / "results.csv"
+    path = kept_path(root / "toy2d" / "results.csv")  # or its gzipped copy
     if not path.exists():
         print("## 2D toy: no results yet\n")
         return

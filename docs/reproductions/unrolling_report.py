@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from physgrad.harness.stats import case_values, format_p, format_ratio, paired_tests, seed_means
-from physgrad.harness.study import collect, markdown, read_csv
+from physgrad.harness.study import collect, kept_path, markdown, read_csv
 
 FIGURES = Path(__file__).parent / "figures"
 # the committed study-level files of its studies (keep_studies.py copies them there)
@@ -46,7 +46,7 @@ def runs(cell: Path) -> list[dict]:
 def curve(cell: Path, method: str, metric: str, split: str = "test"):
     """{seed: (epochs, values)} of one method's evaluations."""
     out: dict[str, tuple[list, list]] = {}
-    if not (cell / "results.csv").exists():
+    if not kept_path(cell / "results.csv").exists():  # or its gzipped copy
         return out
     summary = {r["seed"]: r for r in runs(cell) if r["method"] == method}
     for r in read_csv(cell / "results.csv"):

@@ -88,6 +88,8 @@ STUDIES = {
     "kolmogorov_32": Study("kolmogorov", metric="rel_error", baseline="one", axis="steps"),
     "sip_heat_10k": Study("heat", metric="x_l1_clamped", axis="steps"),
     "sip_poisson_10k": Study("poisson", metric="x_l1", axis="steps"),
+    "sip_heat_10k_gpu": Study("heat", metric="x_l1_clamped", axis="steps"),
+    "sip_poisson_10k_gpu": Study("poisson", metric="x_l1", axis="steps"),
     # Kronecker-factored HIG's power ablation (−½, −¾, −1) against the long studies' HIG/Adam
     "khig_oscillators": Study("oscillators", baseline="hig", reference="oscillators_60min"),
     "khig_quantum_dipole": Study("quantum_dipole", baseline="hig", reference="quantum_dipole_90min"),

@@ -273,7 +273,8 @@ def kept_path(path: str | Path) -> Path:
 def read_csv(path: str | Path) -> list[dict[str, Any]]:  # str values; callers add numbers
     """The rows of a CSV file, or of its gzipped copy where only that exists (:func:`kept_path`)."""
     path = kept_path(path)
-    with gzip.open(path, "rt", newline="") if path.suffix == ".gz" else path.open(newline="") as f:
+    opener = gzip.open if path.suffix == ".gz" else open
+    with opener(path, "rt", encoding="utf-8", newline="") as f:
         return list(csv.DictReader(f))
 
 

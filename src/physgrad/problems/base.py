@@ -47,7 +47,9 @@ class AbstractProblem(eqx.Module):
       ``batch_groups(train) -> labels``: when shuffled, every batch holds samples of one
       label, the labels' batches interleaved at random (KS: one domain size per batch);
     - ``default_fresh_samples``: whether the paper trains on a stream of fresh samples
-      (True: every epoch after the first draws a new train split from ``make_data``).
+      (True: every epoch after the first draws a new train split from ``make_data``);
+    - ``fixed_samples``: True where the samples are what is trained (direct optimisation),
+      so the engine refuses fresh samples for it.
 
     All per-sample functions must be pure and traceable (vmap, jit, jacrev).
     """
