@@ -226,9 +226,10 @@ lane_kolmogorov_zero_grouped() {
 }
 # Claim 7 at the paper's size: 32² (128² reference), forcing mode 6, ONE / NOG / WIG with the paper's
 # unrolling curriculum (1, 2, 4 steps, 5 epochs each: 15 epochs ≈ 6,700 updates at batch 8);
-# at FAST_COMMIT ≈ 0.29 s per 4-step update on a shared core (0.6–1 s before the unrolled CPU
-# loops), ≈ 10 min per ONE run and ≈ 25 min per NOG/WIG run: 9 runs ≈ 3–4 h; the data (a 128²
-# reference run, ≈ 7 min) is generated once into the dataset cache.
+# at FAST_COMMIT on a loaded core ≈ 0.22 s per ONE update (ONE seed 0: 4,470 updates in 984 s)
+# and ≈ 0.29 s per 4-step update (0.6–1 s before the unrolled CPU loops): ≈ 25 min per ONE run,
+# ≈ 1 h per NOG/WIG run, 9 runs ≈ 5–7 h; the data (a 128² reference run, ≈ 7 min) is generated
+# once into the dataset cache.
 lane_kolmogorov() {
   fast
   lane_study kolmogorov_32 kolmogorov \
