@@ -113,8 +113,11 @@ def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("source", type=Path, help="directory holding study directories (e.g. studies/hig)")
     parser.add_argument("target", type=Path, help="where to keep them (e.g. docs/reproductions/data/short/hig)")
-    parser.add_argument("--runs", action="store_true", help="also keep each run's files but its checkpoint")
-    parser.add_argument("--gzip", action="store_true", help="keep results.csv gzipped (results.csv.gz)")
+    # not both: a sweep's report re-collects a cell that has runs, writing a plain results.csv
+    # beside the packed one
+    choice = parser.add_mutually_exclusive_group()
+    choice.add_argument("--runs", action="store_true", help="also keep each run's files but its checkpoint")
+    choice.add_argument("--gzip", action="store_true", help="keep results.csv gzipped (results.csv.gz)")
     args = parser.parse_args()
     copied = keep(args.source, args.target, args.runs, args.gzip)
     print(f"{len(copied)} files under {args.target}")
