@@ -81,8 +81,10 @@ def keep(source: Path, target: Path, runs: bool = False, packed: bool = False) -
 def pack(source: Path, target: Path) -> Path:
     """``source`` gzipped to ``target``, the same bytes for the same file (no name or time in
     the header), so that keeping a study again changes nothing in git."""
-    with target.open("wb") as raw, gzip.GzipFile(filename="", mode="wb", fileobj=raw, mtime=0) as out:
+    partial = target.with_name(target.name + ".partial")  # never a half-written copy in place
+    with partial.open("wb") as raw, gzip.GzipFile(filename="", mode="wb", fileobj=raw, mtime=0) as out:
         out.write(source.read_bytes())
+    partial.replace(target)
     return target
 
 
