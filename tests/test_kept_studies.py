@@ -161,3 +161,24 @@ def test_a_kept_bench_is_redrawn_from_its_files(kept, tmp_path, capsys):
         assert {m: (r["rank"], r["final_test_loss_median"]) for m, r in table.items()} == {
             m: (r["rank"], r["final_test_loss_median"]) for m, r in committed.items()}, problem  # fmt: skip
         assert any(r["rank"] == "1" for r in table.values()), problem
+
+
+def test_prune_removes_only_the_checkpoints_of_final_runs(tmp_path):
+    """long/prune.py: a finished or diverged run's checkpoint goes, a run in progress (no
+    summary, or one without its final losses) keeps its own, and nothing else is touched."""
+    spec = importlib.util.spec_from_file_location("prune", ROOT / "docs/reproductions/long/prune.py")
+    prune = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(prune)
+    runs = {
+        "finished": {"status": "finished", "final_test_loss": 0.1},
+        "diverged": {"status": "diverged"},
+        "running": {"status": "finished"},  # an older summary without its final losses
+        "fresh": None,  # no summary yet
+    }
+    for name, summary in runs.items():
+        _write(tmp_path / "study" / "adam" / "runs" / name / "checkpoint" / "state.eqx")
+        _write(tmp_path / "study" / "adam" / "runs" / name / "metrics.csv")
+        if summary is not None:
+            _write(tmp_path / "study" / "adam" / "runs" / name / "summary.json", json.dumps(summary))
+    found = prune.final_checkpoints(tmp_path)
+    assert [p.parent.name for p in found] == ["diverged", "finished"]

@@ -200,7 +200,9 @@ def with_reference(study: Path, data: dict) -> dict:
 
 def table(study: Path, cal) -> tuple[list[str], dict]:
     spec = study_of(study.name)
-    own = sorted(p.name for p in study.iterdir() if (p / "runs").is_dir())
+    # a method directory may be nested: a setting with a '/' (curriculum=1/2/4) made one
+    own = sorted(p.parent.relative_to(study).as_posix() for p in study.rglob("runs")
+                 if p.is_dir() and "runs" not in p.parent.relative_to(study).parts)  # fmt: skip
     data = with_reference(study, {m: runs(study, m) for m in own})
     methods = sorted(data)
     finals = {}
