@@ -182,3 +182,13 @@ def test_prune_removes_only_the_checkpoints_of_final_runs(tmp_path):
             _write(tmp_path / "study" / "adam" / "runs" / name / "summary.json", json.dumps(summary))
     found = prune.final_checkpoints(tmp_path)
     assert [p.parent.name for p in found] == ["diverged", "finished"]
+    # --pack: a final run's metrics.csv gzipped; physgrad reads the packed copy back
+    from physgrad.engine import read_metrics
+
+    run = tmp_path / "study" / "adam" / "runs" / "finished"
+    (run / "metrics.csv").write_text("step,wall_time,split,metric,value\n0,0.0,test,loss,2.5\n10,1.5,test,loss,0.5\n")
+    before = read_metrics(run / "metrics.csv")
+    prune.pack_metrics(run)
+    assert (run / "metrics.csv.gz").exists() and not (run / "metrics.csv").exists()
+    assert read_metrics(run / "metrics.csv") == before
+    assert [r["value"] for r in before] == [2.5, 0.5]

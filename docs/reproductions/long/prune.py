@@ -7,22 +7,29 @@ from its summary alone, and ``long/report.py`` and ``sign_mask.py`` read ``metri
 ``summary.json``, ``config.json`` and ``params.eqx``. The checkpoints were a third of the
 committed tree, which must stay small enough to travel to a lent GPU machine (64 MiB).
 
-    python docs/reproductions/long/prune.py [--dry-run]
+    python docs/reproductions/long/prune.py [--dry-run] [--pack STUDY ...]
 
 deletes ``checkpoint/`` of every final run under docs/reproductions/data (runs in progress
-keep theirs) and prints what it removed; commit the deletions with the lane data.
+keep theirs), prints what it removed and the size of the committed tree against that limit;
+commit the deletions with the lane data. ``--pack`` also gzips the final runs' ``metrics.csv``
+(to ``metrics.csv.gz``, ≈ 5× smaller) in the named studies: only for a study whose lane is
+done, since a lane at a physgrad older than the packed-file reader could not re-collect them
+(physgrad's ``read_metrics`` and ``long/report.py`` read the packed copy).
 """
 
 from __future__ import annotations
 
 import argparse
+import gzip
 import json
 import shutil
+import subprocess
 from pathlib import Path
 
 from physgrad.engine.recording import is_final
 
 DATA = Path(__file__).resolve().parent.parent / "data"
+LIMIT = 64 * 2**20  # the working tree a lent GPU machine accepts
 
 
 def final_checkpoints(root: Path) -> list[Path]:
@@ -35,10 +42,43 @@ def final_checkpoints(root: Path) -> list[Path]:
     return found
 
 
+def final_runs(root: Path) -> list[Path]:
+    """The run directories under ``root`` whose summary is final."""
+    return [s.parent for s in sorted(root.rglob("summary.json")) if is_final(json.loads(s.read_text()))]
+
+
+def pack_metrics(run: Path) -> int:
+    """Gzip ``run/metrics.csv`` to ``metrics.csv.gz`` (no name or time in the header, so the
+    same bytes every time) and remove the plain copy; the bytes saved."""
+    plain, packed = run / "metrics.csv", run / "metrics.csv.gz"
+    if not plain.exists():
+        return 0
+    partial = packed.with_name(packed.name + ".partial")
+    with partial.open("wb") as raw, gzip.GzipFile(filename="", mode="wb", fileobj=raw, mtime=0) as out:
+        out.write(plain.read_bytes())
+    partial.replace(packed)
+    saved = plain.stat().st_size - packed.stat().st_size
+    plain.unlink()
+    return saved
+
+
+def tracked_bytes(root: Path) -> int | None:
+    """The size of the files git tracks in the checkout holding ``root`` (None without git)."""
+    try:
+        top = subprocess.run(["git", "rev-parse", "--show-toplevel"], cwd=root, capture_output=True, check=True)
+        base = Path(top.stdout.decode().strip())
+        names = subprocess.run(["git", "ls-files", "-z"], cwd=base, capture_output=True, check=True).stdout
+    except (OSError, subprocess.CalledProcessError):
+        return None
+    return sum((base / n).stat().st_size for n in names.decode().split("\0") if n and (base / n).is_file())
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--root", type=Path, default=DATA, help="where the run directories are (default: the data)")
     parser.add_argument("--dry-run", action="store_true", help="list what would go, remove nothing")
+    parser.add_argument("--pack", nargs="+", default=[], metavar="STUDY",
+                        help="also gzip the final runs' metrics.csv in these (finished) studies")  # fmt: skip
     args = parser.parse_args()
     total = 0
     for checkpoint in final_checkpoints(args.root):
@@ -48,6 +88,18 @@ def main():
             shutil.rmtree(checkpoint)
         print(f"{'would remove' if args.dry_run else 'removed'} {checkpoint.relative_to(args.root)} ({size / 1e3:.0f} kB)")
     print(f"{total / 2**20:.1f} MiB of final runs' checkpoints {'to remove' if args.dry_run else 'removed'}")
+    saved = 0
+    for study in args.pack:
+        if not (args.root / study).is_dir():
+            raise SystemExit(f"no study {study!r} under {args.root}")
+        for run in final_runs(args.root / study):
+            saved += 0 if args.dry_run else pack_metrics(run)
+    if args.pack and not args.dry_run:
+        print(f"{saved / 2**20:.1f} MiB saved by packing metrics.csv in {', '.join(args.pack)}")
+    size = tracked_bytes(args.root)
+    if size is not None:
+        note = "" if size < LIMIT - 8 * 2**20 else " -- near the limit: prune or pack more before a GPU session"
+        print(f"tracked files: {size / 2**20:.1f} MiB of the {LIMIT / 2**20:.0f} MiB a GPU machine accepts{note}")
 
 
 if __name__ == "__main__":

@@ -18,6 +18,7 @@ ask for log–log axes (Poisson, as the authors plot it).
 from __future__ import annotations
 
 import csv
+import gzip
 import json
 import math
 import sys
@@ -145,9 +146,11 @@ def runs(study: Path, method: str) -> list[dict]:
     out = []
     for run in sorted((study / method / "runs").glob("*-seed*")):
         metrics = run / "metrics.csv"
-        if not metrics.exists():
+        packed = run / "metrics.csv.gz"  # a final run's curves packed by prune.py --pack
+        if not metrics.exists() and not packed.exists():
             continue
-        rows = [r for r in csv.DictReader(metrics.open()) if r["split"] == "test" and r["metric"] == metric]
+        with gzip.open(packed, "rt") if not metrics.exists() else metrics.open() as f:
+            rows = [r for r in csv.DictReader(f) if r["split"] == "test" and r["metric"] == metric]
         summary = json.loads((run / "summary.json").read_text()) if (run / "summary.json").exists() else None
         config = json.loads((run / "config.json").read_text())
         out.append({

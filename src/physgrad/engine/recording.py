@@ -15,6 +15,7 @@ from __future__ import annotations
 import contextlib
 import csv
 import dataclasses
+import gzip
 import io
 import json
 import math
@@ -340,8 +341,12 @@ def write_json(path: Path, data: dict[str, Any]):
 
 
 def read_metrics(path: Path) -> list[dict[str, Any]]:
-    """``metrics.csv`` as a list of typed rows."""
-    with Path(path).open() as f:
+    """``metrics.csv`` as a list of typed rows (from its gzipped copy ``metrics.csv.gz`` where
+    only that exists: a finished run's curves kept small, docs/reproductions/long/prune.py)."""
+    path = Path(path)
+    packed = path.with_name(path.name + ".gz")
+    opener = gzip.open if not path.exists() and packed.exists() else open
+    with opener(packed if opener is gzip.open else path, "rt", newline="") as f:
         return [
             {"step": int(r["step"]), "wall_time": float(r["wall_time"]), "split": r["split"], "metric": r["metric"],
              "value": float(r["value"])}
