@@ -18,7 +18,6 @@ ask for log–log axes (Poisson, as the authors plot it).
 from __future__ import annotations
 
 import csv
-import gzip
 import json
 import math
 import sys
@@ -30,6 +29,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
+from physgrad.engine.recording import kept_path, read_metrics  # noqa: E402
 
 HERE = Path(__file__).resolve().parent
 DATA = HERE.parent / "data"
@@ -145,12 +145,10 @@ def runs(study: Path, method: str) -> list[dict]:
     metric = study_of(study.name).metric
     out = []
     for run in sorted((study / method / "runs").glob("*-seed*")):
-        metrics = run / "metrics.csv"
-        packed = run / "metrics.csv.gz"  # a final run's curves packed by prune.py --pack
-        if not metrics.exists() and not packed.exists():
+        metrics = run / "metrics.csv"  # or its copy packed by prune.py --pack
+        if not kept_path(metrics).exists():
             continue
-        with gzip.open(packed, "rt") if not metrics.exists() else metrics.open() as f:
-            rows = [r for r in csv.DictReader(f) if r["split"] == "test" and r["metric"] == metric]
+        rows = [r for r in read_metrics(metrics) if r["split"] == "test" and r["metric"] == metric]
         summary = json.loads((run / "summary.json").read_text()) if (run / "summary.json").exists() else None
         config = json.loads((run / "config.json").read_text())
         out.append({

@@ -340,13 +340,20 @@ def write_json(path: Path, data: dict[str, Any]):
     rundir.atomic_write(path, rundir.json_text(data))
 
 
-def read_metrics(path: Path) -> list[dict[str, Any]]:
-    """``metrics.csv`` as a list of typed rows (from its gzipped copy ``metrics.csv.gz`` where
-    only that exists: a finished run's curves kept small, docs/reproductions/long/prune.py)."""
+def kept_path(path: str | Path) -> Path:
+    """``path``, or its gzipped copy ``path.gz`` where only that exists (kept results and
+    finished runs' curves are committed compressed: docs/reproductions/keep_studies.py
+    --gzip, docs/reproductions/long/prune.py --pack)."""
     path = Path(path)
     packed = path.with_name(path.name + ".gz")
-    opener = gzip.open if not path.exists() and packed.exists() else open
-    with opener(packed if opener is gzip.open else path, "rt", newline="") as f:
+    return packed if not path.exists() and packed.exists() else path
+
+
+def read_metrics(path: Path) -> list[dict[str, Any]]:
+    """``metrics.csv`` as a list of typed rows (from its gzipped copy where only that exists:
+    :func:`kept_path`)."""
+    path = kept_path(path)
+    with (gzip.open if path.suffix == ".gz" else open)(path, "rt", newline="") as f:
         return [
             {"step": int(r["step"]), "wall_time": float(r["wall_time"]), "split": r["split"], "metric": r["metric"],
              "value": float(r["value"])}

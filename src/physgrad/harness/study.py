@@ -24,6 +24,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from .. import rundir
+from ..engine.recording import kept_path
 from ..errors import ConfigError
 from ..progress import AbstractProgressMeter
 from .config import Budget, RunConfig, choose, make_config, method_slug, parse_method, phase_methods, valid_settings
@@ -260,14 +261,6 @@ def write_csv(path: Path, columns: Sequence[str], rows: list[dict[str, Any]]):
     writer.writeheader()
     writer.writerows(rows)
     rundir.atomic_write(path, text.getvalue())
-
-
-def kept_path(path: str | Path) -> Path:
-    """``path``, or its gzipped copy ``path.gz`` where only that exists (a kept study's large
-    ``results.csv`` is committed compressed: docs/reproductions/keep_studies.py --gzip)."""
-    path = Path(path)
-    packed = path.with_name(path.name + ".gz")
-    return packed if not path.exists() and packed.exists() else path
 
 
 def read_csv(path: str | Path) -> list[dict[str, Any]]:  # str values; callers add numbers
