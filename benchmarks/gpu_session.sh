@@ -63,7 +63,7 @@ if [ "$WHAT" = sip ]; then
       dir=$LANES/$study/$method
       mkdir -p "$dir"
       if [ -d "$KEEP/$study/$method" ]; then cp -r "$KEEP/$study/$method/." "$dir/"; fi
-      timeout -s TERM -k 15 "$budget" "$PY" -m physgrad compare "$problem" --methods "$method" --seeds 1 \
+      timeout -s TERM -k 15 "$budget" "$PY" -m physgrad compare "$problem" --methods "$method" --seeds "${SEEDS:-1}" \
         --steps 10000 --set eval_every=250 --set eval_samples=128 --set checkpoint_seconds=60 \
         --out "$dir" --quiet > "$dir.log" 2>&1 &
     done
