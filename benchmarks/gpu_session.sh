@@ -13,9 +13,11 @@
 #    resumes with the same command (the budget is a step count, so the curve is step-indexed
 #    and machine-free). Ran once on an H200 (4,950 updates; docs/reproductions/data/poisson_hig_b64_gpu).
 # 4. WHAT=sip (the default): the SIP paper's 10,000-step heat and Poisson 64x64 runs (long
-#    rows 5 and 6; ≈ 15 h per run on a CPU core), SIP and Adam, seed 0 only (2 of each
-#    study's 6 runs), four processes at once on the one GPU, each stopped by SIGTERM before
-#    the time is up (a checkpoint every 60 s). physgrad runs at the checkout's commit (the CPU
+#    rows 5 and 6; ≈ 15 h per run on a CPU core), SIP and Adam, seeds 0..SEEDS-1 (SEEDS=1
+#    by default), four processes at once on the one GPU, each stopped by SIGTERM before
+#    the time is up (a checkpoint every 60 s). On an H200 one 10,000-step run takes
+#    ≈ 130-180 s with four processes sharing the GPU: SEEDS=3 finishes all 12 runs in
+#    ≈ 10 min of runs (two calls; done 2026-11-27, the committed directories are final). physgrad runs at the checkout's commit (the CPU
 #    lanes of long/studies.sh pin FAST_COMMIT; the U-Net step is the same). The runs resume
 #    from docs/reproductions/data/sip_{heat,poisson}_10k_gpu when the checkout holds them,
 #    and everything comes back as gpu_lanes.tgz in OUT: copy it to the checkout, unpack it
