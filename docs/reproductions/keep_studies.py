@@ -25,10 +25,11 @@ reads either.
 from __future__ import annotations
 
 import argparse
-import gzip
 import json
 import shutil
 from pathlib import Path
+
+from physgrad.engine.recording import pack_file
 
 STUDY_FILES = (
     "summary.csv", "results.csv", "study.json", "calibration.json", "calibration.csv",
@@ -56,7 +57,7 @@ def keep(source: Path, target: Path, runs: bool = False, packed: bool = False) -
             elif (study / name).exists():
                 (target / rel).mkdir(parents=True, exist_ok=True)
                 if packed and name == "results.csv":
-                    copied.append(pack(study / name, target / rel / (name + ".gz")))
+                    copied.append(pack_file(study / name, target / rel / (name + ".gz")))
                     (target / rel / name).unlink(missing_ok=True)  # one copy of the curves
                 else:
                     copied.append(Path(shutil.copy2(study / name, target / rel / name)))
@@ -76,16 +77,6 @@ def keep(source: Path, target: Path, runs: bool = False, packed: bool = False) -
         (target / rel.parent).mkdir(parents=True, exist_ok=True)
         copied.append(keep_bench(info, target / rel))
     return copied
-
-
-def pack(source: Path, target: Path) -> Path:
-    """``source`` gzipped to ``target``, the same bytes for the same file (no name or time in
-    the header), so that keeping a study again changes nothing in git."""
-    partial = target.with_name(target.name + ".partial")  # never a half-written copy in place
-    with partial.open("wb") as raw, gzip.GzipFile(filename="", mode="wb", fileobj=raw, mtime=0) as out:
-        out.write(source.read_bytes())
-    partial.replace(target)
-    return target
 
 
 def keep_bench(source: Path, target: Path) -> Path:

@@ -20,13 +20,12 @@ done, since a lane at a physgrad older than the packed-file reader could not re-
 from __future__ import annotations
 
 import argparse
-import gzip
 import json
 import shutil
 import subprocess
 from pathlib import Path
 
-from physgrad.engine.recording import is_final
+from physgrad.engine.recording import is_final, pack_file
 
 DATA = Path(__file__).resolve().parent.parent / "data"
 LIMIT = 64 * 2**20  # the working tree a lent GPU machine accepts
@@ -53,10 +52,7 @@ def pack_metrics(run: Path) -> int:
     plain, packed = run / "metrics.csv", run / "metrics.csv.gz"
     if not plain.exists():
         return 0
-    partial = packed.with_name(packed.name + ".partial")
-    with partial.open("wb") as raw, gzip.GzipFile(filename="", mode="wb", fileobj=raw, mtime=0) as out:
-        out.write(plain.read_bytes())
-    partial.replace(packed)
+    pack_file(plain, packed)
     saved = plain.stat().st_size - packed.stat().st_size
     plain.unlink()
     return saved
@@ -86,7 +82,9 @@ def main():
         total += size
         if not args.dry_run:
             shutil.rmtree(checkpoint)
-        print(f"{'would remove' if args.dry_run else 'removed'} {checkpoint.relative_to(args.root)} ({size / 1e3:.0f} kB)")
+        print(
+            f"{'would remove' if args.dry_run else 'removed'} {checkpoint.relative_to(args.root)} ({size / 1e3:.0f} kB)"
+        )
     print(f"{total / 2**20:.1f} MiB of final runs' checkpoints {'to remove' if args.dry_run else 'removed'}")
     saved = 0
     for study in args.pack:
