@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # One prepared GPU session: what a CPU cannot reach, in a fixed time budget.
 #
-#   OUT=/some/dir bash benchmarks/gpu_session.sh [TOTAL_SECONDS] [WHAT]   (default 500 sip)
+#   OUT=/some/dir bash benchmarks/gpu_session.sh [TOTAL_SECONDS] [WHAT]   (default 500 stable_bptt)
 #
 # 1. versions and the device;
 # 2. WHAT=steps (or poisson_hig): step times on the GPU, back to back in one process
@@ -12,7 +12,7 @@
 #    SIGTERM, which checkpoints; the run directory comes back as poisson_hig_gpu.tgz and
 #    resumes with the same command (the budget is a step count, so the curve is step-indexed
 #    and machine-free). Ran once on an H200 (4,950 updates; docs/reproductions/data/poisson_hig_b64_gpu).
-# 4. WHAT=sip (the default): the SIP paper's 10,000-step heat and Poisson 64x64 runs (long
+# 4. WHAT=sip: the SIP paper's 10,000-step heat and Poisson 64x64 runs (long
 #    rows 5 and 6; ≈ 15 h per run on a CPU core), SIP and Adam, seeds 0..SEEDS-1 (SEEDS=1
 #    by default), four processes at once on the one GPU, each stopped by SIGTERM before
 #    the time is up (a checkpoint every 60 s). On an H200 one 10,000-step run takes
@@ -24,13 +24,26 @@
 #    with `tar xzf gpu_lanes.tgz -C docs/reproductions/data`, commit, and draw it with
 #    `python docs/reproductions/long/report.py sip_heat_10k_gpu sip_poisson_10k_gpu`;
 #    the next GPU session goes on from there.
+# 5. WHAT=stable_bptt: the StableBPTT sweeps (docs/reproductions/stable_bptt_runs.sh's cells)
+#    on the machine's CPU cores, not its GPU (batch-8 rollouts of a few hundred parameters:
+#    the many small runs are what a 2-core machine cannot get through, not their size). One
+#    job per (sweep cell, method), 3 seeds each, one thread per job, as many jobs at once as
+#    the machine has cores, longest first; TASKS picks the sweeps (default "cartpole"; also
+#    quantum, cartpole_long, quantum_long). Every job is stopped by SIGTERM before the time
+#    is up (a run in progress checkpoints), and the run directories come back without their
+#    checkpoints as stable_bptt_gpu.tgz: unpack it with `tar xzf stable_bptt_gpu.tgz -C
+#    /work/lanes/stable_bptt_gpu` and run the sweep's whole grid there (`OUT=/work/lanes/
+#    stable_bptt_gpu bash docs/reproductions/stable_bptt_runs.sh TASK`): it skips every finished
+#    run, trains any the GPU machine did not finish and records the grid; then keep it with
+#    keep_studies.py --gzip. Estimated: cartpole 48 jobs × ≈ 3 core-min, quantum 36 × ≈ 4.5,
+#    cartpole_long 4 × ≈ 15, quantum_long 3 × ≈ 20 (one-core times measured on the 2-core machine).
 #
 # physgrad runs from src/ against the machine's own jax (no install: the GPU machine has no
 # network). kfac-jax is absent there, so K-FAC is left out of the step benchmark.
 set -uo pipefail
 TOTAL=${1:-500}
-WHAT=${2:-sip}
-case "$WHAT" in steps|poisson_hig|sip) ;; *) echo "unknown WHAT $WHAT; valid: steps, poisson_hig, sip" >&2; exit 2 ;; esac
+WHAT=${2:-stable_bptt}
+case "$WHAT" in steps|poisson_hig|sip|stable_bptt) ;; *) echo "unknown WHAT $WHAT; valid: steps, poisson_hig, sip, stable_bptt" >&2; exit 2 ;; esac
 START=$(date +%s)
 OUT=${OUT:?set OUT to a directory for the results}
 PY=${PY:-python3}
@@ -43,6 +56,56 @@ left() { echo $((TOTAL - ($(date +%s) - START))); }
   nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader
   "$PY" -c "import jax, equinox, optax, lineax, physgrad; print('jax', jax.__version__, 'equinox', equinox.__version__, 'optax', optax.__version__, 'lineax', lineax.__version__, 'physgrad', physgrad.__version__, jax.devices())"
 } 2>&1 | tee "$OUT/versions.txt"
+
+if [ "$WHAT" = stable_bptt ]; then
+  SB=/tmp/stable_bptt_gpu
+  mkdir -p "$SB/parts" "$SB/sweeps"
+  budget=$(( $(left) - 60 ))  # SIGTERM, up to 20 s to checkpoint, the tarball
+  echo "stable_bptt ${TASKS:-cartpole}: ${budget} s for the jobs on $(nproc) cores" | tee -a "$OUT/versions.txt"
+  [ "$budget" -gt 60 ] || { echo "too little time left for the sweeps" | tee -a "$OUT/versions.txt"; exit 1; }
+  M4=bptt,sbptt_m,sbptt_c,no_temporal
+  jobs=$SB/jobs.txt; : > "$jobs"
+  # one line per job: cost (core-min, for the order), problem, out, epochs, method, cell settings
+  for task in ${TASKS:-cartpole}; do
+    case "$task" in
+      cartpole) for c in value norm none; do for p in 1 2 3 4; do for m in ${M4//,/ }; do
+        echo "3 cartpole cartpole ${EPOCHS_CARTPOLE:-200} $m poles=$p, clip=$c,"; done; done; done ;;
+      quantum) for c in value norm none; do for e in 3 4 5; do for m in ${M4//,/ }; do
+        echo "4.5 quantum_control quantum_control ${EPOCHS_QUANTUM:-60} $m eigenstate=$e, clip=$c,"; done; done; done ;;
+      cartpole_long) for c in value norm; do for m in bptt sbptt_c; do
+        echo "15 cartpole cartpole-1000ep ${EPOCHS_LONG:-1000} $m poles=4, clip=$c,"; done; done ;;
+      quantum_long) for m in bptt sbptt_m sbptt_c; do
+        echo "20 quantum_control quantum_control-250ep ${EPOCHS_LONG:-250} $m eigenstate=5, clip=norm,"; done ;;
+      *) echo "unknown task $task; valid: cartpole, quantum, cartpole_long, quantum_long" >&2; exit 2 ;;
+    esac
+  done | sort -rn -s -k1,1 > "$jobs"
+  echo "$(wc -l < "$jobs") jobs" | tee -a "$OUT/versions.txt"
+  DEADLINE=$(( $(date +%s) + budget ))
+  export PY SB DEADLINE
+  # shellcheck disable=SC2016
+  JAX_PLATFORMS=cpu xargs -P "$(nproc)" -L 1 bash -c '
+    problem=$1 out=$2 epochs=$3 method=$4 a=$5 b=$6
+    part="$SB/parts/$out.$method.${a//[=,]/}.${b//[=,]/}"  # a sweep directory is locked: one per job
+    rest=$(( DEADLINE - $(date +%s) ))  # a job that starts late gets what is left, not the whole budget
+    [ "$rest" -gt 30 ] || { echo "$out $method $a $b: not started (no time left)"; exit 0; }
+    timeout -s TERM -k 20 "$rest" "$PY" -m physgrad compare "$problem" --methods "$method" --seeds 3 \
+      --epochs "$epochs" --set "$a" --set "$b" --threads 1 --out "$part" --quiet > "$part.log" 2>&1
+    echo "$out $method $a $b: rc $? after $SECONDS s"' _ < <(cut -d" " -f2- "$jobs") | tee "$OUT/stable_bptt_jobs.txt"
+  # the jobs' runs gathered into each sweep's cells, as stable_bptt_runs.sh lays them out
+  for part in "$SB"/parts/*/; do
+    out=$(basename "$part"); out=${out%%.*}
+    for cell in "$part"*/; do
+      [ -d "$cell/runs" ] || continue
+      mkdir -p "$SB/sweeps/$out/$(basename "$cell")/runs" && mv "$cell"runs/* "$SB/sweeps/$out/$(basename "$cell")/runs/"
+    done
+  done
+  finished=$(grep -l '"finished"\|"diverged"' "$SB"/sweeps/*/*/runs/*/summary.json 2>/dev/null | wc -l)
+  echo "runs finished or diverged: $finished" | tee -a "$OUT/versions.txt"
+  tar czf "$OUT/stable_bptt_gpu.tgz" -C "$SB/sweeps" --exclude=checkpoint .
+  (cd "$SB" && tar czf "$OUT/stable_bptt_logs.tgz" parts/*.log)
+  echo "done after $(( $(date +%s) - START )) s" | tee -a "$OUT/versions.txt"
+  exit 0
+fi
 
 if [ "$WHAT" != sip ]; then
 timeout 120 "$PY" benchmarks/hig_step.py --problems oscillators,poisson_hig --routes gram,structured \

@@ -20,6 +20,9 @@
 # epochs for R and C (it ran beside the quantum lanes on core 1); `quantum_long` runs the
 # hardest quantum target for 250 epochs (it ran as two lanes, METHODS_LONG=sbptt_c and
 # METHODS_LONG=bptt,sbptt_m, then once with all three to record the study).
+# On a lent GPU machine `OUT=… bash benchmarks/gpu_session.sh 500 stable_bptt` runs these
+# cells on its 16 CPU cores, one job per (cell, method); its runs are gathered here by
+# running the lane with OUT set to where they were unpacked (finished runs are skipped).
 set -euo pipefail
 PG=${PHYSGRAD:-physgrad}
 OUT=${OUT:-studies/stable_bptt}
