@@ -86,6 +86,7 @@ STUDIES = {
     "kolmogorov_zero_init": Study("kolmogorov", metric="rel_error", baseline="nog", axis="steps"),
     "kolmogorov_zero_init_grouped": Study("kolmogorov", metric="rel_error", baseline="nog", axis="steps"),
     "ks_correction_20ep_grouped": Study("ks", metric="rel_error", baseline="one", axis="steps"),
+    "ks_prediction_20ep_grouped": Study("ks", metric="rel_error", baseline="one", axis="steps"),
     "kolmogorov_32": Study("kolmogorov", metric="rel_error", baseline="one", axis="steps"),
     "sip_heat_10k": Study("heat", metric="x_l1_clamped", axis="steps"),
     "sip_poisson_10k": Study("poisson", metric="x_l1", axis="steps"),
