@@ -17,7 +17,7 @@
 #   bash docs/reproductions/long/studies.sh [lane ...]      # default: oscillators dipole
 # Lanes: oscillators, dipole, poisson (HIG, core 0); navier_stokes, dipole_screen, dipole_screen_cheap,
 # quantum_control, quantum_control_clip, guidance, ks_screen, ks_screen_shuffled, ks_screen_grouped, u1_screen_grouped,
-# kolmogorov_screen_grouped, ks, kolmogorov_zero, kolmogorov_zero_grouped, kolmogorov, heat, sip_poisson, khig_oscillators,
+# kolmogorov_screen_grouped, ks, ks_prediction, kolmogorov_zero, kolmogorov_zero_grouped, kolmogorov, heat, sip_poisson, khig_oscillators,
 # khig_quantum_dipole (core 1: CORE=1).
 # Environment: CORE (default 0), SEEDS (default 3: grow every lane to this many seeds), STUDY_COMMIT,
 # LATE_COMMIT, PY (python of an env with physgrad's deps).
@@ -49,13 +49,14 @@ use_commit() {
 # an interrupted lane always has the same seeds for every method
 # usage: lane_study STUDY PROBLEM "method@steps@eval_every[@name=value...] ..." [--set ...]
 # (a method may be a sequence such as adam:1413,hig; its directory name is the spec's method
-# with ':' and ',' replaced by '-', plus the optional setting, e.g. sip-lr0001 for lr=0.001)
+# with ':' and ',' replaced by '-', plus the optional setting without '=', '.', '@', ',' and
+# '/', e.g. sip-lr0001 for lr=0.001, nog-nogcurriculum124nogstage_epochs5)
 lane_study() {
   local study=$1 problem=$2 specs=$3; shift 3
   for k in $(seq 1 "${SEEDS:-3}"); do
     for spec in $specs; do
       IFS=@ read -r method steps every extra <<<"$spec"
-      local dir="${method//[:,]/-}${extra:+-${extra//[=.@,]/}}" sets=() e
+      local dir="${method//[:,]/-}${extra:+-${extra//[=.@,\/]/}}" sets=() e
       for e in ${extra//@/ }; do sets+=(--set "$e"); done
       pg compare "$problem" --methods "$method" --seeds "$k" --steps "$steps" \
         --set eval_every="$every" "${sets[@]}" "$@" --out "$DATA/$study/$dir" --quiet
@@ -150,6 +151,12 @@ lane_ks() {
   fast
   lane_study ks_correction_20ep_grouped ks "one@56160@2808 nog@56160@2808 wig@56160@2808" --set setup=correction
 }
+# The same in the prediction setup, seed 0 (SEEDS=1): our correction errors are 12-15x below the
+# blog's 20-epoch table, which names no setup; its ONE matches our prediction ONE (unrolling.md).
+lane_ks_prediction() {
+  fast
+  SEEDS=1 lane_study ks_prediction_20ep_grouped ks "one@56160@2808 nog@56160@2808 wig@56160@2808" --set setup=prediction
+}
 # Claim 2 after the scale fix, a screen before the 20-epoch lane: ONE / NOG / WIG correction at
 # 2 epochs (5,616 updates), evaluated after each epoch; ≈ 8–10 min per run on one core, 9 runs.
 lane_ks_screen() {
@@ -203,7 +210,9 @@ lane_khig_quantum_dipole() {
   lane_study khig_quantum_dipole quantum_dipole "khig@7266@727@power=-0.5 khig@7266@727@power=-0.75 khig@7266@727@power=-1"
 }
 # Claims 5 and 6, SIP Fig. 6: heat and Poisson 64², SIP vs Adam for the paper's 10,000 steps, test
-# x-error on 128 samples every 250 steps; ≈ 1.7–2 s per SIP step on one core: ≈ 5 h per run.
+# x-error on 128 samples every 250 steps; ≈ 5–6 s per U-Net step on a shared core: ≈ 15 h per run.
+# Done instead on a lent H200 (benchmarks/gpu_session.sh sip, 3 seeds, data/sip_*_10k_gpu); these
+# CPU lanes are kept for a machine without one.
 # At FAST_COMMIT (below): fresh samples every epoch as the authors draw them (issue 32 item 6), and
 # the U-Net's step dispatched without the chunked loop (10x faster on a CPU than at 4a90e34-7a671bf^).
 lane_heat() { fast; lane_study sip_heat_10k heat "sip@10000@250 adam@10000@250" --set eval_samples=128; }
