@@ -151,7 +151,7 @@ lane_ks() {
   fast
   lane_study ks_correction_20ep_grouped ks "one@56160@2808 nog@56160@2808 wig@56160@2808" --set setup=correction
 }
-# The same in the prediction setup, seed 0 (SEEDS=1): our correction errors are 12-15x below the
+# The same in the prediction setup, seed 0 (SEEDS=1): our correction errors are 11-14x below the
 # blog's 20-epoch table, which names no setup; its ONE matches our prediction ONE (unrolling.md).
 lane_ks_prediction() {
   fast

@@ -351,14 +351,14 @@ def kept_path(path: str | Path) -> Path:
 
 def pack_file(source: str | Path, target: str | Path) -> Path:
     """``source`` gzipped to ``target``, the same bytes for the same file: no name or time in
-    the gzip header, so that packing a kept file again changes nothing in git. Written to a
-    partial file first, so ``target`` is never half-written. :func:`kept_path` finds it."""
-    source, target = Path(source), Path(target)
-    partial = target.with_name(target.name + ".partial")
-    with partial.open("wb") as raw, gzip.GzipFile(filename="", mode="wb", fileobj=raw, mtime=0) as out:
-        out.write(source.read_bytes())
-    partial.replace(target)
-    return target
+    the gzip header, so that packing a kept file again changes nothing in git. Written all at
+    once (:func:`physgrad.rundir.atomic_write`), so ``target`` is never half-written;
+    :func:`kept_path` finds it."""
+    packed = io.BytesIO()
+    with gzip.GzipFile(filename="", mode="wb", fileobj=packed, mtime=0) as out:
+        out.write(Path(source).read_bytes())
+    rundir.atomic_write(target, packed.getvalue())
+    return Path(target)
 
 
 def read_metrics(path: Path) -> list[dict[str, Any]]:
