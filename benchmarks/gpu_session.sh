@@ -29,8 +29,9 @@
 #    the many small runs are what a 2-core machine cannot get through, not their size). One
 #    job per (sweep cell, method), 3 seeds each, one thread per job, as many jobs at once as
 #    the machine has cores, longest first; TASKS picks the sweeps (default "cartpole"; also
-#    quantum, cartpole_long, quantum_long). Every job is stopped by SIGTERM before the time
-#    is up (a run in progress checkpoints), and the run directories come back without their
+#    guidance, quantum, cartpole_long, quantum_long; `bash docs/reproductions/
+#    stable_bptt_runs.sh cells TASK...` lists their jobs). Every job is stopped by SIGTERM
+#    before the time is up (a run in progress checkpoints), and the run directories come back without their
 #    checkpoints as stable_bptt_gpu.tgz: unpack it with `tar xzf stable_bptt_gpu.tgz -C
 #    /work/lanes/stable_bptt_gpu` and run the sweep's whole grid there (`OUT=/work/lanes/
 #    stable_bptt_gpu bash docs/reproductions/stable_bptt_runs.sh TASK`): it skips every finished
@@ -63,22 +64,12 @@ if [ "$WHAT" = stable_bptt ]; then
   budget=$(( $(left) - 60 ))  # SIGTERM, up to 20 s to checkpoint, the tarball
   echo "stable_bptt ${TASKS:-cartpole}: ${budget} s for the jobs on $(nproc) cores" | tee -a "$OUT/versions.txt"
   [ "$budget" -gt 60 ] || { echo "too little time left for the sweeps" | tee -a "$OUT/versions.txt"; exit 1; }
-  M4=bptt,sbptt_m,sbptt_c,no_temporal
-  jobs=$SB/jobs.txt; : > "$jobs"
-  # one line per job: cost (core-min, for the order), problem, out, epochs, method, cell settings
-  for task in ${TASKS:-cartpole}; do
-    case "$task" in
-      cartpole) for c in value norm none; do for p in 1 2 3 4; do for m in ${M4//,/ }; do
-        echo "3 cartpole cartpole ${EPOCHS_CARTPOLE:-200} $m poles=$p, clip=$c,"; done; done; done ;;
-      quantum) for c in value norm none; do for e in 3 4 5; do for m in ${M4//,/ }; do
-        echo "4.5 quantum_control quantum_control ${EPOCHS_QUANTUM:-60} $m eigenstate=$e, clip=$c,"; done; done; done ;;
-      cartpole_long) for c in value norm; do for m in bptt sbptt_c; do
-        echo "15 cartpole cartpole-1000ep ${EPOCHS_LONG:-1000} $m poles=4, clip=$c,"; done; done ;;
-      quantum_long) for m in bptt sbptt_m sbptt_c; do
-        echo "20 quantum_control quantum_control-250ep ${EPOCHS_LONG:-250} $m eigenstate=5, clip=norm,"; done ;;
-      *) echo "unknown task $task; valid: cartpole, quantum, cartpole_long, quantum_long" >&2; exit 2 ;;
-    esac
-  done | sort -rn -s -k1,1 > "$jobs"
+  jobs=$SB/jobs.txt
+  # one line per job: cost (core-min, for the order), problem, out, epochs, method, cell
+  # settings -- the sweeps' own cells, from the script that owns them
+  # shellcheck disable=SC2086
+  bash docs/reproductions/stable_bptt_runs.sh cells ${TASKS:-cartpole} > "$jobs.unsorted" || exit 2
+  sort -rn -s -k1,1 "$jobs.unsorted" > "$jobs"
   echo "$(wc -l < "$jobs") jobs" | tee -a "$OUT/versions.txt"
   DEADLINE=$(( $(date +%s) + budget ))
   export PY SB DEADLINE

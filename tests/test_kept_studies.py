@@ -192,3 +192,32 @@ def test_prune_removes_only_the_checkpoints_of_final_runs(tmp_path):
     assert (run / "metrics.csv.gz").exists() and not (run / "metrics.csv").exists()
     assert read_metrics(run / "metrics.csv") == before
     assert [r["value"] for r in before] == [2.5, 0.5]
+
+
+@pytest.mark.parametrize("task", ["cartpole", "guidance", "quantum", "cartpole_long", "quantum_long"])
+def test_stable_bptt_cells_cover_the_sweep_grid(task):
+    """A lent machine runs one job per (cell, method) from `stable_bptt_runs.sh cells`; the
+    whole-grid sweep must then find every run finished, so the jobs must be exactly its
+    cells x methods, at its epochs."""
+    import itertools
+    import subprocess
+
+    script = ROOT / "docs/reproductions/stable_bptt_runs.sh"
+    env = {"PATH": "/usr/bin:/bin", "PHYSGRAD": "echo"}
+    sweep = subprocess.run(["bash", script, task], env=env, capture_output=True, text=True, check=True).stdout.split()
+    sets = [sweep[i + 1] for i, word in enumerate(sweep) if word == "--set"]
+    methods = sweep[sweep.index("--methods") + 1].split(",")
+    epochs = sweep[sweep.index("--epochs") + 1]
+    axes = [(s.split("=")[0], [v for v in s.split("=")[1].split(",") if v]) for s in sets]
+    want = {
+        (m, f"{axes[0][0]}={a},", f"{axes[1][0]}={b},")
+        for m, a, b in itertools.product(methods, axes[0][1], axes[1][1])
+    }
+    lines = subprocess.run(
+        ["bash", script, "cells", task], env=env, capture_output=True, text=True, check=True
+    ).stdout.splitlines()
+    jobs = [line.split() for line in lines]
+    assert {(j[4], j[5], j[6]) for j in jobs} == want and len(jobs) == len(want)
+    assert {(j[1], j[3]) for j in jobs} == {(sweep[1], epochs)}
+    bad = subprocess.run(["bash", script, "cells", "nope"], env=env, capture_output=True, text=True)
+    assert bad.returncode == 2 and "valid: cartpole" in bad.stderr

@@ -21,8 +21,9 @@
 # hardest quantum target for 250 epochs (it ran as two lanes, METHODS_LONG=sbptt_c and
 # METHODS_LONG=bptt,sbptt_m, then once with all three to record the study).
 # On a lent GPU machine `OUT=… bash benchmarks/gpu_session.sh 500 stable_bptt` runs these
-# cells on its 16 CPU cores, one job per (cell, method); its runs are gathered here by
-# running the lane with OUT set to where they were unpacked (finished runs are skipped).
+# cells on its 16 CPU cores, one job per (cell, method), listed by `stable_bptt_runs.sh
+# cells TASK...` from the same spec as the sweeps; its runs are gathered here by running
+# the lane with OUT set to where they were unpacked (finished runs are skipped).
 set -euo pipefail
 PG=${PHYSGRAD:-physgrad}
 OUT=${OUT:-studies/stable_bptt}
@@ -32,28 +33,50 @@ EPOCHS_QUANTUM=${EPOCHS_QUANTUM:-60}
 METHODS=bptt,sbptt_m,sbptt_c,no_temporal
 CLIPS=value,norm,none
 
-quantum() {  # $1: the eigenstates, $2: the clip modes to sweep
-  $PG compare quantum_control --methods $METHODS --seeds 3 --epochs "$EPOCHS_QUANTUM" \
-    --set eigenstate="$1" --set clip="$2" --out "$OUT/quantum_control" --quiet
+# Each sweep once: problem, output directory, epochs, methods, the two swept settings and
+# the cost of one (cell, method) job with 3 seeds in core-minutes (measured on one core of
+# the 2-core machine; `cells` orders a lent machine's jobs by it). A setting with one value
+# keeps a trailing comma, so the cell directory keeps both names: poles4_clipvalue.
+spec() {
+  case "$1" in
+    cartpole) echo "cartpole cartpole $EPOCHS_CARTPOLE $METHODS poles=1,2,3,4 clip=$CLIPS 3" ;;
+    guidance) echo "guidance guidance $EPOCHS_GUIDANCE $METHODS rc=1.0,0.1,0.01,0.001 clip=$CLIPS 1.5" ;;
+    quantum) echo "quantum_control quantum_control $EPOCHS_QUANTUM $METHODS eigenstate=3,4,5 clip=$CLIPS 4.5" ;;
+    # the hardest cart-pole setting at the paper's 1000 epochs, R vs C
+    cartpole_long) echo "cartpole cartpole-1000ep 1000 bptt,sbptt_c poles=4, clip=value,norm 15" ;;
+    # the hardest quantum target for longer: does C overtake M? (R, M, C; norm clipping)
+    quantum_long) echo "quantum_control quantum_control-250ep 250 ${METHODS_LONG:-bptt,sbptt_m,sbptt_c} eigenstate=5, clip=norm, 20" ;;
+    *) echo "unknown lane $1; valid: cartpole, guidance, quantum_a, quantum_b, quantum, cartpole_long, quantum_long, all, cells TASK..." >&2; return 2 ;;
+  esac
+}
+
+sweep() {  # $1: the task; $2, $3: override its swept settings (quantum_a, quantum_b)
+  local line problem out epochs methods a b
+  line=$(spec "$1") || exit 2
+  read -r problem out epochs methods a b _ <<< "$line"
+  $PG compare "$problem" --methods "$methods" --seeds 3 --epochs "$epochs" \
+    --set "${2:-$a}" --set "${3:-$b}" --out "$OUT/$out" --quiet
+}
+
+# one line per (cell, method) job: cost problem out epochs method setting_a, setting_b,
+cells() {
+  local task line problem out epochs methods a b cost va vb m
+  for task in "$@"; do
+    line=$(spec "$task") || exit 2
+    read -r problem out epochs methods a b cost <<< "$line"
+    for vb in $(tr , ' ' <<< "${b#*=}"); do for va in $(tr , ' ' <<< "${a#*=}"); do
+      for m in $(tr , ' ' <<< "$methods"); do
+        echo "$cost $problem $out $epochs $m ${a%%=*}=$va, ${b%%=*}=$vb,"
+      done
+    done; done
+  done
 }
 
 case "${1:-all}" in
-  cartpole)
-    $PG compare cartpole --methods $METHODS --seeds 3 --epochs "$EPOCHS_CARTPOLE" \
-      --set poles=1,2,3,4 --set clip=$CLIPS --out "$OUT/cartpole" --quiet ;;
-  guidance)
-    $PG compare guidance --methods $METHODS --seeds 3 --epochs "$EPOCHS_GUIDANCE" \
-      --set rc=1.0,0.1,0.01,0.001 --set clip=$CLIPS --out "$OUT/guidance" --quiet ;;
-  # (a trailing comma sweeps one value, so the cell keeps both names: eigenstate5_clipnone)
-  quantum_a) quantum 3,4 value,norm ;;  # 4 of the 9 cells
-  quantum_b) quantum 5, $CLIPS; quantum 3,4 none, ;;  # the other 5
-  quantum) quantum 3,4,5 $CLIPS ;;
-  cartpole_long)  # the hardest cart-pole setting at the paper's 1000 epochs, R vs C
-    $PG compare cartpole --methods bptt,sbptt_c --seeds 3 --epochs 1000 \
-      --set poles=4, --set clip=value,norm --out "$OUT/cartpole-1000ep" --quiet ;;
+  cartpole|guidance|quantum|cartpole_long|quantum_long) sweep "$1" ;;
+  quantum_a) sweep quantum eigenstate=3,4 clip=value,norm ;;  # 4 of the 9 cells
+  quantum_b) sweep quantum eigenstate=5, clip=$CLIPS; sweep quantum eigenstate=3,4 clip=none, ;;  # the other 5
   all) for lane in cartpole guidance quantum cartpole_long quantum_long; do bash "$0" "$lane"; done ;;
-  quantum_long)  # the hardest quantum target for longer: does C overtake M? (R, M, C; norm clipping)
-    $PG compare quantum_control --methods "${METHODS_LONG:-bptt,sbptt_m,sbptt_c}" --seeds 3 --epochs 250 \
-      --set eigenstate=5, --set clip=norm, --out "$OUT/quantum_control-250ep" --quiet ;;
-  *) echo "unknown lane $1; valid: cartpole, guidance, quantum_a, quantum_b, quantum, cartpole_long, quantum_long, all" >&2; exit 2 ;;
+  cells) shift; cells "$@" ;;
+  *) spec "$1"; exit 2 ;;
 esac
