@@ -31,9 +31,9 @@
 #    the machine has cores, longest first; TASKS picks the sweeps (default "cartpole"; also
 #    guidance, quantum, cartpole_long, quantum_long; `bash docs/reproductions/
 #    stable_bptt_runs.sh cells TASK...` lists their jobs). Every job is stopped by SIGTERM
-#    before the time is up (a run in progress checkpoints), and the run directories come back without their
-#    checkpoints as stable_bptt_gpu.tgz: unpack it with `tar xzf stable_bptt_gpu.tgz -C
-#    /work/lanes/stable_bptt_gpu` and run the sweep's whole grid there (`OUT=/work/lanes/
+#    before the time is up (a run in progress checkpoints), and the run directories come
+#    back without their checkpoints as stable_bptt_gpu.tgz: unpack it with `tar xzf
+#    stable_bptt_gpu.tgz -C /work/lanes/stable_bptt_gpu` and run the sweep's whole grid there (`OUT=/work/lanes/
 #    stable_bptt_gpu bash docs/reproductions/stable_bptt_runs.sh TASK`): it skips every finished
 #    run, trains any the GPU machine did not finish and records the grid; then keep it with
 #    keep_studies.py --gzip. Estimated: cartpole 48 jobs × ≈ 3 core-min, quantum 36 × ≈ 4.5,
@@ -68,8 +68,7 @@ if [ "$WHAT" = stable_bptt ]; then
   # one line per job: cost (core-min, for the order), problem, out, epochs, method, cell
   # settings -- the sweeps' own cells, from the script that owns them
   # shellcheck disable=SC2086
-  bash docs/reproductions/stable_bptt_runs.sh cells ${TASKS:-cartpole} > "$jobs.unsorted" || exit 2
-  sort -rn -s -k1,1 "$jobs.unsorted" > "$jobs"
+  bash docs/reproductions/stable_bptt_runs.sh cells ${TASKS:-cartpole} | sort -rn -s -k1,1 > "$jobs" || exit 2
   echo "$(wc -l < "$jobs") jobs" | tee -a "$OUT/versions.txt"
   DEADLINE=$(( $(date +%s) + budget ))
   export PY SB DEADLINE
