@@ -8,6 +8,7 @@ an ``x`` at its edge, and :func:`draw` turns any failure into a :class:`FigureWa
 from __future__ import annotations
 
 import math
+import textwrap
 import warnings
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -312,12 +313,16 @@ def grid_panels(
 
         legend[MARK_LABEL] = Line2D([], [], ls="", marker="x", color="0.3")
     labels = list(legend)
+    # a one-panel figure is narrow: fewer legend columns, and the title wrapped to its width
+    # (≈ 13 characters per inch at 10 pt), so neither runs off the edges
+    width = fig.get_figwidth()
+    ncol = max(1, min(len(labels), 4, int(width / 1.6)))
     if labels:
-        fig.legend(
-            list(legend.values()), labels, loc="lower center", ncol=min(len(labels), 4), fontsize=7, frameon=False
-        )
-    fig.suptitle(title, fontsize=10)
-    fig.tight_layout(rect=(0, 0.04 + 0.035 * math.ceil(len(labels) / 4), 1, 0.95))
+        fig.legend(list(legend.values()), labels, loc="lower center", ncol=ncol, fontsize=7, frameon=False)
+    title_lines = textwrap.wrap(title, width=int(13 * width)) or [""]
+    fig.suptitle("\n".join(title_lines), fontsize=10)
+    top = 0.95 - 0.045 * (len(title_lines) - 1)
+    fig.tight_layout(rect=(0, 0.04 + 0.035 * math.ceil(len(labels) / ncol), 1, top))
     path = Path(path)
     fig.savefig(path)
     return path
