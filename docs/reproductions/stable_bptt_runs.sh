@@ -13,9 +13,11 @@
 #   taskset -c 1 bash docs/reproductions/stable_bptt_runs.sh cartpole &
 #   taskset -c 0 bash docs/reproductions/stable_bptt_runs.sh guidance
 #   taskset -c 1 bash docs/reproductions/stable_bptt_runs.sh quantum_a &
-#   taskset -c 0 bash docs/reproductions/stable_bptt_runs.sh quantum_b
-# then `bash docs/reproductions/stable_bptt_runs.sh quantum` (skips every finished run,
-# records the whole grid) and `python docs/reproductions/stable_bptt_report.py`.
+#   OUT=studies/stable_bptt_b taskset -c 0 bash docs/reproductions/stable_bptt_runs.sh quantum_b
+# (a sweep directory takes one writer at a time, so the second part-lane writes elsewhere),
+# then `mv studies/stable_bptt_b/quantum_control/eigenstate* studies/stable_bptt/quantum_control/`,
+# `bash docs/reproductions/stable_bptt_runs.sh quantum` (skips every finished run, records
+# the whole grid) and `python docs/reproductions/stable_bptt_report.py`.
 # `cartpole_long` re-runs the hardest cart-pole setting (4 poles) at the paper's 1000
 # epochs for R and C (it ran beside the quantum lanes on core 1); `quantum_long` runs the
 # hardest quantum target for 250 epochs (it ran as two lanes, METHODS_LONG=sbptt_c and
