@@ -20,8 +20,8 @@
 # the whole grid) and `python docs/reproductions/stable_bptt_report.py`.
 # `cartpole_long` re-runs the hardest cart-pole setting (4 poles) at the paper's 1000
 # epochs for R and C (it ran beside the quantum lanes on core 1); `quantum_long` runs the
-# hardest quantum target for 250 epochs (it ran as two lanes, METHODS_LONG=sbptt_c and
-# METHODS_LONG=bptt,sbptt_m, then once with all three to record the study).
+# hardest quantum target for 250 epochs (the kept run: one lane with all three methods;
+# METHODS_LONG picks a subset, e.g. to split it across cores, each into its own OUT).
 # On a lent GPU machine `OUT=… bash benchmarks/gpu_session.sh 500 stable_bptt` runs these
 # cells on its 16 CPU cores, one job per (cell, method), listed by `stable_bptt_runs.sh
 # cells TASK...` from the same spec as the sweeps; its runs are gathered here by running
