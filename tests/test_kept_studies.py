@@ -3,6 +3,7 @@ them: a clone redraws the reproduction reports from them alone."""
 
 import importlib.util
 import json
+import sys
 from pathlib import Path
 
 import pytest
@@ -192,6 +193,21 @@ def test_prune_removes_only_the_checkpoints_of_final_runs(tmp_path):
     assert (run / "metrics.csv.gz").exists() and not (run / "metrics.csv").exists()
     assert read_metrics(run / "metrics.csv") == before
     assert [r["value"] for r in before] == [2.5, 0.5]
+
+
+def test_long_report_refuses_an_unknown_study_in_one_line(capsys, monkeypatch):
+    """long/report.py with a name that is no kept study (a typo, an option it does not have)
+    answers one line listing the studies and exits 2, instead of drawing an empty figure."""
+    spec = importlib.util.spec_from_file_location("long_report", ROOT / "docs/reproductions/long/report.py")
+    report = importlib.util.module_from_spec(spec)
+    monkeypatch.setitem(sys.modules, spec.name, report)  # its dataclasses look their module up
+    spec.loader.exec_module(report)
+    for bad in ("ks_corection_2ep", "--all"):
+        with pytest.raises(SystemExit) as exit_:
+            report.main([bad])
+        assert exit_.value.code == 2
+        err = capsys.readouterr().err.strip()
+        assert "\n" not in err and repr(bad) in err and "ks_correction_2ep" in err
 
 
 @pytest.mark.parametrize("task", ["cartpole", "guidance", "quantum", "cartpole_long", "quantum_long"])

@@ -29,6 +29,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
+
 from physgrad.engine.recording import kept_path, read_metrics  # noqa: E402
 
 HERE = Path(__file__).resolve().parent
@@ -92,10 +93,17 @@ STUDIES = {
     "sip_poisson_10k": Study("poisson", metric="x_l1", axis="steps"),
     "sip_heat_10k_gpu": Study("heat", metric="x_l1_clamped", axis="steps"),
     "sip_poisson_10k_gpu": Study("poisson", metric="x_l1", axis="steps"),
+    # one HIG run on a lent GPU, kept as one compare output (no method directories)
+    "poisson_hig_b64_gpu": Study("poisson_hig", baseline="hig", axis="steps", route="structured", logx=True),
     # Kronecker-factored HIG's power ablation (−½, −¾, −1) against the long studies' HIG/Adam
     "khig_oscillators": Study("oscillators", baseline="hig", reference="oscillators_60min"),
     "khig_quantum_dipole": Study("quantum_dipole", baseline="hig", reference="quantum_dipole_90min"),
 }
+
+
+def on_gpu(study: Path) -> bool:
+    """The studies run on a lent GPU machine are named ``…_gpu``; every other ran on one core."""
+    return study.name.endswith("_gpu")
 
 
 def study_of(name: str) -> Study:
@@ -206,6 +214,10 @@ def table(study: Path, cal) -> tuple[list[str], dict]:
     own = sorted(p.parent.relative_to(study).as_posix() for p in study.rglob("runs")
                  if p.is_dir() and "runs" not in p.parent.relative_to(study).parts)  # fmt: skip
     data = with_reference(study, {m: runs(study, m) for m in own})
+    if "." in data:  # the study directory is itself one compare output: name its method
+        label = ",".join(json.loads((study / "study.json").read_text())["methods"])
+        data[label] = data.pop(".")
+        own = [label if m == "." else m for m in own]
     methods = sorted(data)
     finals = {}
     value = f"final test {spec.metric}" + (f" (mean of the last {spec.tail:.0%} of evaluations)" if spec.tail else "")
@@ -221,7 +233,9 @@ def table(study: Path, cal) -> tuple[list[str], dict]:
                           for r in rs if r["status"] != "finished") or "all finished"  # fmt: skip
         mean = f"{values.mean():.3e} ± {values.std(ddof=1) if len(values) > 1 else 0:.1e}" if len(values) else "-"
         name, source = (m.split(" (")[0], spec.reference) if m not in own else (m, study.name)
-        per_step = float(seconds(cal, source, name, 1)) if method_of(name)[1] is None else math.nan
+        # calibration.csv holds one CPU core's step times: none applies to a run on a GPU
+        cpu = method_of(name)[1] is None and not on_gpu(study)
+        per_step = float(seconds(cal, source, name, 1)) if cpu else math.nan
         lines.append(f"| {m} | {per_step:.4f} | {rs[0]['budget'] if rs else '-'} | "
                      f"{len(done)} finished, {len(div)} diverged | {mean} | RATIO_{methods.index(m)}_ | {state} |")  # fmt: skip
     base = finals.get(spec.baseline, finals.get(f"{spec.baseline} ({spec.reference})"))
@@ -276,7 +290,8 @@ def figure(study: Path, data: dict, cal, out: Path):
     for ax in axes if spec.logx else ():
         ax.set_xscale("log")
     axes[0].set_xlabel("calibrated time (min): step × s/step measured alone" if spec.axis == "calibrated" else "update")
-    axes[1].set_xlabel("raw training wall-clock (min, one core under load)")
+    where = "on a lent GPU" if on_gpu(study) else "one core under load"
+    axes[1].set_xlabel(f"raw training wall-clock (min, {where})")
     axes[0].set_ylabel(f"test {spec.metric}" + (f" ({spec.smooth}-epoch moving average)" if spec.smooth else ""))
     if spec.minutes and spec.axis == "calibrated":
         axes[0].axvline(spec.minutes, color="k", ls=":", lw=1)
@@ -295,8 +310,18 @@ def figure(study: Path, data: dict, cal, out: Path):
 
 
 def main(names: list[str]):
+    if names[:1] in (["-h"], ["--help"]):
+        print(__doc__)
+        return
+    kept = sorted(p.name for p in DATA.iterdir() if p.is_dir() and p.name != "short")
+    unknown = [n for n in names if n not in kept]
+    if unknown or any(n.startswith("-") for n in names):
+        # one line, exit 2, as the physgrad command line answers a wrong name
+        print(f"report.py: no study {unknown[0] if unknown else names[0]!r} under {DATA}; "
+              f"choose from: {', '.join(kept)}", file=sys.stderr)  # fmt: skip
+        raise SystemExit(2)
+    studies = [DATA / n for n in (names or kept)]
     cal = calibration()
-    studies = [DATA / n for n in names] if names else sorted(p for p in DATA.iterdir() if p.is_dir())
     for study in studies:
         lines, data = table(study, cal)
         out = FIGURES / f"long_{study.name}.png"
