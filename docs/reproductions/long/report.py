@@ -221,8 +221,8 @@ def table(study: Path, cal) -> tuple[list[str], dict]:
     methods = sorted(data)
     finals = {}
     value = f"final test {spec.metric}" + (f" (mean of the last {spec.tail:.0%} of evaluations)" if spec.tail else "")
-    lines = [f"| method | s/step alone | budget (steps) | runs | {value}: mean ± std | / {spec.baseline} | state |",
-             "|---|---|---|---|---|---|---|"]  # fmt: skip
+    lines = [f"| method | s/step alone | budget (steps) | runs | {value}: mean ± std | per seed | / {spec.baseline} | state |",
+             "|---|---|---|---|---|---|---|---|"]  # fmt: skip
     for m in methods:
         rs = data[m]
         done = [r for r in rs if r["status"] == "finished"]
@@ -232,12 +232,16 @@ def table(study: Path, cal) -> tuple[list[str], dict]:
         state = ", ".join(f"seed {r['seed']}: {r['status']} at step {r['last_step']}"
                           for r in rs if r["status"] != "finished") or "all finished"  # fmt: skip
         mean = f"{values.mean():.3e} ± {values.std(ddof=1) if len(values) > 1 else 0:.1e}" if len(values) else "-"
+        # each seed's own value: with 3 seeds the spread between them is the evidence, and
+        # the docs' per-seed ratios are read from here
+        seeds = " / ".join(f"{r['seed']}: " + (f"{final_value(r, spec.tail):.3g}" if r in done and len(r["loss"])
+                                               else r["status"]) for r in sorted(rs, key=lambda r: r["seed"])) or "-"  # fmt: skip
         name, source = (m.split(" (")[0], spec.reference) if m not in own else (m, study.name)
         # calibration.csv holds one CPU core's step times: none applies to a run on a GPU
         cpu = method_of(name)[1] is None and not on_gpu(study)
         per_step = float(seconds(cal, source, name, 1)) if cpu else math.nan
         lines.append(f"| {m} | {per_step:.4f} | {rs[0]['budget'] if rs else '-'} | "
-                     f"{len(done)} finished, {len(div)} diverged | {mean} | RATIO_{methods.index(m)}_ | {state} |")  # fmt: skip
+                     f"{len(done)} finished, {len(div)} diverged | {mean} | {seeds} | RATIO_{methods.index(m)}_ | {state} |")  # fmt: skip
     base = finals.get(spec.baseline, finals.get(f"{spec.baseline} ({spec.reference})"))
     for i, line in enumerate(lines):
         for m in methods:
