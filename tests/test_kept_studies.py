@@ -85,6 +85,12 @@ def test_keep_gzips_the_curves_and_the_study_reads_them_back(tmp_path):
     assert read_csv(dst / "cell" / "results.csv") == read_csv(study / "results.csv") == rows
     assert load_studies(dst, [("cell", "")])[1] == rows
     report(dst / "cell")  # finds its curves packed (it refused: "results.csv is missing")
+    # re-collecting a kept study (a report script does) rewrites its curves packed, not beside them
+    from physgrad.harness.study import RESULT_COLUMNS, write_csv
+
+    write_csv(dst / "cell" / "results.csv", RESULT_COLUMNS, rows)
+    assert not (dst / "cell" / "results.csv").exists()
+    assert read_csv(dst / "cell" / "results.csv") == [{k: r.get(k, "") for k in RESULT_COLUMNS} for r in rows]
 
 
 def _kept_studies():

@@ -354,11 +354,16 @@ def pack_file(source: str | Path, target: str | Path) -> Path:
     the gzip header, so that packing a kept file again changes nothing in git. Written all at
     once (:func:`physgrad.rundir.atomic_write`), so ``target`` is never half-written;
     :func:`kept_path` finds it."""
+    rundir.atomic_write(target, gzip_bytes(Path(source).read_bytes()))
+    return Path(target)
+
+
+def gzip_bytes(data: bytes) -> bytes:
+    """``data`` gzipped with no name or time in the header: the same bytes give the same file."""
     packed = io.BytesIO()
     with gzip.GzipFile(filename="", mode="wb", fileobj=packed, mtime=0) as out:
-        out.write(Path(source).read_bytes())
-    rundir.atomic_write(target, packed.getvalue())
-    return Path(target)
+        out.write(data)
+    return packed.getvalue()
 
 
 def read_metrics(path: Path) -> list[dict[str, Any]]:

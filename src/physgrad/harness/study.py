@@ -24,7 +24,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from .. import rundir
-from ..engine.recording import kept_path
+from ..engine.recording import gzip_bytes, kept_path
 from ..errors import ConfigError
 from ..progress import AbstractProgressMeter
 from .config import Budget, RunConfig, choose, make_config, method_slug, parse_method, phase_methods, valid_settings
@@ -255,12 +255,18 @@ def collect(out: str | Path) -> list[dict[str, Any]]:
 
 
 def write_csv(path: Path, columns: Sequence[str], rows: list[dict[str, Any]]):
-    """A table written all at once (:func:`physgrad.rundir.atomic_write`; never half)."""
+    """A table written all at once (:func:`physgrad.rundir.atomic_write`; never half). A
+    table kept gzipped (only ``path.gz`` exists: a committed study, docs/reproductions/
+    keep_studies.py --gzip) is rewritten gzipped, so re-collecting a kept study does not
+    add a plain copy beside the packed one."""
     text = io.StringIO()
     writer = csv.DictWriter(text, fieldnames=list(columns), extrasaction="ignore")
     writer.writeheader()
     writer.writerows(rows)
-    rundir.atomic_write(path, text.getvalue())
+    if kept_path(path) != Path(path):
+        rundir.atomic_write(kept_path(path), gzip_bytes(text.getvalue().encode()))
+    else:
+        rundir.atomic_write(path, text.getvalue())
 
 
 def read_csv(path: str | Path) -> list[dict[str, Any]]:  # str values; callers add numbers
