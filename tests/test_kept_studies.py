@@ -195,9 +195,19 @@ def test_prune_removes_only_the_checkpoints_of_final_runs(tmp_path):
     run = tmp_path / "study" / "adam" / "runs" / "finished"
     (run / "metrics.csv").write_text("step,wall_time,split,metric,value\n0,0.0,test,loss,2.5\n10,1.5,test,loss,0.5\n")
     before = read_metrics(run / "metrics.csv")
-    prune.pack_metrics(run)
+    (run / "test_cases.json").write_text('{"loss": [0.25, 0.75]}')
+    prune.pack_run(run)
     assert (run / "metrics.csv.gz").exists() and not (run / "metrics.csv").exists()
+    assert (run / "test_cases.json.gz").exists() and not (run / "test_cases.json").exists()
     assert read_metrics(run / "metrics.csv") == before
+    # the paired statistics read the packed test cases
+    from physgrad.harness.stats import case_values
+
+    (tmp_path / "study" / "adam" / "summary.csv").write_text(
+        "method,seed,status,run_dir\nadam,0,finished,runs/finished\n"
+    )
+    metric, values = case_values(tmp_path / "study" / "adam")
+    assert metric == "loss" and values["adam"][0].tolist() == [0.25, 0.75]
     assert [r["value"] for r in before] == [2.5, 0.5]
 
 

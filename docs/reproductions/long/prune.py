@@ -12,9 +12,11 @@ committed tree, which must stay small enough to travel to a lent GPU machine (64
 deletes ``checkpoint/`` of every final run under docs/reproductions/data (runs in progress
 keep theirs), prints what it removed and the size of the committed tree against that limit;
 commit the deletions with the lane data. ``--pack`` also gzips the final runs' ``metrics.csv``
-(to ``metrics.csv.gz``, ≈ 5× smaller) in the named studies: only for a study whose lane is
-done, since a lane at a physgrad older than the packed-file reader could not re-collect them
-(physgrad's ``read_metrics`` and ``long/report.py`` read the packed copy).
+and ``test_cases.json`` (to ``….gz``, 2–5× smaller) in the named studies: only for a study
+whose lane is done, since a lane at a physgrad older than the packed-file readers could not
+re-collect them (physgrad's ``read_metrics`` and paired tests, and ``long/report.py``, read
+the packed copies). ``--root`` points it at another tree of run directories (a bench such as
+docs/benchmark/dense, whose studies are its problems).
 """
 
 from __future__ import annotations
@@ -46,15 +48,19 @@ def final_runs(root: Path) -> list[Path]:
     return [s.parent for s in sorted(root.rglob("summary.json")) if is_final(json.loads(s.read_text()))]
 
 
-def pack_metrics(run: Path) -> int:
-    """Gzip ``run/metrics.csv`` to ``metrics.csv.gz`` (no name or time in the header, so the
-    same bytes every time) and remove the plain copy; the bytes saved."""
-    plain, packed = run / "metrics.csv", run / "metrics.csv.gz"
-    if not plain.exists():
-        return 0
-    pack_file(plain, packed)
-    saved = plain.stat().st_size - packed.stat().st_size
-    plain.unlink()
+PACKED = ("metrics.csv", "test_cases.json")  # the files of a final run that --pack gzips
+
+
+def pack_run(run: Path) -> int:
+    """Gzip a final run's ``metrics.csv`` and ``test_cases.json`` to ``….gz`` (no name or time
+    in the header, so the same bytes every time) and remove the plain copies; the bytes saved."""
+    saved = 0
+    for name in PACKED:
+        plain, packed = run / name, run / (name + ".gz")
+        if plain.exists():
+            pack_file(plain, packed)
+            saved += plain.stat().st_size - packed.stat().st_size
+            plain.unlink()
     return saved
 
 
@@ -91,9 +97,9 @@ def main():
         if not (args.root / study).is_dir():
             raise SystemExit(f"no study {study!r} under {args.root}")
         for run in final_runs(args.root / study):
-            saved += 0 if args.dry_run else pack_metrics(run)
+            saved += 0 if args.dry_run else pack_run(run)
     if args.pack and not args.dry_run:
-        print(f"{saved / 2**20:.1f} MiB saved by packing metrics.csv in {', '.join(args.pack)}")
+        print(f"{saved / 2**20:.1f} MiB saved by packing {' and '.join(PACKED)} in {', '.join(args.pack)}")
     size = tracked_bytes(args.root)
     if size is not None:
         note = "" if size < LIMIT - 8 * 2**20 else " -- near the limit: prune or pack more before a GPU session"

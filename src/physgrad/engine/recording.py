@@ -366,6 +366,13 @@ def gzip_bytes(data: bytes) -> bytes:
     return packed.getvalue()
 
 
+def read_kept_text(path: str | Path) -> str:
+    """The text of ``path``, or of its gzipped copy where only that exists (:func:`kept_path`:
+    a finished run's ``test_cases.json`` packed by docs/reproductions/long/prune.py --pack)."""
+    path = kept_path(path)
+    return (gzip.decompress(path.read_bytes()) if path.suffix == ".gz" else path.read_bytes()).decode()
+
+
 def read_metrics(path: Path) -> list[dict[str, Any]]:
     """``metrics.csv`` as a list of typed rows (from its gzipped copy where only that exists:
     :func:`kept_path`)."""

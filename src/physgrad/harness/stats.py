@@ -36,6 +36,8 @@ from typing import Any
 
 import numpy as np
 
+from ..engine.recording import kept_path, read_kept_text
+
 # The first nine columns are the original layout of paired_tests.csv (readers index them
 # by name); the counts after them say what was left out of the pairs and why, then the
 # seed-level additions.
@@ -105,10 +107,10 @@ def case_values(out: str | Path, metric: str | None = None) -> tuple[str, dict[s
     out = Path(out)
     values: dict[str, dict[int, np.ndarray]] = {}
     for row in _runs(out):
-        path = out / row["run_dir"] / "test_cases.json"
-        if row["status"] != "finished" or not path.exists():
+        path = out / row["run_dir"] / "test_cases.json"  # or its packed copy (prune.py --pack)
+        if row["status"] != "finished" or not kept_path(path).exists():
             continue
-        cases = json.loads(path.read_text())
+        cases = json.loads(read_kept_text(path))
         if metric is None:
             metric = "rel_error" if "rel_error" in cases else "loss"
         if metric in cases:
