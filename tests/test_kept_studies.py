@@ -200,6 +200,9 @@ def test_prune_removes_only_the_checkpoints_of_final_runs(tmp_path):
     assert (run / "metrics.csv.gz").exists() and not (run / "metrics.csv").exists()
     assert (run / "test_cases.json.gz").exists() and not (run / "test_cases.json").exists()
     assert read_metrics(run / "metrics.csv") == before
+    from physgrad.engine.result import history_from_metrics  # a finished run's result reads it
+
+    assert history_from_metrics(run / "metrics.csv")["step"].tolist() == [0, 10]
     # the paired statistics read the packed test cases
     from physgrad.harness.stats import case_values
 

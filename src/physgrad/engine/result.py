@@ -51,10 +51,10 @@ def rows_from_metrics(records: Sequence[Mapping[str, Any]]) -> list[Row]:
 def history_from_metrics(path: str | Path) -> dict[str, np.ndarray]:
     """A run directory's ``metrics.csv`` as :func:`history_of`'s columns (empty columns
     ``step`` and ``time`` if it has no file)."""
-    from .recording import read_metrics
+    from .recording import kept_path, read_metrics
 
-    path = Path(path)
-    return history_of(rows_from_metrics(read_metrics(path)) if path.exists() else [])
+    path = Path(path)  # a finished run's curves may be kept gzipped (read_metrics reads them)
+    return history_of(rows_from_metrics(read_metrics(path)) if kept_path(path).exists() else [])
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
