@@ -88,6 +88,7 @@ def test_keep_gzips_the_curves_and_the_study_reads_them_back(tmp_path):
     # re-collecting a kept study (a report script does) rewrites its curves packed, not beside them
     from physgrad.harness.study import RESULT_COLUMNS, write_csv
 
+    _write(dst / "cell" / "results.csv", "stale")  # a plain copy beside the packed one goes
     write_csv(dst / "cell" / "results.csv", RESULT_COLUMNS, rows)
     assert not (dst / "cell" / "results.csv").exists()
     assert read_csv(dst / "cell" / "results.csv") == [{k: r.get(k, "") for k in RESULT_COLUMNS} for r in rows]
@@ -214,19 +215,53 @@ def test_prune_removes_only_the_checkpoints_of_final_runs(tmp_path):
     assert [r["value"] for r in before] == [2.5, 0.5]
 
 
-def test_long_report_refuses_an_unknown_study_in_one_line(capsys, monkeypatch):
-    """long/report.py with a name that is no kept study (a typo, an option it does not have)
-    answers one line listing the studies and exits 2, instead of drawing an empty figure."""
+def _long_report(monkeypatch):
     spec = importlib.util.spec_from_file_location("long_report", ROOT / "docs/reproductions/long/report.py")
     report = importlib.util.module_from_spec(spec)
     monkeypatch.setitem(sys.modules, spec.name, report)  # its dataclasses look their module up
     spec.loader.exec_module(report)
+    return report
+
+
+def test_long_report_refuses_an_unknown_study_in_one_line(capsys, monkeypatch):
+    """long/report.py with a name that is no kept study (a typo, an option it does not have)
+    answers one line listing the studies and exits 2, instead of drawing an empty figure."""
+    report = _long_report(monkeypatch)
     for bad in ("ks_corection_2ep", "--all"):
         with pytest.raises(SystemExit) as exit_:
             report.main([bad])
         assert exit_.value.code == 2
         err = capsys.readouterr().err.strip()
         assert "\n" not in err and repr(bad) in err and "ks_correction_2ep" in err
+    report.main(["ks_correction_2ep", "--help"])  # the usage, wherever -h stands; nothing drawn
+    assert "report.py [STUDY ...]" in capsys.readouterr().out
+
+
+def test_long_report_tables_a_top_level_compare_output_per_method(tmp_path, monkeypatch):
+    """A study kept as one compare output (its runs/ at the top, as the GPU runs) gets one row
+    per method, and a method that also has its own directory keeps both rows apart; each
+    row gives every seed's final value, a diverged seed by its status."""
+    report = _long_report(monkeypatch)
+
+    def run(where, method, seed, losses, status="finished"):
+        d = where / "runs" / f"{method}-seed{seed}-x"
+        d.mkdir(parents=True)
+        rows = "".join(f"{10 * i},{i}.0,test,loss,{v}\n" for i, v in enumerate(losses))
+        (d / "metrics.csv").write_text("step,wall_time,split,metric,value\n" + rows)
+        (d / "config.json").write_text(json.dumps({"seed": seed, "method": method, "budget": {"steps": 10}}))
+        (d / "summary.json").write_text(json.dumps({"status": status, "steps": 10, "diverged_step": None}))
+
+    study = tmp_path / "mixed"
+    run(study, "adam", 0, [2.0, 0.5])
+    run(study, "adam", 1, [2.0, 1.5])
+    run(study, "hig", 0, [2.0, 0.25])
+    run(study, "hig", 1, [2.0, float("nan")], status="diverged")
+    run(study / "hig", "hig", 2, [2.0, 0.125])
+    lines, data = report.table(study, report.calibration())
+    rows = {line.split(" | ")[0].removeprefix("| "): line for line in lines[2:]}
+    assert set(rows) == {"adam", "hig", "hig (top level)"}
+    assert "0: 0.5 / 1: 1.5" in rows["adam"] and "2 finished, 0 diverged" in rows["adam"]
+    assert "0: 0.25 / 1: diverged" in rows["hig (top level)"] and "2: 0.125" in rows["hig"]
 
 
 @pytest.mark.parametrize("task", ["cartpole", "guidance", "quantum", "cartpole_long", "quantum_long"])

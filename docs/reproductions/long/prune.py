@@ -80,7 +80,7 @@ def main():
     parser.add_argument("--root", type=Path, default=DATA, help="where the run directories are (default: the data)")
     parser.add_argument("--dry-run", action="store_true", help="list what would go, remove nothing")
     parser.add_argument("--pack", nargs="+", default=[], metavar="STUDY",
-                        help="also gzip the final runs' metrics.csv in these (finished) studies")  # fmt: skip
+                        help="also gzip the final runs' metrics.csv and test_cases.json in these (finished) studies")  # fmt: skip
     args = parser.parse_args()
     total = 0
     for checkpoint in final_checkpoints(args.root):

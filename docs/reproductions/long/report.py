@@ -161,7 +161,7 @@ def runs(study: Path, method: str) -> list[dict]:
         summary = json.loads((run / "summary.json").read_text()) if (run / "summary.json").exists() else None
         config = json.loads((run / "config.json").read_text())
         out.append({
-            "seed": config["seed"], "budget": config["budget"]["steps"],
+            "seed": config["seed"], "method": config["method"], "budget": config["budget"]["steps"],
             "step": np.array([int(r["step"]) for r in rows]), "wall": np.array([float(r["wall_time"]) for r in rows]),
             "loss": np.array([float(r["value"]) for r in rows]),
             "t": seconds(calibration(), study.name, method, [int(r["step"]) for r in rows]),
@@ -208,16 +208,22 @@ def with_reference(study: Path, data: dict) -> dict:
     return out
 
 
+TOP = "(top level)"  # the label's suffix of a study's top-level runs whose method has a directory too
+
+
 def table(study: Path, cal) -> tuple[list[str], dict]:
     spec = study_of(study.name)
     # a method directory may be nested: a setting with a '/' (curriculum=1/2/4) made one
     own = sorted(p.parent.relative_to(study).as_posix() for p in study.rglob("runs")
                  if p.is_dir() and "runs" not in p.parent.relative_to(study).parts)  # fmt: skip
     data = with_reference(study, {m: runs(study, m) for m in own})
-    if "." in data:  # the study directory is itself one compare output: name its method
-        label = ",".join(json.loads((study / "study.json").read_text())["methods"])
-        data[label] = data.pop(".")
-        own = [label if m == "." else m for m in own]
+    if "." in data:  # the study directory is itself a compare output: one row per method
+        own.remove(".")
+        top = {}
+        for r in data.pop("."):  # a method that also has its own directory keeps both apart
+            top.setdefault(r["method"] if r["method"] not in own else f"{r['method']} {TOP}", []).append(r)
+        data.update(top)
+        own += sorted(top)
     methods = sorted(data)
     finals = {}
     value = f"final test {spec.metric}" + (f" (mean of the last {spec.tail:.0%} of evaluations)" if spec.tail else "")
@@ -234,9 +240,9 @@ def table(study: Path, cal) -> tuple[list[str], dict]:
         mean = f"{values.mean():.3e} ± {values.std(ddof=1) if len(values) > 1 else 0:.1e}" if len(values) else "-"
         # each seed's own value: with 3 seeds the spread between them is the evidence, and
         # the docs' per-seed ratios are read from here
-        seeds = " / ".join(f"{r['seed']}: " + (f"{final_value(r, spec.tail):.3g}" if r in done and len(r["loss"])
+        seeds = " / ".join(f"{r['seed']}: " + (f"{final_value(r, spec.tail):.3g}" if r["status"] == "finished" and len(r["loss"])
                                                else r["status"]) for r in sorted(rs, key=lambda r: r["seed"])) or "-"  # fmt: skip
-        name, source = (m.split(" (")[0], spec.reference) if m not in own else (m, study.name)
+        name, source = (m.split(" (")[0], spec.reference) if m not in own else (m.removesuffix(f" {TOP}"), study.name)
         # calibration.csv holds one CPU core's step times: none applies to a run on a GPU
         cpu = method_of(name)[1] is None and not on_gpu(study)
         per_step = float(seconds(cal, source, name, 1)) if cpu else math.nan
@@ -314,15 +320,13 @@ def figure(study: Path, data: dict, cal, out: Path):
 
 
 def main(names: list[str]):
-    if names[:1] in (["-h"], ["--help"]):
-        print(__doc__)
+    if {"-h", "--help"} & set(names):
+        print(__doc__ or "usage: python docs/reproductions/long/report.py [STUDY ...]")
         return
     kept = sorted(p.name for p in DATA.iterdir() if p.is_dir() and p.name != "short")
     unknown = [n for n in names if n not in kept]
-    if unknown or any(n.startswith("-") for n in names):
-        # one line, exit 2, as the physgrad command line answers a wrong name
-        print(f"report.py: no study {unknown[0] if unknown else names[0]!r} under {DATA}; "
-              f"choose from: {', '.join(kept)}", file=sys.stderr)  # fmt: skip
+    if unknown:  # one line, exit 2, as the physgrad command line answers a wrong name
+        print(f"report.py: no study {unknown[0]!r} under {DATA}; choose from: {', '.join(kept)}", file=sys.stderr)
         raise SystemExit(2)
     studies = [DATA / n for n in (names or kept)]
     cal = calibration()

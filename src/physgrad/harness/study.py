@@ -256,15 +256,17 @@ def collect(out: str | Path) -> list[dict[str, Any]]:
 
 def write_csv(path: Path, columns: Sequence[str], rows: list[dict[str, Any]]):
     """A table written all at once (:func:`physgrad.rundir.atomic_write`; never half). A
-    table kept gzipped (only ``path.gz`` exists: a committed study, docs/reproductions/
-    keep_studies.py --gzip) is rewritten gzipped, so re-collecting a kept study does not
-    add a plain copy beside the packed one."""
+    table kept gzipped (``path.gz`` exists: a committed study, docs/reproductions/
+    keep_studies.py --gzip) is rewritten gzipped and any plain copy beside it removed, so
+    re-collecting a kept study leaves one copy, never a stale one."""
     text = io.StringIO()
     writer = csv.DictWriter(text, fieldnames=list(columns), extrasaction="ignore")
     writer.writeheader()
     writer.writerows(rows)
-    if kept_path(path) != Path(path):
-        rundir.atomic_write(kept_path(path), gzip_bytes(text.getvalue().encode()))
+    packed = Path(path).with_name(Path(path).name + ".gz")
+    if packed.exists():
+        rundir.atomic_write(packed, gzip_bytes(text.getvalue().encode()))
+        Path(path).unlink(missing_ok=True)
     else:
         rundir.atomic_write(path, text.getvalue())
 
