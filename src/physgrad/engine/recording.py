@@ -24,7 +24,7 @@ import platform
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import IO, Any
 
 import equinox as eqx
 import jax
@@ -345,8 +345,20 @@ def kept_path(path: str | Path) -> Path:
     finished runs' curves are committed compressed: docs/reproductions/keep_studies.py
     --gzip, docs/reproductions/long/prune.py --pack)."""
     path = Path(path)
-    packed = path.with_name(path.name + ".gz")
+    packed = packed_path(path)
     return packed if not path.exists() and packed.exists() else path
+
+
+def packed_path(path: str | Path) -> Path:
+    """Where the gzipped copy of ``path`` is kept: ``path.gz`` beside it."""
+    return Path(path).with_name(Path(path).name + ".gz")
+
+
+def open_kept(path: str | Path) -> IO[str]:
+    """``path`` opened for reading as text, or its gzipped copy where only that exists
+    (:func:`kept_path`); ``newline=""`` as the csv module wants."""
+    path = kept_path(path)
+    return (gzip.open if path.suffix == ".gz" else open)(path, "rt", encoding="utf-8", newline="")
 
 
 def pack_file(source: str | Path, target: str | Path) -> Path:
@@ -366,18 +378,10 @@ def gzip_bytes(data: bytes) -> bytes:
     return packed.getvalue()
 
 
-def read_kept_text(path: str | Path) -> str:
-    """The text of ``path``, or of its gzipped copy where only that exists (:func:`kept_path`:
-    a finished run's ``test_cases.json`` packed by docs/reproductions/long/prune.py --pack)."""
-    path = kept_path(path)
-    return (gzip.decompress(path.read_bytes()) if path.suffix == ".gz" else path.read_bytes()).decode()
-
-
 def read_metrics(path: Path) -> list[dict[str, Any]]:
     """``metrics.csv`` as a list of typed rows (from its gzipped copy where only that exists:
     :func:`kept_path`)."""
-    path = kept_path(path)
-    with (gzip.open if path.suffix == ".gz" else open)(path, "rt", newline="") as f:
+    with open_kept(path) as f:
         return [
             {"step": int(r["step"]), "wall_time": float(r["wall_time"]), "split": r["split"], "metric": r["metric"],
              "value": float(r["value"])}

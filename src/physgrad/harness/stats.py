@@ -36,7 +36,7 @@ from typing import Any
 
 import numpy as np
 
-from ..engine.recording import kept_path, read_kept_text
+from ..engine.recording import kept_path, open_kept
 
 # The first nine columns are the original layout of paired_tests.csv (readers index them
 # by name); the counts after them say what was left out of the pairs and why, then the
@@ -110,7 +110,8 @@ def case_values(out: str | Path, metric: str | None = None) -> tuple[str, dict[s
         path = out / row["run_dir"] / "test_cases.json"  # or its packed copy (prune.py --pack)
         if row["status"] != "finished" or not kept_path(path).exists():
             continue
-        cases = json.loads(read_kept_text(path))
+        with open_kept(path) as f:
+            cases = json.load(f)
         if metric is None:
             metric = "rel_error" if "rel_error" in cases else "loss"
         if metric in cases:

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import csv
 import dataclasses
-import gzip
 import io
 import json
 import math
@@ -24,7 +23,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from .. import rundir
-from ..engine.recording import gzip_bytes, kept_path
+from ..engine.recording import gzip_bytes, kept_path, open_kept, packed_path
 from ..errors import ConfigError
 from ..progress import AbstractProgressMeter
 from .config import Budget, RunConfig, choose, make_config, method_slug, parse_method, phase_methods, valid_settings
@@ -263,7 +262,7 @@ def write_csv(path: Path, columns: Sequence[str], rows: list[dict[str, Any]]):
     writer = csv.DictWriter(text, fieldnames=list(columns), extrasaction="ignore")
     writer.writeheader()
     writer.writerows(rows)
-    packed = Path(path).with_name(Path(path).name + ".gz")
+    packed = packed_path(path)
     if packed.exists():
         rundir.atomic_write(packed, gzip_bytes(text.getvalue().encode()))
         Path(path).unlink(missing_ok=True)
@@ -273,9 +272,7 @@ def write_csv(path: Path, columns: Sequence[str], rows: list[dict[str, Any]]):
 
 def read_csv(path: str | Path) -> list[dict[str, Any]]:  # str values; callers add numbers
     """The rows of a CSV file, or of its gzipped copy where only that exists (:func:`kept_path`)."""
-    path = kept_path(path)
-    opener = gzip.open if path.suffix == ".gz" else open
-    with opener(path, "rt", encoding="utf-8", newline="") as f:
+    with open_kept(path) as f:
         return list(csv.DictReader(f))
 
 
