@@ -153,7 +153,13 @@ def phase_methods(spec: str) -> list[str]:
 # names) and of run comparisons, so studies written before they existed still match and
 # resume. Add a setting here when it joins an existing method or problem.
 ADDED_LATER: dict[str, dict[str, dict[str, Any]]] = {
-    "methods": {name: {"blocks": 8, "lanczos_steps": 64} for name in ("hig", "gn")},  # issue 7
+    "methods": {
+        **{name: {"blocks": 8, "lanczos_steps": 64} for name in ("hig", "gn")},  # issue 7
+        **{  # issue 54: the plateau schedule, off
+            name: {"plateau_factor": 0.0, "plateau_patience": 10, "plateau_cooldown": 0, "plateau_every": 0}
+            for name in ("one", "nog", "wig")
+        },
+    },
     "problems": {"poisson": {"dtype": "float32"}},  # issue 7
 }
 _ABSENT = object()

@@ -38,6 +38,7 @@ from ..methods import (
 from ..methods.kfac import kfac
 from ..methods.kronecker_hig import AveragedKronecker, KroneckerPower
 from ..methods.sip import L1Proxy, L2Proxy
+from ..methods.unrolling import Plateau
 from ..rollout import Combined, M, R, S
 from .papers import protocol
 
@@ -265,41 +266,56 @@ def parse_list(text: str, kind, name: str) -> tuple:
         raise ValueError(f"{name} must be a list of numbers separated by ',' or '/', got {text!r}") from None
 
 
-def _unrolled(policy, teacher_forcing, *, m, checkpoint=False, curriculum="", stage_lr="", **options):
+def _unrolled(policy, teacher_forcing, *, m, checkpoint=False, curriculum="", stage_lr="", plateau_factor=0.0,
+              plateau_patience=10, plateau_cooldown=0, plateau_every=0, **options):  # fmt: skip
     rule = UnrolledGradient(policy, teacher_forcing, m, checkpoint)
+    # plateau_factor 0: no plateau schedule (the default); else physgrad.methods.unrolling.Plateau
+    plateau = Plateau(plateau_every, plateau_factor, plateau_patience, plateau_cooldown) if plateau_factor else None
     return Unrolled(
         rule,
         curriculum=parse_list(curriculum, int, "curriculum"),
         stage_lr=parse_list(stage_lr, float, "stage_lr"),
+        plateau=plateau,
         **options,
     )
 
 
 def _one(*, lr: float = 1e-3, lr_warmup: int = 0, decay: float = 1.0, decay_every: int = 0, clip: float = 0.0,
-        skip_nan: bool = True, norm_guard: bool = False, skip_solver_failure: bool = True, m: int = 0):  # fmt: skip
+        skip_nan: bool = True, norm_guard: bool = False, skip_solver_failure: bool = True, m: int = 0,
+        plateau_factor: float = 0.0, plateau_patience: int = 10, plateau_cooldown: int = 0,
+        plateau_every: int = 0):  # fmt: skip
     """One-step training (ONE): every step from the reference frame; B·m targets per update."""
     return _unrolled(S(), True, m=m, lr=lr, lr_warmup=lr_warmup, decay=decay, decay_every=decay_every, clip=clip,
-                     skip_nan=skip_nan, norm_guard=norm_guard, skip_solver_failure=skip_solver_failure)  # fmt: skip
+                     skip_nan=skip_nan, norm_guard=norm_guard, skip_solver_failure=skip_solver_failure,
+                     plateau_factor=plateau_factor, plateau_patience=plateau_patience,
+                     plateau_cooldown=plateau_cooldown, plateau_every=plateau_every)  # fmt: skip
 
 
 def _nog(*, lr: float = 1e-3, lr_warmup: int = 0, decay: float = 1.0, decay_every: int = 0, clip: float = 0.0,
         skip_nan: bool = True, norm_guard: bool = False, skip_solver_failure: bool = True, m: int = 0,
-        curriculum: str = "", stage_epochs: float = 1.0, stage_lr: str = "", checkpoint: bool = False):  # fmt: skip
+        curriculum: str = "", stage_epochs: float = 1.0, stage_lr: str = "", checkpoint: bool = False,
+        plateau_factor: float = 0.0, plateau_patience: int = 10, plateau_cooldown: int = 0,
+        plateau_every: int = 0):  # fmt: skip
     """No-gradient unrolling (NOG): m-step rollout, stop-gradient on each state after its loss."""
     return _unrolled(S(), False, m=m, lr=lr, lr_warmup=lr_warmup, decay=decay, decay_every=decay_every, clip=clip,
                      skip_nan=skip_nan, norm_guard=norm_guard, skip_solver_failure=skip_solver_failure,
-                     curriculum=curriculum, stage_epochs=stage_epochs, stage_lr=stage_lr, checkpoint=checkpoint)  # fmt: skip
+                     curriculum=curriculum, stage_epochs=stage_epochs, stage_lr=stage_lr, checkpoint=checkpoint,
+                     plateau_factor=plateau_factor, plateau_patience=plateau_patience,
+                     plateau_cooldown=plateau_cooldown, plateau_every=plateau_every)  # fmt: skip
 
 
 def _wig(*, lr: float = 1e-3, lr_warmup: int = 0, decay: float = 1.0, decay_every: int = 0, clip: float = 0.0,
         skip_nan: bool = True, norm_guard: bool = False, skip_solver_failure: bool = True, m: int = 0,
         truncate: int = 0, warmup: int = 0, curriculum: str = "", stage_epochs: float = 1.0, stage_lr: str = "",
-        checkpoint: bool = False):  # fmt: skip
+        checkpoint: bool = False, plateau_factor: float = 0.0, plateau_patience: int = 10, plateau_cooldown: int = 0,
+        plateau_every: int = 0):  # fmt: skip
     """Fully differentiable unrolling (WIG): BPTT through network and solver; truncate/warmup cuts."""
     return _unrolled(R(truncate=truncate, warmup=warmup), False, m=m, lr=lr, lr_warmup=lr_warmup, decay=decay,
                      decay_every=decay_every, clip=clip, skip_nan=skip_nan, norm_guard=norm_guard,
                      skip_solver_failure=skip_solver_failure, curriculum=curriculum, stage_epochs=stage_epochs,
-                     stage_lr=stage_lr, checkpoint=checkpoint)  # fmt: skip
+                     stage_lr=stage_lr, checkpoint=checkpoint,
+                     plateau_factor=plateau_factor, plateau_patience=plateau_patience,
+                     plateau_cooldown=plateau_cooldown, plateau_every=plateau_every)  # fmt: skip
 
 
 # --- The optax zoo: any optax optimizer by name, on DP gradients ----------------------------
