@@ -22,7 +22,8 @@ or corrupts a result (they are what people cite).
   nothing. Points: ``step`` (after each training step), ``checkpoint-written`` (the new
   checkpoint complete aside), ``checkpoint-aside`` (the previous one moved aside, the new one
   not yet in place), ``checkpoint-committed``, ``before-summary`` (the final checkpoint written,
-  ``params.eqx`` and ``summary.json`` not yet).
+  ``params.eqx`` and ``summary.json`` not yet), ``evaluating`` (an evaluation begins). Action
+  ``term`` sends the process SIGTERM.
 """
 
 from __future__ import annotations
@@ -30,6 +31,7 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import json
+import math
 import os
 import shutil
 import signal
@@ -38,7 +40,7 @@ import sys
 import time
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
+from typing import IO, Any
 
 from .errors import ConfigError
 
@@ -70,23 +72,55 @@ def _write_synced(path: Path, data: bytes) -> None:
         os.fsync(f.fileno())
 
 
-def atomic_write(path: str | Path, data: bytes | str) -> None:
-    """Replace ``path`` by ``data`` all at once: written to a temporary file beside it,
-    flushed to disk, renamed over it (a reader sees the old file or the new one)."""
+@contextlib.contextmanager
+def atomic_file(path: str | Path) -> Iterator[IO[bytes]]:
+    """A binary file to write ``path`` through, all at once: the body writes a temporary
+    file beside it, which is flushed to disk and renamed over ``path`` when the body
+    returns (a reader sees the old file or the new one). If the body or the write fails
+    (a full disk, a kill's KeyboardInterrupt), the temporary file is removed and ``path``
+    is left as it was. The one writer of every file physgrad writes whole: run files,
+    tables, figures (``savefig(f)``), calibration records, cached datasets."""
     path = Path(path)
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     try:
-        _write_synced(tmp, data.encode() if isinstance(data, str) else data)
+        with open(tmp, "wb") as f:
+            yield f
+            f.flush()
+            os.fsync(f.fileno())
         os.replace(tmp, path)
     except BaseException:
-        tmp.unlink(missing_ok=True)
+        with contextlib.suppress(OSError):
+            tmp.unlink(missing_ok=True)
         raise
     fsync_directory(path.parent)
+
+
+def atomic_write(path: str | Path, data: bytes | str) -> None:
+    """Replace ``path`` by ``data`` all at once (:func:`atomic_file`)."""
+    with atomic_file(path) as f:
+        f.write(data.encode() if isinstance(data, str) else data)
 
 
 def json_text(data: Any) -> str:
     """How run directories write JSON (sorted keys, so equal data give equal bytes)."""
     return json.dumps(data, indent=2, sort_keys=True, default=str) + "\n"
+
+
+def strict_json_text(data: Any) -> str:
+    """:func:`json_text` that strict JSON parsers accept: a NaN or infinite number (a
+    diverged run's loss) is written as ``null``, since JSON has no such numbers."""
+    return json.dumps(finite_or_none(data), indent=2, sort_keys=True, default=str, allow_nan=False) + "\n"
+
+
+def finite_or_none(data: Any) -> Any:
+    """``data`` with every non-finite float replaced by None (dicts, lists and tuples walked)."""
+    if isinstance(data, float):
+        return data if math.isfinite(data) else None
+    if isinstance(data, dict):
+        return {k: finite_or_none(v) for k, v in data.items()}
+    if isinstance(data, (list, tuple)):
+        return [finite_or_none(v) for v in data]
+    return data
 
 
 # --- one writer --------------------------------------------------------------------------------
@@ -132,18 +166,27 @@ def one_writer(directory: str | Path, what: str = "run", enabled: bool = True) -
     try:
         yield
     finally:
-        path.unlink(missing_ok=True)  # while holding the lock: a waiter re-checks the inode
+        with contextlib.suppress(OSError):  # a read-only or full disk: the OS lock goes with the descriptor
+            path.unlink(missing_ok=True)  # while holding the lock: a waiter re-checks the inode
         os.close(fd)
-        _remove_empty(created)
+        with contextlib.suppress(OSError):
+            _remove_empty(created)
 
 
 def _acquire(path: Path, directory: Path, what: str) -> int:
     import fcntl
 
     while True:
-        try:
-            fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+        if path.is_symlink():  # never write through a link someone left in our place
+            raise ConfigError(f"{path} is a symbolic link, not physgrad's lock file; remove it (physgrad never "
+                              "follows a link there) and run again")  # fmt: skip
+        try:  # O_NOFOLLOW: a link made between the check and the open is refused too
+            fd = os.open(path, os.O_RDWR | os.O_CREAT | getattr(os, "O_NOFOLLOW", 0), 0o644)
         except OSError as e:
+            if path.is_symlink():
+                raise ConfigError(
+                    f"{path} is a symbolic link, not physgrad's lock file; remove it and run again"
+                ) from None
             raise ConfigError(f"cannot write to {directory}: {e.strerror or e}") from None
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
@@ -209,6 +252,47 @@ def terminate_as_interrupt() -> Iterator[None]:
         yield
     finally:
         signal.signal(signal.SIGTERM, previous)
+
+
+class deferred_interrupts(contextlib.AbstractContextManager):
+    """Ctrl-C and SIGTERM wait until the body is done, then stop the run as usual.
+
+    The loop's bookkeeping after a chunk (the state's counters, an evaluation logged to
+    ``metrics.csv``, the checkpoint after it) is one unit: a signal that lands inside it
+    would stop the run with a step taken whose evaluation was never logged, and a resume
+    would go on without it. Inside the body a signal is remembered and raised
+    (:class:`KeyboardInterrupt` or :class:`Terminated`) when the body ends; a second
+    Ctrl-C raises at once (the user insists; that evaluation is then made again by no one).
+    Outside the main thread it does nothing, and a signal whose handler is not one that
+    raises (Python's Ctrl-C, :func:`terminate_as_interrupt`'s SIGTERM) is left alone."""
+
+    def __init__(self):
+        self.pending: int | None = None
+        self.previous: dict[int, Any] = {}
+
+    def _remember(self, signum, frame):
+        if signum == signal.SIGINT and self.pending == signal.SIGINT:
+            raise KeyboardInterrupt
+        self.pending = signum
+
+    def __enter__(self):
+        import threading
+
+        if threading.current_thread() is threading.main_thread():
+            # only the signals that would raise here (Ctrl-C's default, SIGTERM inside
+            # terminate_as_interrupt): a handler of the user's own is left alone
+            raising = {signal.SIGINT: signal.default_int_handler, signal.SIGTERM: _raise_terminated}
+            for signum, handler in raising.items():
+                if signal.getsignal(signum) is handler:
+                    self.previous[signum] = signal.signal(signum, self._remember)
+        return self
+
+    def __exit__(self, *exc):
+        for signum, handler in self.previous.items():
+            signal.signal(signum, handler)
+        if self.pending is not None and exc[0] is None:
+            raise Terminated if self.pending == signal.SIGTERM else KeyboardInterrupt
+        return None
 
 
 # --- checkpoints -------------------------------------------------------------------------------

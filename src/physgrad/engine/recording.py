@@ -159,6 +159,7 @@ class Recorder:
 
     def __call__(self, state: TrainState, final: bool) -> tuple[TrainState, bool]:
         """Evaluate and log at ``state.step``; returns the state and whether the losses are finite."""
+        rundir.fault("evaluating")  # test hook: a signal while an evaluation runs
         window = state.stat_window  # sorted: a resumed window (from JSON) logs in the same order
         values = {("train", f"step_{n}"): window[n][0] / window[n][1] for n in sorted(window)}
         state = state._replace(stat_window={})

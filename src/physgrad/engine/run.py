@@ -73,7 +73,7 @@ def fit(
     progress: AbstractProgressMeter | None = None,
     devices: int | str | None = 1,
     record: dict[str, Any] | None = None,
-    same_run: Callable[[dict[str, Any]], bool] | None = None,
+    same_run: Callable[[dict[str, Any]], Any] | None = None,
     label: str = "",
     name: str = "",
     callbacks: Sequence[Callback | Callable[[int, dict[str, float]], Any]] | None = None,
@@ -94,8 +94,10 @@ def fit(
     seed, budget and settings, with ``method`` the name and ``optimizers`` each phase's
     optax hyperparameters where the optimizer was made with ``optax.inject_hyperparams``,
     else a note that they cannot be recorded: :func:`physgrad.engine.hyperparams.optimizer_record`).
-    With ``resume=True`` an existing run whose record matches (``same_run(old_record)``,
-    default: equal apart from the budget and the name) continues from its checkpoint up to
+    With ``resume=True`` an existing run whose record matches (``same_run(old_record)``:
+    True, or an empty list of differences, each ``"key: old → new"``; default: equal
+    apart from the budget, the name, the checkpoint interval and, without PRDP, the
+    evaluation cadence, after :func:`physgrad.engine.record.normalised`) continues from its checkpoint up to
     ``budget``, and a finished run whose budget is met returns its summary (its history
     read from ``metrics.csv``; ``network`` and ``state`` None).
 
@@ -134,7 +136,8 @@ def fit(
     record = record or records.describe(problem, phases=_phases(method, batch_size, ""), seed=seed, budget=budget,
                                         settings=settings, name=label_all)  # fmt: skip
     as_json = json.loads(json.dumps(record, default=str))
-    same_run = same_run or (lambda old: records.identity(old) == records.identity(records.like(as_json, old)))
+    same_run = same_run or (lambda old: records.differences(records.identity(old),
+                                                            records.identity(records.like(as_json, old))))  # fmt: skip
     run_dir = None if out is None else Path(out)
     identity = {"problem": problem.name, "method": label_all, "seed": seed}
     request = Request(problem, phases, seed, budget, settings, run_dir, resume, record, same_run,
@@ -159,7 +162,7 @@ class Request:
     run_dir: Path | None  # None: in memory
     resume: bool
     record: dict[str, Any]  # written as config.json
-    same_run: Callable[[dict[str, Any]], bool]  # whether a recorded run is this one
+    same_run: Callable[[dict[str, Any]], Any]  # whether a recorded run is this one (or what differs)
     label: str  # the progress meter's
     identity: dict[str, Any]  # problem, method and seed: the summary's first keys
     callbacks: Callbacks = dataclasses.field(default_factory=Callbacks)
@@ -212,37 +215,42 @@ def loop(state: TrainState, *, setup: Setup, compiled: Any, strategies: Strategi
             params, opt_state, taken, diverged, stats = compiled(state.params, state.opt_state, steps.data, order,
                                                                  np.int32(batch), np.int32(count))  # fmt: skip
             taken, diverged, stats = jax.device_get(distributed.to_host((taken, diverged, stats)))  # waits: honest time
-            train_time = placement.clock(state.train_time + time.perf_counter() - t_start)
-            taken = int(taken)
-            chunks.observe(taken + int(diverged), train_time - state.train_time)
-            # A step its method's acceptance refused (physgrad.acceptance) left the parameters as they
-            # were: its non-finite loss is not a divergence (make_steps stops at a divergent step only).
-            losses = np.asarray(stats["loss"][:taken], np.float64)
-            finite = losses[np.isfinite(losses)]
-            last_finite = float(finite[-1]) if finite.size else state.last_finite_loss
-            state = recorder.accumulate(state, stats, taken)._replace(
-                params=params, opt_state=opt_state, step=state.step + taken, train_time=train_time,
-                last_finite_loss=last_finite)  # fmt: skip
-            if fidelity.name:
-                state = state._replace(solver_iterations=state.solver_iterations + taken * fidelity.iterations(state))
-            if diverged:
-                return Ending(state, setup, "diverged", state.step)
-            boundary = stop.met(state.step, state.train_time) or (
-                stage.steps is not None and state.step == stage.start + stage.steps
-            )
-            if schedule.due(state.step, state.train_time, stage, boundary):
-                state, finite_eval = recorder(state, final=stop.met(state.step, state.train_time))
-                if not finite_eval:
+            # From here to the checkpoint after an evaluation is one unit: a Ctrl-C or SIGTERM waits
+            # for it, so a step is never taken without its evaluation logged (rundir.deferred_interrupts)
+            with rundir.deferred_interrupts():
+                train_time = placement.clock(state.train_time + time.perf_counter() - t_start)
+                taken = int(taken)
+                chunks.observe(taken + int(diverged), train_time - state.train_time)
+                # A step its method's acceptance refused (physgrad.acceptance) left the parameters as they
+                # were: its non-finite loss is not a divergence (make_steps stops at a divergent step only).
+                losses = np.asarray(stats["loss"][:taken], np.float64)
+                finite = losses[np.isfinite(losses)]
+                last_finite = float(finite[-1]) if finite.size else state.last_finite_loss
+                state = recorder.accumulate(state, stats, taken)._replace(
+                    params=params, opt_state=opt_state, step=state.step + taken, train_time=train_time,
+                    last_finite_loss=last_finite)  # fmt: skip
+                if fidelity.name:
+                    state = state._replace(
+                        solver_iterations=state.solver_iterations + taken * fidelity.iterations(state)
+                    )
+                if diverged:
                     return Ending(state, setup, "diverged", state.step)
-                refined = fidelity.problem_at(setup, state)
-                if refined is not setup:  # PRDP refined the solver: new problem, new step
-                    setup = refined
-                    recorder.use(setup)
-                    compiled, state = steps.compile(state, setup)
-                    chunks.reset()
-                checkpointer.save(state)  # an evaluation is work too: never lost to a kill
-            else:
-                checkpointer.maybe(state)
+                boundary = stop.met(state.step, state.train_time) or (
+                    stage.steps is not None and state.step == stage.start + stage.steps
+                )
+                if schedule.due(state.step, state.train_time, stage, boundary):
+                    state, finite_eval = recorder(state, final=stop.met(state.step, state.train_time))
+                    if not finite_eval:
+                        return Ending(state, setup, "diverged", state.step)
+                    refined = fidelity.problem_at(setup, state)
+                    if refined is not setup:  # PRDP refined the solver: new problem, new step
+                        setup = refined
+                        recorder.use(setup)
+                        compiled, state = steps.compile(state, setup)
+                        chunks.reset()
+                    checkpointer.save(state)  # an evaluation is work too: never lost to a kill
+                else:
+                    checkpointer.maybe(state)
             rundir.fault("step")
             progress.update(step=state.step, train_time=state.train_time, loss=float(losses[-1]))
     except KeyboardInterrupt as e:
@@ -341,9 +349,14 @@ def _recorded(request: Request) -> dict[str, Any] | None:
     if not request.resume:
         raise ConfigError(f"run directory {run_dir} exists; resume it (resume=True) or choose another run directory")
     old = read_json(path)
-    if not request.same_run(old):
-        raise ConfigError(f"run directory {run_dir} holds a different configuration; choose another run directory")
-    return old
+    verdict = request.same_run(old)
+    if verdict is True or (not isinstance(verdict, bool) and not list(verdict)):
+        return old
+    differ = records.differences(records.identity(old), records.identity(records.like(json.loads(json.dumps(request.record, default=str)), old))) \
+        if isinstance(verdict, bool) else list(verdict)  # fmt: skip
+    what = f" ({'; '.join(differ[:6])}{'; …' if len(differ) > 6 else ''})" if differ else ""
+    raise ConfigError(f"run directory {run_dir} holds a different configuration{what}; resume it with its own "
+                      "settings or choose another run directory")  # fmt: skip
 
 
 def _start(
@@ -398,8 +411,8 @@ def _close(ending: Ending, *, request: Request, recorder: Recorder, checkpointer
         summary["wall_capped"] = (ending.status == "finished" and rule.capped(state.train_time)
                                   and not rule.budget_met(state.step, state.train_time))  # fmt: skip
         summary["wall_cap"] = cap
-    if writer and run_dir is not None:
-        write_json(run_dir / "summary.json", summary)
+    if writer and run_dir is not None:  # strict JSON: a diverged run's NaN loss as null
+        rundir.atomic_write(run_dir / "summary.json", rundir.strict_json_text(summary))
     return summary
 
 

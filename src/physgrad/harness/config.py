@@ -10,6 +10,7 @@ from typing import Any
 
 from ..checks import check_setting
 from ..engine import ADDED_SETTINGS, UNGUARDED_SETTINGS, Budget, TrainSettings
+from ..engine.record import CARRIED_OUT_SETTINGS, EVALUATION_CADENCE
 from ..errors import ConfigError
 from ..extras import MissingExtra, require
 from .registry import METHODS, PROBLEMS, hyperparameters, is_optax_name, optax_method, paper_defaults
@@ -220,10 +221,30 @@ class RunConfig:
             phase["hyperparameters"] = {k: v for k, v in phase["hyperparameters"].items() if later.get(k, _ABSENT) != v}
         return out
 
+    def identity(self) -> dict[str, Any]:
+        """What makes this run the run it is, for resuming: the canonical configuration
+        without its budget and without the settings that cannot change its numbers
+        (:data:`NOT_IDENTITY`: how often it checkpoints; how often it evaluates, unless PRDP
+        reads those evaluations). Compared after :func:`physgrad.engine.record.normalised`."""
+        out = {k: v for k, v in self.canonical_dict().items() if k != "budget" and k not in NOT_IDENTITY}
+        if not self.prdp:
+            out = {k: v for k, v in out.items() if k not in EVALUATION_CADENCE}
+        return out
+
     def digest(self) -> str:
-        """A stable hash of the canonical configuration (never Python's ``hash()``)."""
-        text = json.dumps(self.canonical_dict(), sort_keys=True, default=str)
+        """A stable hash of the canonical configuration (never Python's ``hash()``): the
+        run directory's name in a study. The checkpoint interval is hashed at its default
+        whatever it is (runs named before it left the identity keep their names)."""
+        named = dataclasses.replace(self, **{k: _DEFAULTS[k] for k in NOT_IDENTITY})
+        text = json.dumps(named.canonical_dict(), sort_keys=True, default=str)
         return hashlib.sha256(text.encode()).hexdigest()[:10]
+
+
+# Settings that change how a run is carried out but never its numbers (the engine's
+# record.CARRIED_OUT_SETTINGS): left out of its identity and hashed at their defaults in its
+# name; the evaluation cadence is left out of the identity unless PRDP refines on it.
+NOT_IDENTITY = CARRIED_OUT_SETTINGS
+_DEFAULTS = {f.name: f.default for f in dataclasses.fields(RunConfig)}
 
 
 def valid_settings(problem: str, method: str) -> dict[str, Any]:

@@ -28,6 +28,7 @@ from ..engine import (
     read_metrics,
     read_summary,
 )
+from ..engine.record import differences
 from ..problems.direct import DirectOptimisation
 from ..programs import ProgramCache
 from ..progress import AbstractProgressMeter
@@ -78,9 +79,16 @@ def build(config: RunConfig, overrides: dict[str, Any] | None = None) -> Setup:
     return build_setup(problem_of(config, overrides), phases_of(config), config.seed)
 
 
-def _same_run(a: dict[str, Any], b: RunConfig) -> bool:
-    strip = lambda c: {k: v for k, v in c.canonical_dict().items() if k != "budget"}  # noqa: E731
-    return strip(RunConfig.from_dict(a)) == strip(b)
+def _same_run(recorded: dict[str, Any], config: RunConfig) -> list[str]:
+    """What differs between a run directory's ``config.json`` and ``config`` in the run's
+    identity (:meth:`RunConfig.identity`), ``key: old → new`` each; empty for the same run."""
+    try:
+        old = RunConfig.from_dict(recorded)
+    except (KeyError, TypeError, ValueError, AttributeError):
+        raise ConfigError("the run directory's config.json was not written by the command line (a run of "
+                          "physgrad.fit from Python?); resume it with physgrad.fit(..., resume=True) as it was "
+                          "started, or choose another run directory") from None  # fmt: skip
+    return differences(old.identity(), config.identity())
 
 
 def train(
