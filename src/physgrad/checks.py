@@ -211,7 +211,13 @@ def check_fields(obj: Any, what: str) -> None:
 def check_directory(path: str | Path, what: str = "out") -> Path:
     """``path`` if a directory can be used or created there; a one-line :class:`ConfigError`
     if it names a file, lies under a file or cannot be written."""
+    if not str(path).strip():
+        raise ConfigError(f"{what} is empty; give a directory")
     path = Path(path)
+    long = [part for part in path.parts if len(os.fsencode(part)) > 255]
+    if long:  # the file systems' NAME_MAX: refused before any work, not as ENAMETOOLONG after it
+        raise ConfigError(f"{what} has a name of {len(os.fsencode(long[0]))} bytes, over the 255 a file system "
+                          f"allows; choose a shorter {what}")  # fmt: skip
     if path.exists() and not path.is_dir():
         raise ConfigError(f"{what} {str(path)!r} is a file, not a directory; choose another {what}")
     parent = path

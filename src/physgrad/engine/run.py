@@ -470,8 +470,8 @@ def _check_arguments(problem, *, budget, seed, batch_size, settings, out, resume
         raise ConfigError(f"problem must be a physgrad problem (an AbstractProblem instance), got {problem!r}")
     if not isinstance(budget, Budget):
         raise ConfigError(f"budget must be a physgrad.Budget, e.g. Budget(steps={budget!r}), got {budget!r}")
-    if not checks.NON_NEGATIVE_INT.valid(seed):
-        raise ConfigError(f"seed must be {checks.NON_NEGATIVE_INT.text}, got {seed!r}")
+    if not checks.NON_NEGATIVE_INT.valid(seed) or seed > 2**63 - 1:  # jax.random.key's signed 64 bits
+        raise ConfigError(f"seed must be {checks.NON_NEGATIVE_INT.text} below 2**63, got {seed!r}")
     if batch_size is not None and not checks.POSITIVE_INT.valid(batch_size):
         raise ConfigError(f"batch_size must be {checks.POSITIVE_INT.text} or None (the problem's default), "
                           f"got {batch_size!r}")  # fmt: skip

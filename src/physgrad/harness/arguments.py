@@ -72,6 +72,32 @@ def run_settings(args):
     return settings
 
 
+MAX_SEED = 2**63 - 1  # jax.random.key takes a signed 64-bit integer
+MAX_SEEDS = 10_000  # a study's seeds are planned as a list of runs: more is a typo, not a study
+
+
+def seed_number(text: str) -> int:
+    """``--seed``: an integer in [0, 2**63 - 1] (argparse's one-line error otherwise)."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expects an integer, got {text!r}") from None
+    if not 0 <= value <= MAX_SEED:
+        raise argparse.ArgumentTypeError(f"expects an integer from 0 to 2**63 - 1, got {text}")
+    return value
+
+
+def seed_count(text: str) -> int:
+    """``--seeds``: how many seeds (0..N-1), from 1 to :data:`MAX_SEEDS`."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expects an integer, got {text!r}") from None
+    if not 1 <= value <= MAX_SEEDS:
+        raise argparse.ArgumentTypeError(f"expects a number of seeds from 1 to {MAX_SEEDS:,}, got {text}")
+    return value
+
+
 def output_dir(path) -> Path:
     """``--out``, refused in one line if it names a file or cannot be written (before any work)."""
     from ..checks import check_directory
@@ -89,6 +115,9 @@ def _settings(pairs):
         name, sep, value = pair.partition("=")
         if not sep or not name:
             raise UsageError(f"--set expects name=value, got {pair!r}")
+        if name.strip() in settings:  # the last one winning silently hides a typo
+            raise UsageError(f"--set {name.strip()} is given twice ({settings[name.strip()]!r} and {value.strip()!r}); "
+                             "give it once (a comma-separated value sweeps it)")  # fmt: skip
         settings[name.strip()] = value.strip()
     return settings
 
@@ -175,7 +204,7 @@ def build_parser() -> Parser:
     p.add_argument(
         "--method", required=True, help="a method, or a sequence such as adam:2000,hig (Adam for 2000 steps, then HIG)"
     )
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=seed_number, default=0)
     p.add_argument("--out", help="run directory (default runs/PROBLEM-METHOD-seedK)")
     p.add_argument("--resume", action="store_true", help="continue the run in --out from its last checkpoint")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -200,7 +229,7 @@ def build_parser() -> Parser:
     p.add_argument(
         "--methods", help="comma-separated, sequences allowed: adam,hig,adam:2000,hig (default: the paper's comparison)"
     )
-    p.add_argument("--seeds", type=int, default=1, help="number of seeds 0..N-1 (default 1)")
+    p.add_argument("--seeds", type=seed_count, default=1, help="number of seeds 0..N-1 (default 1)")
     p.add_argument("--devices", default="1", metavar="N|all", help="devices to split each batch over (default 1)")
     p.add_argument("--out", help="study directory (default studies/PROBLEM)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
@@ -248,7 +277,9 @@ def build_parser() -> Parser:
     p.add_argument("--problems", help="comma-separated problems, or all (default: all shipped problems)")
     p.add_argument("--methods", help="comma-separated candidate methods, or applicable (default: every registered "
                                      "method; each problem runs those that apply)")  # fmt: skip
-    p.add_argument("--seeds", type=int, default=None, help="number of seeds 0..N-1 (default 1; a profile: its own)")
+    p.add_argument(
+        "--seeds", type=seed_count, default=None, help="number of seeds 0..N-1 (default 1; a profile: its own)"
+    )
     p.add_argument("--out", help="bench directory (default bench; a profile: bench-quick, bench-standard)")
     p.add_argument("--quick", action="store_true", help="the quick profile: " + QUICK_SUMMARY)
     p.add_argument("--standard", action="store_true", help="the standard profile: " + STANDARD_SUMMARY)

@@ -22,6 +22,7 @@ and exits with status 2.
 from __future__ import annotations
 
 import contextlib
+import errno
 import json
 import math
 import os
@@ -33,6 +34,7 @@ from rich.console import Console
 from rich.table import Table
 from rich.text import Text
 
+from .. import rundir
 from .arguments import DEMO, UsageError, budget_of, build_parser, output_dir, run_settings, threads_of
 from .words import command_line_words
 
@@ -110,7 +112,9 @@ def cmd_train(args, console):
 
     devices = _start_processes(args)
     config = make_config(args.problem, args.method, budget=budget_of(args), seed=args.seed, settings=run_settings(args))
-    out = output_dir(args.out or f"runs/{args.problem}-{method_slug(args.method)}-seed{args.seed}")
+    out = output_dir(
+        args.out if args.out is not None else f"runs/{args.problem}-{method_slug(args.method)}-seed{args.seed}"
+    )
     stages = "; then ".join(
         f"{p.method}"
         + (f" for {p.steps} steps" if p.steps else "")
@@ -181,7 +185,7 @@ def cmd_compare(args, console):
     methods = split_methods(args.methods) if args.methods else None
     if args.seeds < 1:
         raise UsageError("--seeds must be at least 1")
-    out = output_dir(args.out or f"studies/{args.problem}")
+    out = output_dir(args.out if args.out is not None else f"studies/{args.problem}")
     settings = run_settings(args)
     from .study import split_grid
 
@@ -301,7 +305,7 @@ def cmd_bench(args, console):
         problems = bench.choose_problems(args.problems)
         methods = bench.choose_methods(args.methods)
         budget, seeds, budgets = budget_of(args), args.seeds or 1, {}
-    out = output_dir(args.out or (f"bench-{name}" if name else "bench"))
+    out = output_dir(args.out if args.out is not None else (f"bench-{name}" if name else "bench"))
     calibrate = not args.no_calibrate and budget.kind == "seconds"
     console.print(
         f"bench{f' ({name} profile)' if name else ''}: {len(problems)} problems x {len(methods)} candidate methods, "
@@ -416,7 +420,9 @@ def cmd_calibrate(args, console):
     if out is not None:
         out.parent.mkdir(parents=True, exist_ok=True)
         if out.suffix == ".json":
-            out.write_text(json.dumps(record, indent=2, default=str) + "\n")
+            rundir.atomic_write(
+                out, json.dumps(record, indent=2, default=str) + "\n"
+            )  # the old record stays on a failed write
         else:
             if args.append and out.exists():
                 rows = [*read_csv(out), *rows]
@@ -517,12 +523,26 @@ def main(argv=None) -> int:
         # The thread pools for the command (physgrad.cpu): set before the first JAX
         # computation, so that XLA's pool is sized too; restored when the command returns.
         threads = process_threads(threads_of(args)) if hasattr(args, "threads") else contextlib.nullcontext()
-        with warnings.catch_warnings(), threads:  # a figure that cannot be drawn: one line, the tables stand
+        # SIGTERM stops every command as Ctrl-C does (a study's calibration too): locks released, one line
+        with warnings.catch_warnings(), threads, rundir.terminate_as_interrupt():
             warnings.showwarning = _one_line_warnings(err, warnings.showwarning)
             return COMMANDS[args.command](args, console)
     except (UsageError, ConfigError) as e:  # the library's line in the command line's words where it has them
         err.print(f"physgrad: error: {command_line_words(str(e))}", markup=False, highlight=False, soft_wrap=True)
         return 2
+    except OSError as e:  # a full disk, a read-only file system, a permission, a name too long: one line
+        err.print(f"physgrad: error: {os_error_line(e)}", markup=False, highlight=False, soft_wrap=True)
+        return 1
+    except MemoryError:
+        err.print("physgrad: error: out of memory; reduce the data (n_train, n_test) or the batch size",
+                  markup=False, highlight=False, soft_wrap=True)  # fmt: skip
+        return 1
+    except Exception as e:
+        if "RESOURCE_EXHAUSTED" not in str(e):  # XLA's out of memory (its own exception type varies by version)
+            raise
+        err.print("physgrad: error: the accelerator or host ran out of memory (XLA: RESOURCE_EXHAUSTED); reduce "
+                  "the data (n_train, n_test) or the batch size", markup=False, highlight=False, soft_wrap=True)  # fmt: skip
+        return 1
     except KeyboardInterrupt as e:  # Ctrl-C, or SIGTERM (rundir.Terminated): runs checkpoint first
         from ..rundir import Terminated
 
@@ -532,6 +552,24 @@ def main(argv=None) -> int:
             soft_wrap=True,
         )
         return 143 if isinstance(e, Terminated) else 130
+
+
+def os_error_line(e: OSError) -> str:
+    """An OS error at the edge as one line naming the file (the file physgrad was writing,
+    not its temporary copy) and what to do; the run directory stays resumable."""
+    import re
+
+    name = str(e.filename or "")
+    name = re.sub(r"/\.([^/]+)\.\d+\.tmp(\.npz)?$", r"/\1", name)  # rundir.atomic_file's temporary name
+    why = e.strerror or type(e).__name__
+    advice = {
+        errno.ENOSPC: "free some space, then run the same command (train: with --resume) to continue",
+        errno.EROFS: "the file system is read-only; choose a writable --out",
+        errno.EACCES: "check the permissions, or choose another --out",
+        errno.EPERM: "check the permissions, or choose another --out",
+        errno.ENAMETOOLONG: "choose a shorter --out (a name has at most 255 bytes)",
+    }.get(e.errno or 0, "finished runs are kept; run the same command again once it is fixed")
+    return f"{name}: {why}; {advice}" if name else f"{why}; {advice}"
 
 
 if __name__ == "__main__":

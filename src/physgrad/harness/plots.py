@@ -16,6 +16,8 @@ from typing import Any
 
 import numpy as np
 
+from .. import rundir
+
 # The widest log range a figure shows: beyond it matplotlib's log ticks overflow, and no
 # training curve needs it. Above the curves' highest starting value a figure shows at most
 # DECADES_ABOVE_START decades: a diverging run's values beyond that are clipped and marked.
@@ -26,6 +28,14 @@ MARK_LABEL = "x: diverged or off-scale, drawn at the axis edge"
 
 class FigureWarning(UserWarning):
     """A figure could not be drawn; the study's tables and CSV files are complete."""
+
+
+def save_figure(fig, path: str | Path, **options) -> None:
+    """``fig.savefig`` through :func:`physgrad.rundir.atomic_file`: a kill or a failed write
+    leaves the previous figure whole, never an empty or half-written PNG."""
+    path = Path(path)
+    with rundir.atomic_file(path) as f:
+        fig.savefig(f, format=path.suffix.lstrip(".") or "png", **options)
 
 
 def draw(make: Callable[..., Path], *args: Any, **kwargs: Any) -> Path | None:
@@ -209,7 +219,7 @@ def loss_vs_time(
         ax.legend(fontsize=8)
     fig.tight_layout()
     path = Path(path)
-    fig.savefig(path)
+    save_figure(fig, path)
     return path
 
 
@@ -324,7 +334,7 @@ def grid_panels(
     top = 0.95 - 0.045 * (len(title_lines) - 1)
     fig.tight_layout(rect=(0, 0.04 + 0.035 * math.ceil(len(labels) / ncol), 1, top))
     path = Path(path)
-    fig.savefig(path)
+    save_figure(fig, path)
     return path
 
 
@@ -387,7 +397,7 @@ def heatmap(
     ax.set_title(title or f"final test loss relative to {reference} (blue: lower; blank: not applicable)", fontsize=8)
     fig.tight_layout()
     path = Path(path)
-    fig.savefig(path)
+    save_figure(fig, path)
     return path
 
 
@@ -422,5 +432,5 @@ def performance_profile(
         ax.legend(fontsize=8, loc="lower right")
     fig.tight_layout()
     path = Path(path)
-    fig.savefig(path)
+    save_figure(fig, path)
     return path

@@ -28,6 +28,7 @@ method was lower (descriptive only).
 from __future__ import annotations
 
 import csv
+import io
 import itertools
 import json
 import math
@@ -36,6 +37,7 @@ from typing import Any
 
 import numpy as np
 
+from .. import rundir
 from ..engine.recording import kept_path, open_kept
 
 # The first nine columns are the original layout of paired_tests.csv (readers index them
@@ -193,10 +195,11 @@ def paired_tests(out: str | Path, metric: str | None = None, order: list[str] | 
             "ties": sum(x == y or (math.isinf(x) and math.isinf(y)) for x, y in zip(xs, ys)),
             "ratio_low": ratios["low"], "ratio_high": ratios["high"], "tested": tested,
         })  # fmt: skip
-    with (out / "paired_tests.csv").open("w", newline="") as f:
-        writer = csv.DictWriter(f, COLUMNS)
-        writer.writeheader()
-        writer.writerows(rows)
+    text = io.StringIO()
+    writer = csv.DictWriter(text, COLUMNS)
+    writer.writeheader()
+    writer.writerows(rows)
+    rundir.atomic_write(out / "paired_tests.csv", text.getvalue())  # never half a table
     return rows
 
 

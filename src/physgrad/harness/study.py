@@ -107,6 +107,7 @@ def compare(
     record_failures: bool = False,
     calibrate: bool = True,
     calibration_options: dict[str, Any] | None = None,
+    executor=None,
 ) -> list[dict[str, Any]]:
     """Train every method × seed on the same budget into ``out``; return the summary rows.
     ``devices``: each run's batch is split over that many devices (``train``). One study
@@ -121,7 +122,8 @@ def compare(
     ``eval_seconds`` becoming the same cadence in steps. ``calibrate=False`` keeps the
     wall-clock budget (the run stops when its training wall-clock reaches the seconds).
     ``calibration_options``: :func:`~physgrad.harness.calibration.calibrate`'s ``repeats``,
-    ``max_seconds``, ``clock`` or ``programs``."""
+    ``max_seconds``, ``clock`` or ``programs``. ``executor``: where the runs go, all at once
+    (:mod:`physgrad.harness.workers`: Dask workers; None: one after the other here)."""
     out = Path(out)
     configs = plan(problem, methods, seeds, budget, settings)
     with rundir.one_writer(out, "study"):  # one writer per study directory, for the whole study
@@ -137,11 +139,15 @@ def compare(
             "run_budgets": {c.method: c.budget.to_dict() for c in configs},
         }, indent=2) + "\n")  # fmt: skip
         log = FailureLog(out, names, write=record_failures)
+        pending = []  # --- executor injection (harness/workers.py): the runs left, handed over at once
         for i, (config, name) in enumerate(zip(configs, names), 1):
             run_dir = out / "runs" / name
             prefix = f"[{i}/{len(configs)}] {config.method} seed {config.seed}"
             if is_complete(run_dir) and not cap_raised(read_summary(run_dir) or {}, config.wall_cap):
                 echo(f"{prefix}: done already ({(read_summary(run_dir) or {}).get('status')}), skipped")
+                continue
+            if executor is not None:
+                pending.append((prefix, config, run_dir))
                 continue
             try:
                 summary = train(config, run_dir, resume=True, progress=progress and progress(), devices=devices)
@@ -152,7 +158,11 @@ def compare(
                 continue
             log.clear(name)
             echo(f"{prefix}: {describe_run(summary)}")
-        return collect(out)
+        if pending:
+            from .workers import run_pending
+
+            run_pending(executor, pending, log, record_failures=record_failures, echo=echo, devices=devices)
+        return collect(out)  # --- end of the executor injection
 
 
 def calibrate_study(
@@ -436,7 +446,10 @@ def split_grid(settings: dict[str, Any]) -> tuple[dict[str, Any], dict[str, list
     fixed, grid = {}, {}
     for key, value in settings.items():
         if isinstance(value, str) and "," in value:
-            values = [v.strip() for v in value.split(",") if v.strip()]
+            values = [v.strip() for v in value.split(",")]
+            if not all(values) or len(values) < 2:  # "lr=1e-3," is a typo, not a one-cell sweep
+                raise ConfigError(f"setting {key!r}: {value!r} has an empty value; a sweep lists two or more "
+                                  "values separated by commas, e.g. lr=1e-3,1e-2")  # fmt: skip
             if len(values) != len(set(values)):
                 raise ConfigError(f"setting {key!r} lists a value twice: {value!r}")
             grid[key] = values

@@ -23,7 +23,7 @@ _RULES: tuple[tuple[re.Pattern[str], str], ...] = tuple(
         (r"^coordinator must be", "--coordinator must be"),
         (r"^devices must be", "--devices must be"),
         (r"\bdevices=(\d+)", r"--devices \1"),
-        (r"\bout '", "--out '"),
+        (r"(?<![-\w])out '", "--out '"),  # not the "--out '" of a message already in flags
         (r"\banother out\b", "another --out"),
     )
 )
