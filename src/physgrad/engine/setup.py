@@ -83,6 +83,24 @@ def _check_data(problem: AbstractProblem, data: Any) -> None:
         if len(lengths) > 1 or None in lengths:
             raise ConfigError(f"{problem.name}: the arrays of make_data's {split!r} split must share their leading "
                               f"(sample) axis, got lengths {sorted(lengths, key=str)}")  # fmt: skip
+        _check_finite(problem, split, samples)
+
+
+def _check_finite(problem: AbstractProblem, split: str, samples: Any) -> None:
+    """A NaN or infinity in the data is refused as data, naming the split and the first
+    sample that holds one; left to the loop it would read as the method diverging."""
+    for path, x in jax.tree_util.tree_leaves_with_path(samples):
+        if isinstance(x, jax.ShapeDtypeStruct) or isinstance(x, jax.core.Tracer):
+            return  # abstract data (the memory guard's preflight): nothing to look at
+        if not jnp.issubdtype(jnp.result_type(x), jnp.inexact):
+            continue
+        finite = np.isfinite(np.asarray(x)).reshape(np.shape(x)[0], -1).all(axis=1)
+        if not finite.all():
+            sample = int(np.argmin(finite))
+            where = jax.tree_util.keystr(path) or "its array"
+            raise ConfigError(f"{problem.name}: the {split!r} data hold a NaN or infinite value in sample {sample} "
+                              f"({where}{'' if finite.sum() + 1 == finite.size else f'; {int((~finite).sum())} samples in all'}); "
+                              "fix or drop those samples")  # fmt: skip
 
 
 def scalar_loss(loss: Callable[[Any, Any], Any]) -> Callable[[Any, Any], Any]:
