@@ -1,0 +1,283 @@
+"""Independent runs in parallel: in this process, or on the workers of a Dask cluster.
+
+A calibrated budget is a number of steps (:mod:`physgrad.harness.calibration`), so a run's
+numbers do not depend on when or where it runs: runs may go to other processes or machines
+without changing a digit. An executor takes **jobs** (picklable callables, each one run
+into its own run directory: :class:`ConfiguredRun`, :class:`ObjectRun`) and yields their
+results as they finish:
+
+- :class:`InProcess` runs them one after the other here (``--workers 1``);
+- :class:`Dask` submits them to Dask distributed (Rocklin 2015, "Dask: Parallel Computation
+  with Blocked algorithms and Task Scheduling"; ``distributed.Client``): by default a
+  ``LocalCluster`` started in this process with ``workers`` worker processes of one thread
+  each (nothing to install or start), or the scheduler at ``scheduler`` (``tcp://HOST:8786``,
+  a cluster the user runs), or any Dask ``client``/cluster object (``dask_jobqueue.SLURMCluster``).
+
+Each run keeps its own run directory, lock, checkpoints and resume (:func:`physgrad.fit`).
+A worker that dies takes its run's work since the last checkpoint with it: the scheduler
+hands the job to another worker (``distributed.scheduler.allowed-failures``, and
+``retries`` for a job that raised), which resumes the run from its checkpoint. A worker
+keeps the programs it compiled (:mod:`physgrad.programs`), so each worker compiles a
+(problem, method, shapes) step once, as the single process does. Every worker process
+runs with ``threads`` threads per pool (:func:`physgrad.cpu.process_threads`), set before
+its JAX backend starts.
+"""
+
+from __future__ import annotations
+
+import abc
+import dataclasses
+import os
+from collections.abc import Callable, Iterator, Sequence
+from pathlib import Path
+from typing import Any
+
+from ..engine import Budget, TrainSettings
+from ..errors import ConfigError
+
+Job = Callable[[], Any]
+
+
+def default_workers() -> int:
+    """The machine's cores available to this process (``--workers`` default)."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # not Linux
+        return max(1, os.cpu_count() or 1)
+
+
+class AbstractExecutor(abc.ABC):
+    """Runs independent jobs; ``run`` yields ``(index, result, error)`` as each job finishes
+    (``error`` None on success, else the exception it raised). ``slots`` is how many jobs
+    run at once. Use as a context manager: a cluster it started is closed on exit."""
+
+    @property
+    @abc.abstractmethod
+    def slots(self) -> int: ...
+
+    @abc.abstractmethod
+    def run(self, jobs: Sequence[Job]) -> Iterator[tuple[int, Any, BaseException | None]]: ...
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def close(self) -> None:  # noqa: B027 (nothing to release by default)
+        """Release what the executor started (nothing by default)."""
+
+
+@dataclasses.dataclass
+class InProcess(AbstractExecutor):
+    """One job after the other in this process (a KeyboardInterrupt stops at once)."""
+
+    @property
+    def slots(self) -> int:
+        return 1
+
+    def run(self, jobs):
+        for i, job in enumerate(jobs):
+            try:
+                result = job()
+            except Exception as e:  # recorded by the caller; KeyboardInterrupt stops
+                yield i, None, e
+                continue
+            yield i, result, None
+
+
+class Dask(AbstractExecutor):
+    """Jobs on Dask distributed workers (see the module docstring).
+
+    Arguments (at most one of ``scheduler`` and ``client``):
+        workers: worker processes of the in-process ``LocalCluster`` (default: the machine's
+            cores), one thread each.
+        scheduler: the address of a running scheduler (``tcp://HOST:8786``).
+        client: a ``distributed.Client``, or a cluster object (``LocalCluster``,
+            ``dask_jobqueue.SLURMCluster``, ...) that a client is made for.
+        retries: times a job that raised is tried again (a dead worker's job is handed on
+            by the scheduler regardless, up to ``distributed.scheduler.allowed-failures``).
+        threads: threads per pool in each worker process (default 1).
+    """
+
+    def __init__(self, workers: int | None = None, *, scheduler: str | None = None, client: Any = None,
+                 retries: int = 2, threads: int | None = 1):  # fmt: skip
+        if scheduler and client is not None:
+            raise ConfigError("give a scheduler address or a client, not both")
+        if workers is not None and workers < 1:
+            raise ConfigError(f"workers must be at least 1, got {workers}")
+        self.workers, self.scheduler, self.retries, self.threads = workers, scheduler, retries, threads
+        self._given, self._client, self._cluster = client, None, None
+
+    @property
+    def client(self):
+        """The ``distributed.Client`` (the in-process cluster is started on first use)."""
+        if self._client is None:
+            from distributed import Client, LocalCluster
+
+            given = self._given
+            if given is not None:
+                self._client = given if isinstance(given, Client) else Client(given)
+            elif self.scheduler:
+                self._client = Client(self.scheduler)
+            else:
+                # Worker processes (JAX is not fork-safe; each has its own compiled programs),
+                # one thread each; no dashboard (a port nobody asked for).
+                self._cluster = LocalCluster(n_workers=self.workers or default_workers(), threads_per_worker=1,
+                                             processes=True, dashboard_address=None)  # fmt: skip
+                self._client = Client(self._cluster)
+        return self._client
+
+    @property
+    def slots(self) -> int:
+        if self._given is None and not self.scheduler:
+            return self.workers or default_workers()
+        return max(1, sum(self.client.nthreads().values()))
+
+    def run(self, jobs):
+        from distributed import as_completed
+
+        futures = {self.client.submit(_call, job, self.threads, pure=False, retries=self.retries): i
+                   for i, job in enumerate(jobs)}  # fmt: skip
+        for future in as_completed(list(futures)):
+            i = futures[future]
+            try:
+                yield i, future.result(), None
+            except Exception as e:  # the job's own error, re-raised here by Dask
+                yield i, None, e
+
+    def close(self) -> None:
+        if self._given is None and self._client is not None:  # only what this executor started
+            self._client.close()
+            if self._cluster is not None:
+                self._cluster.close()
+        self._client = self._cluster = None
+
+
+def _call(job: Job, threads: int | None) -> Any:
+    """A job on a worker, under the worker's thread setting (set before JAX's backend
+    starts, at the worker's first job)."""
+    from ..cpu import process_threads
+
+    with process_threads(threads):
+        return job()
+
+
+def executor_for(workers: int | None = 1, scheduler: str | None = None, client: Any = None) -> AbstractExecutor:
+    """The executor of the command line's ``--workers N`` / ``--scheduler ADDRESS`` (and of
+    the library's ``workers=``/``client=``): in this process for one worker and no cluster,
+    else :class:`Dask`."""
+    if client is not None or scheduler:
+        return Dask(scheduler=scheduler, client=client)
+    if workers is None:
+        workers = default_workers()
+    return InProcess() if workers <= 1 else Dask(workers)
+
+
+# --- jobs: one run each, into its own run directory -------------------------------------------
+@dataclasses.dataclass(frozen=True)
+class ConfiguredRun:
+    """A run of the command line's configuration (:class:`~physgrad.harness.config.RunConfig`)
+    into ``run_dir``, resumed where it stopped; with ``validation`` on the problem's
+    validation data in place of its test split (:class:`physgrad.problems.validation.Validation`,
+    ``holdout``: the fraction of train held out where the problem has no ``val``). Returns
+    the run's summary."""
+
+    config: Any  # RunConfig
+    run_dir: str
+    validation: bool = False
+    holdout: float = 0.2
+    devices: int | str | None = 1
+
+    def __call__(self) -> dict[str, Any]:
+        from .train import train
+
+        if not self.validation:
+            return train(self.config, self.run_dir, resume=True, devices=self.devices)
+        from ..engine import fit
+        from ..problems.validation import Validation
+        from .train import _same_run, phases_of, problem_of, settings_of
+
+        record = {**self.config.to_dict(), "validation": validation_note(self.holdout)}
+        return fit(
+            Validation(problem_of(self.config), self.holdout), phases_of(self.config), budget=self.config.budget,
+            out=self.run_dir, seed=self.config.seed, settings=settings_of(self.config), resume=True,
+            devices=self.devices, record=record, same_run=lambda old: _same_run(old, self.config),
+            name=self.config.method,
+        ).summary  # fmt: skip
+
+
+@dataclasses.dataclass(frozen=True)
+class ObjectRun:
+    """A run of a user's own problem object with a registered method (``hyperparameters``
+    complete), into ``run_dir``, resumed where it stopped; ``validation`` as in
+    :class:`ConfiguredRun`."""
+
+    problem: Any  # AbstractProblem
+    method: str
+    hyperparameters: dict[str, Any]
+    batch_size: int
+    seed: int
+    budget: Budget
+    run_dir: str
+    settings: TrainSettings = TrainSettings()
+    validation: bool = False
+    holdout: float = 0.2
+
+    def __call__(self) -> dict[str, Any]:
+        from ..engine import Phase, fit
+        from ..problems.validation import Validation
+        from .registry import METHODS
+
+        problem = Validation(self.problem, self.holdout) if self.validation else self.problem
+        phase = Phase(METHODS[self.method](**self.hyperparameters), None, self.batch_size, self.method)
+        record = {"problem": self.problem.name, "method": self.method, "seed": self.seed,
+                  "budget": self.budget.to_dict(), "hyperparameters": self.hyperparameters,
+                  "batch_size": self.batch_size,
+                  "validation": validation_note(self.holdout) if self.validation else None}  # fmt: skip
+        return fit(problem, [phase], budget=self.budget, out=self.run_dir, seed=self.seed, settings=self.settings,
+                   resume=True, record=record, name=self.method).summary  # fmt: skip
+
+
+def run_pending(executor: AbstractExecutor, pending, log, *, record_failures: bool, echo, devices=1) -> None:
+    """A study's runs left to do (``(prefix, config, run_dir)``, from
+    :func:`physgrad.harness.study.compare`) on ``executor``, all at once; each finished run
+    is echoed as it comes back, a failed one recorded in ``log`` (``record_failures``) or
+    raised, as the one-after-the-other loop does."""
+    from .failures import recordable
+    from .study import describe_run
+
+    jobs = [ConfiguredRun(config, run_directory(run_dir), devices=devices) for _, config, run_dir in pending]
+    for i, summary, error in executor.run(jobs):
+        prefix, config, run_dir = pending[i]
+        name = Path(run_dir).name
+        if error is not None:
+            if not (record_failures and recordable(error)):
+                raise error
+            echo(f"{prefix}: failed, recorded ({log.record(name, config.method, config.seed, error)})")
+            continue
+        log.clear(name)
+        echo(f"{prefix}: {describe_run(summary)}")
+
+
+def validation_note(holdout: float) -> str:
+    """What a trial's run directory records about its test split."""
+    return (f"test split = the problem's val split, or else the last {holdout:g} of train (held out, not trained "
+            "on); the real test split is never built")  # fmt: skip
+
+
+def run_directory(path: str | Path) -> str:
+    """A run directory as the text a job carries (absolute: a worker's working directory may differ)."""
+    return str(Path(path).resolve())
+
+
+__all__ = [
+    "AbstractExecutor",
+    "ConfiguredRun",
+    "Dask",
+    "InProcess",
+    "ObjectRun",
+    "default_workers",
+    "executor_for",
+    "run_pending",
+]
