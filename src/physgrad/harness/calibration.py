@@ -408,12 +408,21 @@ def study_calibration(
     out = Path(out)
     old = read(out)
     record = old.record if old is not None else None
-    known = (record or {}).get("methods", {})
-    missing = {spec: c for spec, c in configs.items()
-               if known.get(spec, {}).get("fingerprint") != fingerprint(c) or not known[spec].get("stages")}  # fmt: skip
+    # Every configuration ever timed here, by its fingerprint (two studies sharing one --out
+    # keep their own measurements); "methods" maps this study's names to theirs.
+    timed = dict((record or {}).get("by_fingerprint") or {})
+    for entry in ((record or {}).get("methods") or {}).values():  # a record written before by_fingerprint
+        if entry.get("fingerprint") and entry.get("stages"):
+            timed.setdefault(entry["fingerprint"], entry)
+    prints = {spec: fingerprint(c) for spec, c in configs.items()}
+    missing = {spec: c for spec, c in configs.items() if not (timed.get(prints[spec]) or {}).get("stages")}
     if not missing:
+        view = {**record, "by_fingerprint": timed, "methods": {spec: timed[prints[spec]] for spec in configs}}  # type: ignore[arg-type]
         echo(f"calibration: reusing {out / CALIBRATION_FILE} (measured {record['measured']})")  # type: ignore[index]
-        return Calibration(record)  # type: ignore[arg-type]
+        if view != record:  # this study's names now point at its own measurements
+            rundir.atomic_write(out / CALIBRATION_FILE, json.dumps(view, indent=2, default=str) + "\n")
+            write_csv(out / CALIBRATION_CSV, csv_rows(Calibration(view), list(configs)))
+        return Calibration(view)
     echo(f"calibration: timing the compiled step of {', '.join(missing)} (interleaved rounds, median; "
          "compilation excluded)")  # fmt: skip
     fresh = calibrate(missing, echo=echo, devices=devices, record_failures=record_failures, **options)
@@ -422,11 +431,12 @@ def study_calibration(
             echo(f"calibration: {out / CALIBRATION_FILE} was timed one step per call (version {record.get('version', 1)}); "
                  f"{', '.join(missing)} are timed per chunk of the run's loop, so cheap steps read lower than the "
                  "recorded ones (move the file away to time every method again)")  # fmt: skip
-        merged = dict(record)
-        merged["methods"] = {**known, **{k: {**v, "measured": fresh["measured"], "load": fresh["load_before"],
-                                             "version": VERSION}
-                                         for k, v in fresh["methods"].items()}}  # fmt: skip
-        fresh = merged
+        stamped = {k: {**v, "measured": fresh["measured"], "load": fresh["load_before"], "version": VERSION}
+                   for k, v in fresh["methods"].items()}  # fmt: skip
+        fresh = {**record, "methods": stamped}
+    timed.update({prints[spec]: entry for spec, entry in fresh["methods"].items() if entry.get("stages")})
+    fresh["by_fingerprint"] = timed
+    fresh["methods"] = {spec: timed.get(prints[spec]) or fresh["methods"].get(spec) or {} for spec in configs}
     rundir.atomic_write(out / CALIBRATION_FILE, json.dumps(fresh, indent=2, default=str) + "\n")
     calibration = Calibration(fresh)
     write_csv(out / CALIBRATION_CSV, csv_rows(calibration, list(configs)))
