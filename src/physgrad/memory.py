@@ -167,6 +167,11 @@ def check_step_fits(
     shared = len(mine) if mine[0].platform == "cpu" else 1
     budget = SAFETY * min(free) - resident * shared
     n, b = len(devices), _batch_size(batch)
+    where = "the host" if mine[0].platform == "cpu" else "the device"
+    if budget <= 0:  # the data and parameters alone do not fit: no batch size, variant or device count helps
+        raise DoesNotFit(f"the data and parameters need ~{_size(resident * shared)} but {where} has "
+                         f"{_size(min(free))} available; reduce the data (n_train, n_test) (memory_guard=false "
+                         "skips this check)")  # fmt: skip
     step = compiled_bytes(compiled, arguments=False) if compiled is not None else None
     footprint = method.footprint(objective, params, batch, n)
     need = max(footprint, step or 0)
@@ -215,7 +220,6 @@ def check_step_fits(
     note = method.footprint_note(objective, params, batch)
     if step is not None and step > footprint:
         note = "compiled step" + (f"; {note}" if note else "")
-    where = "the host" if mine[0].platform == "cpu" else "the device"
     fit = (
         f"would fit: {' or '.join(suggestions)}"
         if suggestions
@@ -278,29 +282,32 @@ def _largest_batch(method, below: int, devices: int, fits: Callable[[int], bool]
     """The largest valid batch size under ``below`` that ``fits``: halve until one fits,
     then bisect between it and the last that did not (assuming need grows with the batch
     there); every size returned was checked."""
-    valid = [s for s in range(below - 1, 0, -1) if _accepts(method, s, devices)]
-    if not valid:
-        return None
+
+    def largest_valid(at_most: int) -> int | None:  # usually the first size tried: no list of every size
+        return next((s for s in range(min(at_most, below - 1), 0, -1) if _accepts(method, s, devices)), None)
+
     # halving: the largest valid size at or below below/2, below/4, ...
     hi, target = None, below
     while True:
         target //= 2
-        candidates = [s for s in valid if s <= target]
-        if not candidates:
+        lo = largest_valid(target)
+        if lo is None:
             return None
-        lo = candidates[0]
         if fits(lo):
             break
         hi = lo
-    # bisect the valid sizes strictly between lo (fits) and hi (does not, or ``below``)
-    between = [s for s in valid if lo < s < (hi or below)][::-1]  # ascending
-    left, right = 0, len(between)
-    while left < right:
+    # bisect on the integers between lo (fits) and hi (does not, or ``below``), each probe
+    # stepped down to a valid size: O(log) probes however large the batch
+    left, right = lo, hi or below
+    while right - left > 1:
         mid = (left + right) // 2
-        if fits(between[mid]):
-            lo, left = between[mid], mid + 1
-        else:
-            right = mid
+        size = largest_valid(mid)
+        if size is None or size <= lo:  # no valid size in (lo, mid]: look above
+            left = mid
+        elif fits(size):
+            lo, left = size, mid
+        else:  # need grows with the batch: nothing from size up fits
+            right = size
     return lo
 
 
