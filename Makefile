@@ -61,7 +61,8 @@ bench: $(STAMP)
 # here and in pyproject.toml together (tests/test_packaging.py checks that they agree).
 FLOORS := jax==0.8.2 jaxlib==0.8.2 equinox==0.13.2 jaxtyping==0.2.34 optax==0.2.5 optimistix==0.0.11 \
           lineax==0.1.0 numpy==2.0.0 matplotlib==3.8.4 rich==13.0.0 scipy==1.13.0 threadpoolctl==3.8.0 \
-          kfac-jax==0.0.8 exponax==0.2.0 phiflow==3.4.0 phiml==1.16.0 tensorboardX==2.6.5
+          kfac-jax==0.0.8 exponax==0.2.0 phiflow==3.4.0 phiml==1.16.0 tensorboardX==2.6.5 \
+          optuna==4.0.0 distributed==2024.8.0 psycopg2-binary==2.9.9
 FLOORS_VENV ?= .venv-floors
 
 .PHONY: test-floors

@@ -68,12 +68,14 @@ def test_optional_packages_are_extras_and_every_floor_is_pinned_by_make_test_flo
     assert "kfac-jax" not in core and "exponax" not in core and "jaxtyping" in core
     assert extras["kfac"] == ["kfac-jax>=0.0.8,<0.0.9"]  # kfac.py patches a private kfac-jax function
     assert [requirement(r)[0] for r in extras["pde"]] == ["exponax"]
-    assert extras["all"] == ["physgrad[kfac,pde,phiflow,tensorboard]"]
+    assert extras["all"] == ["physgrad[kfac,pde,phiflow,postgres,tensorboard]"]
+    assert "optuna" in core and "distributed" in core  # tune and the workers need nothing extra
     # every lower bound of the core and of the extras is a version `make test-floors` installs
     makefile = (ROOT / "Makefile").read_text()
     pinned = dict(re.findall(r"([A-Za-z0-9_.\-]+)==([0-9][0-9A-Za-z.]*)", makefile))
     pinned = {k.lower(): v for k, v in pinned.items()}
-    for spec in project["dependencies"] + extras["kfac"] + extras["pde"] + extras["phiflow"] + extras["tensorboard"]:
+    for spec in (project["dependencies"] + extras["kfac"] + extras["pde"] + extras["phiflow"] + extras["tensorboard"]
+                 + extras["postgres"]):  # fmt: skip
         name, bound = requirement(spec)
         floor = re.search(r">=([0-9][0-9A-Za-z.]*)", bound).group(1)
         assert pinned.get(name) == floor, f"{name}: floor {floor}, make test-floors pins {pinned.get(name)}"

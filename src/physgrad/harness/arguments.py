@@ -189,6 +189,15 @@ def _add_compilation_cache(p):
                         "resumed run does not compile them again (default: $PHYSGRAD_COMPILATION_CACHE, else off)")  # fmt: skip
 
 
+def _add_workers(p, default: str):
+    p.add_argument("--workers", type=int, default=None, metavar="N",
+                   help=f"runs in parallel on N Dask worker processes of one thread each, an in-process LocalCluster "
+                        f"(default {default}; 1: one after the other in this process); the numbers do not change")  # fmt: skip
+    p.add_argument("--scheduler", metavar="tcp://HOST:8786",
+                   help="send the runs to a running Dask scheduler instead (its workers need physgrad and the "
+                        "output directory)")  # fmt: skip
+
+
 def build_parser() -> Parser:
     parser = Parser(
         prog="physgrad", description="Train networks through physics simulators with improved update rules."
@@ -236,6 +245,34 @@ def build_parser() -> Parser:
     p.add_argument("--calibrate-only", action="store_true",
                    help="time each method's step into --out (calibration.json) and train nothing: run it on a quiet "
                         "machine, then the same command without it trains with those step counts under any load")  # fmt: skip
+    _add_workers(p, "1")
+    _add_budget(p, calibrated=True)
+
+    p = sub.add_parser(
+        "tune", help="tune each method on equal trials (Optuna), choose on validation, report on test",
+        description="Tune each method's declared search space (physgrad.harness.spaces: lr for every method; "
+                    "truncation, damping, SIP's eta, the clip threshold) with the same number of quasi-random "
+                    "trials (QMC, Optuna), each an ordinary run on the same calibrated budget, trained and selected on "
+                    "validation data (the problem's val split, else a held-out part of train); the chosen "
+                    "configuration is re-run on --seeds seeds and reported on test. Resumable: the same command "
+                    "again keeps finished trials and resumes interrupted ones.",
+    )  # fmt: skip
+    p.add_argument("problem")
+    p.add_argument("--methods", help="comma-separated methods (default: the paper's comparison)")
+    p.add_argument("--trials", type=int, default=5, help="trials per method (default 5, AlgoPerf's); trial 0 is "
+                                                         "the untuned configuration")  # fmt: skip
+    p.add_argument("--seeds", type=int, default=3, help="seeds of the chosen configuration's test runs (default 3)")
+    p.add_argument("--out", help="tune directory (default studies/tune-PROBLEM)")
+    p.add_argument("--storage", metavar="URL",
+                   help="Optuna storage, e.g. postgresql://user@host/db for many machines (default: the journal "
+                        "file optuna.journal in --out)")  # fmt: skip
+    p.add_argument("--prune", action="store_true", help="successive halving: after each rung the best 1/eta go on")
+    p.add_argument("--eta", type=int, default=3, help="--prune: the halving rate (default 3)")
+    p.add_argument("--rungs", type=int, default=3, help="--prune: budgets steps/eta^(rungs-1) ... steps (default 3)")
+    p.add_argument("--holdout", type=float, default=0.2,
+                   help="the fraction of train held out for validation where the problem has no val split (0.2)")  # fmt: skip
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
+    _add_workers(p, "the machine's cores")
     _add_budget(p, calibrated=True)
 
     p = sub.add_parser(
@@ -246,7 +283,7 @@ def build_parser() -> Parser:
         "the directory's files alone; nothing trains. A bench whose problems were kept without their runs "
         "(docs/reproductions/keep_studies.py) is redrawn from the kept summary.csv and results.csv.",
     )
-    p.add_argument("dir", help="the study, sweep or bench directory")
+    p.add_argument("dir", help="the study, sweep, bench or tune directory")
     p.add_argument("--panel", help="sweeps: the swept setting with one panel per value (default: the first)")
     p.add_argument(
         "--metric",
@@ -291,6 +328,7 @@ def build_parser() -> Parser:
                         "the plan")  # fmt: skip
     p.add_argument("--devices", default="1", metavar="N|all", help="devices to split each batch over (default 1)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
+    _add_workers(p, "1")
     _add_budget(p, calibrated=True)
 
     p = sub.add_parser(

@@ -7,6 +7,7 @@
     physgrad compare PROBLEM [--methods a,b,...] [--seeds N] [budget] [--set ...] [--out DIR] [--devices N]
                      (--set name=a,b,c sweeps: every cell of the grid is a study)
     physgrad report DIR
+    physgrad tune PROBLEM [--methods a,b] [--trials N] [--seeds K] [budget] [--workers N] [--storage URL] [--prune]
     physgrad bench [--problems p1,p2|all] [--methods m1,m2|applicable] [--seeds N] [budget] [--out DIR]
                    [--quick | --standard] [--plan | --calibrate-only] [--set ...]
                    (every applicable method on every problem, ranked; physgrad.harness.bench)
@@ -141,7 +142,8 @@ def cmd_train(args, console):
     return 0
 
 
-def _run_compare(console, problem, methods, seeds, budget, settings, out, quiet=False, devices="1", calibrate=True):
+def _run_compare(console, problem, methods, seeds, budget, settings, out, quiet=False, devices="1", calibrate=True,
+                 executor=None):  # fmt: skip
     from ..progress import RichProgressMeter
     from .study import compare, plan, report
 
@@ -153,7 +155,7 @@ def _run_compare(console, problem, methods, seeds, budget, settings, out, quiet=
     )
     meter = None if quiet or not console.is_terminal else RichProgressMeter
     compare(problem, methods, seeds, budget, out, settings=settings, progress=meter, echo=console.print,
-            devices=devices, calibrate=calibrate)  # fmt: skip
+            devices=devices, calibrate=calibrate, executor=executor)  # fmt: skip
     from .seeds import TABLE_NOTE
 
     result = report(out)
@@ -209,8 +211,11 @@ def cmd_compare(args, console):
         _run_grid(console, args.problem, methods, range(args.seeds), budget_of(args), settings, out, args.quiet,
                   args.devices, calibrate=not args.no_calibrate)  # fmt: skip
     else:
-        _run_compare(console, args.problem, methods, range(args.seeds), budget_of(args), settings, out, args.quiet,
-                     args.devices, calibrate=not args.no_calibrate)  # fmt: skip
+        from .tune_cli import executor_of  # --workers / --scheduler (harness/workers.py)
+
+        with executor_of(args) as executor:
+            _run_compare(console, args.problem, methods, range(args.seeds), budget_of(args), settings, out,
+                         args.quiet, args.devices, calibrate=not args.no_calibrate, executor=executor)  # fmt: skip
     return 0
 
 
@@ -260,6 +265,10 @@ def _print_paired_tests(console, out):
 def cmd_report(args, console):
     from .study import grid_report, report
 
+    if (Path(args.dir) / "tune.json").exists():  # a tune directory (harness/tune_report.py)
+        from .tune_cli import report_command
+
+        return report_command(args, console)
     if (Path(args.dir) / "bench.json").exists():  # a bench directory: every problem's table, the leaderboard
         from . import bench
 
@@ -320,9 +329,12 @@ def cmd_bench(args, console):
     from ..progress import RichProgressMeter
 
     meter = None if args.quiet or not console.is_terminal else RichProgressMeter
-    result = bench.bench(problems, methods, range(seeds), budget, out, settings=settings, progress=meter,
-                         echo=console.print, devices=args.devices, profile=name,
-                         calibrate=not args.no_calibrate, budgets=budgets)  # fmt: skip
+    from .tune_cli import executor_of  # --workers / --scheduler (harness/workers.py)
+
+    with executor_of(args) as executor:
+        result = bench.bench(problems, methods, range(seeds), budget, out, settings=settings, progress=meter,
+                             echo=console.print, devices=args.devices, profile=name,
+                             calibrate=not args.no_calibrate, budgets=budgets, executor=executor)  # fmt: skip
     _print_bench(console, result)
     return 0
 
@@ -487,6 +499,12 @@ def _one_line_warnings(err: Console, show):
     return showwarning
 
 
+def cmd_tune(args, console):  # physgrad tune: harness/tune_cli.py
+    from .tune_cli import tune_command
+
+    return tune_command(args, console)
+
+
 COMMANDS = {
     "list": cmd_list,
     "train": cmd_train,
@@ -495,6 +513,7 @@ COMMANDS = {
     "bench": cmd_bench,
     "calibrate": cmd_calibrate,
     "demo": cmd_demo,
+    "tune": cmd_tune,
 }
 
 

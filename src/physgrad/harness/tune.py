@@ -180,6 +180,7 @@ def tune(
                 "pruning": dataclasses.asdict(pruning) | {"kind": type(pruning).__name__},
                 "storage": "journal" if storage is None else "url" if isinstance(storage, str) else "object",
                 "spaces": {m.name: describe_space(m.name, m.defaults, spaces) for m in plans},
+                "bounds": {m.name: {k: [d.low, d.high] for k, d in m.space.items()} for m in plans},
                 "defaults": {m.name: {k: m.defaults[k] for k in m.space} for m in plans},
                 "trial_steps": {m.name: m.steps for m in plans},
             }, indent=2, default=str) + "\n")  # fmt: skip

@@ -102,6 +102,7 @@ def run_problem(
     echo: Callable[[str], None] = print,
     devices: int | str | None = 1,
     calibrate: bool = True,
+    executor=None,
 ) -> list[dict[str, Any]]:
     """One problem's study in ``out``: :func:`physgrad.harness.study.compare` of its applicable
     methods × ``seeds`` (the same ``study.json``, run directories, skipping and resuming)
@@ -111,7 +112,7 @@ def run_problem(
     methods = [v.method for v in verdicts if v.runs]
     return compare(problem, methods, seeds, budget, out, settings=study_settings(problem, methods, settings or {}),
                    progress=progress, echo=lambda line: echo(f"{problem} {line}"), devices=devices,
-                   record_failures=True, calibrate=calibrate)  # fmt: skip
+                   record_failures=True, calibrate=calibrate, executor=executor)  # fmt: skip
 
 
 def bench(
@@ -128,6 +129,7 @@ def bench(
     profile: str = "",
     calibrate: bool = True,
     budgets: dict[str, Budget] | None = None,
+    executor=None,
 ) -> BenchReport:
     """Run the bench into ``out`` (see the module docstring) and write its report.
 
@@ -135,7 +137,8 @@ def bench(
     ``--set`` values (``p.name`` scopes to problem ``p``); ``profile`` names a preset such
     as ``quick`` in the report; ``budgets`` replaces ``budget`` for the problems it names
     (a profile's cheaper problems); ``calibrate``: a seconds budget is calibrated
-    (:mod:`physgrad.harness.calibration`)."""
+    (:mod:`physgrad.harness.calibration`); ``executor``: where each problem's runs go
+    (:mod:`physgrad.harness.workers`; None: one after the other here)."""
     budgets = budgets or {}
     settings = settings or {}
     out = Path(out)
@@ -156,7 +159,7 @@ def bench(
                 f"problem {i}/{len(problems)} {problem}: {runnable} methods x {len(seeds)} seeds, budget {mine} per run"
             )
             run_problem(problem, verdicts[problem], seeds, mine, out / problem, settings=settings, progress=progress,
-                        echo=echo, devices=devices, calibrate=calibrate)  # fmt: skip
+                        echo=echo, devices=devices, calibrate=calibrate, executor=executor)  # fmt: skip
         return report(out)
 
 
