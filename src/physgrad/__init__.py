@@ -17,6 +17,7 @@ from .cpu import threads
 from .engine import Budget, Callback, FitResult, Phase, TrainSettings, TrainState, fit
 from .errors import ConfigError
 from .harness.train import load_network
+from .harness.tune import tune
 from .jacobian import stacked_jacobian
 from .methods import (
     AbstractMethod,
@@ -85,5 +86,6 @@ __all__ = [
     "stacked_jacobian",
     "threads",
     "transforms",
+    "tune",
     "unrolled",
 ]
