@@ -1,0 +1,75 @@
+"""Runs on Dask workers (harness/workers.py): the same tables with one process and with two
+worker processes, one of which is killed mid-run; the executors' contract."""
+
+from __future__ import annotations
+
+import os
+import signal
+import threading
+import time
+
+import pytest
+
+from physgrad import Budget
+from physgrad.harness.study import compare, read_csv
+from physgrad.harness.workers import Dask, InProcess, default_workers, executor_for
+
+# Numbers a run writes that must not depend on where it ran (times and directories may).
+SAME = ("problem", "method", "seed", "status", "steps", "epochs", "final_train_loss", "final_test_loss",
+        "best_test_loss", "diverged_step", "last_finite_loss")  # fmt: skip
+
+
+def _table(out):
+    rows = read_csv(out / "summary.csv")
+    return sorted(tuple(r[k] for k in SAME) for r in rows)
+
+
+def _curves(out):
+    rows = read_csv(out / "results.csv")
+    return sorted((r["method"], r["seed"], r["step"], r["split"], r["metric"], r["value"]) for r in rows
+                  if not r["metric"].startswith("step_") and r["metric"] != "time_per_step")  # fmt: skip
+
+
+def test_executor_for_picks_in_process_for_one_worker():
+    assert isinstance(executor_for(1), InProcess)
+    assert isinstance(executor_for(2), Dask) and executor_for(2).slots == 2
+    assert default_workers() >= 1
+    results = sorted(InProcess().run([lambda: 1, lambda: 1 / 0]), key=lambda r: r[0])
+    assert results[0] == (0, 1, None) and isinstance(results[1][2], ZeroDivisionError)
+
+
+@pytest.mark.slow  # a LocalCluster of two worker processes and a study run twice: ~1-2 minutes on 2 cores
+def test_two_workers_one_killed_mid_run_give_the_sequential_tables(tmp_path):
+    """A study on a LocalCluster of two worker processes, one killed (SIGKILL) while it
+    trains: the scheduler hands its run to a worker, which resumes it from its checkpoint
+    (taken at each evaluation), and the study's tables equal those of the same study run
+    one run after the other."""
+    settings = {"eval_every": "100", "batch_size": "64", "checkpoint_seconds": "600"}  # checkpoints at the evaluations
+    args = ("hig_toy", ["adam", "hig"], range(2), Budget(steps=1500))
+    # The sequential reference on one worker process: worker processes start JAX with the
+    # thread setting of physgrad's processes, which this test process (conftest.py) does not.
+    with Dask(1) as one:
+        compare(*args, tmp_path / "sequential", settings=settings, echo=lambda line: None, executor=one)
+    killed = []
+    with Dask(2) as executor:
+        client = executor.client
+        client.wait_for_workers(2)
+        pids = client.run(os.getpid)
+
+        def kill_a_busy_worker():
+            deadline = time.monotonic() + 240
+            while time.monotonic() < deadline and not killed:
+                busy = [w for w, keys in client.processing().items() if keys]
+                started = list((tmp_path / "parallel" / "runs").glob("*/checkpoint"))
+                if busy and started:
+                    os.kill(pids[busy[0]], signal.SIGKILL)
+                    killed.append(busy[0])
+                time.sleep(0.05)
+
+        killer = threading.Thread(target=kill_a_busy_worker, daemon=True)
+        killer.start()
+        compare(*args, tmp_path / "parallel", settings=settings, echo=lambda line: None, executor=executor)
+        killer.join()
+    assert killed, "no worker was killed mid-run: the runs were too short to catch one"
+    assert _table(tmp_path / "parallel") == _table(tmp_path / "sequential")
+    assert _curves(tmp_path / "parallel") == _curves(tmp_path / "sequential")
