@@ -102,8 +102,21 @@ def open_storage(out: Path, storage: Any = None):
         backend = getattr(journal, "JournalFileBackend", None) or optuna.storages.JournalFileStorage
         return optuna.storages.JournalStorage(backend(str(out / JOURNAL)))
     if isinstance(storage, str):
-        return optuna.storages.RDBStorage(storage)
+        return optuna.storages.RDBStorage(_with_driver(storage))
     return storage
+
+
+def _with_driver(url: str) -> str:
+    """A ``postgresql://`` URL with the PostgreSQL driver that is installed (SQLAlchemy 2.0
+    defaults to psycopg2, 2.1 to psycopg 3; ``physgrad[postgres]`` installs psycopg2)."""
+    import importlib.util
+
+    if not url.startswith("postgresql://"):
+        return url
+    for module, dialect in (("psycopg", "psycopg"), ("psycopg2", "psycopg2")):
+        if importlib.util.find_spec(module) is not None:
+            return f"postgresql+{dialect}://" + url[len("postgresql://") :]
+    raise ConfigError("a postgresql:// storage needs a PostgreSQL driver: pip install 'physgrad[postgres]'")
 
 
 def default_sampler(seed: int = 0):
