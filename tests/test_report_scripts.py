@@ -8,8 +8,8 @@ non-zero, prints a section with no results (each script prints only the sections
 are kept, or points to the command that draws them), or leaves ``git status`` unclean: a
 committed figure whose bytes change on a redraw (stale, or drawn non-deterministically) or
 a file written that is not committed. The clone is reset after each script, so a failure
-names its script. The slow tier (``make test-slow``): the five scripts together take about
-two minutes on one core.
+names its script. The slow tier (``make test-slow``): the five scripts together took about
+nine minutes on one loaded core, most of it ``unrolling_report.py``'s coarse-solver baselines.
 """
 
 from __future__ import annotations
