@@ -98,7 +98,7 @@ def open_storage(out: Path, storage: Any = None):
     import optuna
 
     if storage is None:
-        journal = optuna.storages.journal if hasattr(optuna.storages, "journal") else None
+        journal = getattr(optuna.storages, "journal", None)
         backend = getattr(journal, "JournalFileBackend", None) or optuna.storages.JournalFileStorage
         return optuna.storages.JournalStorage(backend(str(out / JOURNAL)))
     if isinstance(storage, str):

@@ -124,7 +124,7 @@ class Dask(AbstractExecutor):
                 # Worker processes (JAX is not fork-safe; each has its own compiled programs),
                 # one thread each; no dashboard (a port nobody asked for).
                 self._cluster = LocalCluster(n_workers=self.workers or default_workers(), threads_per_worker=1,
-                                             processes=True, dashboard_address=None)  # fmt: skip
+                                             processes=True, dashboard_address=None)  # type: ignore[arg-type]  # fmt: skip
                 self._client = Client(self._cluster)
         return self._client
 
@@ -132,7 +132,7 @@ class Dask(AbstractExecutor):
     def slots(self) -> int:
         if self._given is None and not self.scheduler:
             return self.workers or default_workers()
-        return max(1, sum(self.client.nthreads().values()))
+        return max(1, sum(self.client.nthreads().values()))  # type: ignore[union-attr]
 
     def run(self, jobs):
         from distributed import as_completed
@@ -239,7 +239,7 @@ class ObjectRun:
                    resume=True, record=record, name=self.method).summary  # fmt: skip
 
 
-def run_pending(executor: AbstractExecutor, pending, log, *, record_failures: bool, echo, devices=1) -> None:
+def run_pending(executor: Any, pending, log, *, record_failures: bool, echo, devices: int | str | None = 1) -> None:
     """A study's runs left to do (``(prefix, config, run_dir)``, from
     :func:`physgrad.harness.study.compare`) on ``executor``, all at once; each finished run
     is echoed as it comes back, a failed one recorded in ``log`` (``record_failures``) or
@@ -252,7 +252,7 @@ def run_pending(executor: AbstractExecutor, pending, log, *, record_failures: bo
         prefix, config, run_dir = pending[i]
         name = Path(run_dir).name
         if error is not None:
-            if not (record_failures and recordable(error)):
+            if not (record_failures and isinstance(error, Exception) and recordable(error)):
                 raise error
             echo(f"{prefix}: failed, recorded ({log.record(name, config.method, config.seed, error)})")
             continue
