@@ -34,9 +34,23 @@ ARGS = ["train", "hig_toy", "--method", "adam", "--set", "batch_size=64", "--set
 TIMINGS = ("train_seconds", "compile_seconds", "time_per_step")
 
 
+def with_extra(extra) -> list[str]:
+    """ARGS with ``extra`` after them, an extra ``--set name=...`` replacing ARGS' own (a
+    repeated --set key is refused)."""
+    names = {extra[i + 1].partition("=")[0] for i in range(len(extra) - 1) if extra[i] == "--set"}
+    base, i = [], 0
+    while i < len(ARGS):
+        if ARGS[i] == "--set" and ARGS[i + 1].partition("=")[0] in names:
+            i += 2
+            continue
+        base.append(ARGS[i])
+        i += 1
+    return [*base, *extra]
+
+
 def train(out, steps=STEPS, resume=False, extra=()):
     """The command line in this process; its exit status."""
-    argv = [*ARGS, *extra, "--steps", str(steps), "--out", str(out)] + (["--resume"] if resume else [])
+    argv = [*with_extra(list(extra)), "--steps", str(steps), "--out", str(out)] + (["--resume"] if resume else [])
     return main(argv)
 
 
@@ -49,7 +63,7 @@ def spawn(out, steps=STEPS, resume=False, fault=None, extra=()) -> subprocess.Po
     cache = jax.config.jax_compilation_cache_dir  # the session's (tests/conftest.py), if any
     if cache:
         env["PHYSGRAD_COMPILATION_CACHE"] = cache
-    argv = [*ARGS, *extra, "--steps", str(steps), "--out", str(out)] + (["--resume"] if resume else [])
+    argv = [*with_extra(list(extra)), "--steps", str(steps), "--out", str(out)] + (["--resume"] if resume else [])
     return subprocess.Popen([sys.executable, "-m", "physgrad", *argv], env=env, stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True)  # fmt: skip
 

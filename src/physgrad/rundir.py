@@ -22,8 +22,8 @@ or corrupts a result (they are what people cite).
   nothing. Points: ``step`` (after each training step), ``checkpoint-written`` (the new
   checkpoint complete aside), ``checkpoint-aside`` (the previous one moved aside, the new one
   not yet in place), ``checkpoint-committed``, ``before-summary`` (the final checkpoint written,
-  ``params.eqx`` and ``summary.json`` not yet), ``evaluating`` (an evaluation begins). Action
-  ``term`` sends the process SIGTERM.
+  ``params.eqx`` and ``summary.json`` not yet), ``evaluating`` (an evaluation begins), ``calibrating`` (a study's calibration begins). Action
+  ``term`` sends the process SIGTERM, ``int`` SIGINT (Ctrl-C).
 """
 
 from __future__ import annotations
@@ -88,6 +88,12 @@ def atomic_file(path: str | Path) -> Iterator[IO[bytes]]:
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)
+    except OSError as e:
+        with contextlib.suppress(OSError):
+            tmp.unlink(missing_ok=True)
+        if e.filename is None:  # a failed write() names no file: name the one being written
+            raise OSError(e.errno, e.strerror, str(path)) from None
+        raise
     except BaseException:
         with contextlib.suppress(OSError):
             tmp.unlink(missing_ok=True)
@@ -104,6 +110,31 @@ def atomic_write(path: str | Path, data: bytes | str) -> None:
 def json_text(data: Any) -> str:
     """How run directories write JSON (sorted keys, so equal data give equal bytes)."""
     return json.dumps(data, indent=2, sort_keys=True, default=str) + "\n"
+
+
+# What :func:`read_json`'s one line advises for a study's own files and for a run's files.
+NOT_A_STUDY = ("not a physgrad study, sweep or bench directory, or a damaged one: re-draw from a complete copy, "
+               "or run the study again")  # fmt: skip
+RUN_DAMAGED = "the run is damaged: remove its directory and run the study again to re-run it"
+
+
+def read_json(path: str | Path, advice: str, *, empty: Any = None) -> Any:
+    """The JSON object in ``path`` (``empty`` where the file does not exist, if given); a
+    missing, unreadable or damaged file, or one that holds no JSON object, is one
+    :class:`ConfigError` line naming the file, what is wrong and ``advice``."""
+    path = Path(path)
+    if empty is not None and not path.exists():
+        return empty
+    try:
+        data = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise ConfigError(f"{path} is missing; {advice}") from None
+    except (OSError, ValueError) as e:
+        why = e.strerror if isinstance(e, OSError) and e.strerror else "not valid JSON"
+        raise ConfigError(f"{path} is damaged ({why}); {advice}") from None
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path} is damaged (not a JSON object); {advice}")
+    return data
 
 
 def strict_json_text(data: Any) -> str:
@@ -424,3 +455,5 @@ def fault(point: str) -> None:
             time.sleep(float(action.split(":", 1)[1]))
         elif action == "term":
             os.kill(os.getpid(), signal.SIGTERM)
+        elif action == "int":
+            os.kill(os.getpid(), signal.SIGINT)

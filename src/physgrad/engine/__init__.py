@@ -29,6 +29,9 @@ The package, in the order of a run:
 - :mod:`~physgrad.engine.record`: the run's record (``config.json``) and when a recorded
   run is the same run; :mod:`~physgrad.engine.hyperparams`: the optimizer's
   hyperparameters in it;
+- :mod:`~physgrad.engine.resume`: what a run directory already holds, read before a run
+  builds anything (the same run?, its budget met?, a finished run's missing files,
+  ``env.json`` kept across resumes);
 - :mod:`~physgrad.engine.callbacks`: :class:`Callback` (``on_eval``, ``on_checkpoint``);
 - :mod:`~physgrad.engine.result`: :class:`FitResult`, what :func:`fit` returns (summary,
   history, final network and state);

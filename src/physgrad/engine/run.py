@@ -46,12 +46,12 @@ from .recording import (
     environment,
     finish,
     is_final,
-    read_json,
     read_summary,
     write_json,
     writer_lock,
 )
 from .result import FitResult, history_from_metrics, history_of
+from .resume import budget_met, done_already, missing_final_files, recorded, write_environment
 from .setup import build_setup, preflight
 from .step import CHUNK, Steps
 from .strategies import ChunkSize, EvalSchedule, Fidelity, Placement, StopRule
@@ -280,13 +280,13 @@ def _run(request: Request, *, placement: Placement, progress: AbstractProgressMe
     """One run while its writer process holds the run directory's lock (a run in memory
     has neither): refuse or resume what the directory holds, build, loop, finish."""
     run_dir, settings, budget = request.run_dir, request.settings, request.budget
-    old = _recorded(request)
+    old = recorded(request)
     checkpointer = Checkpointer(run_dir, settings.checkpoint_seconds, placement.writer, request.callbacks)
     has_ckpt = request.resume and checkpointer.exists()
     placement.barrier(f"physgrad.fit:{run_dir}")  # every process has looked before process 0 writes
     if not placement.writer:  # other processes compute alike and write nothing
         progress = NoProgressMeter()
-    done = _done_already(run_dir, budget, settings.wall_cap) if request.resume and run_dir is not None else None
+    done = done_already(run_dir, budget, settings.wall_cap) if request.resume and run_dir is not None else None
     if done is not None and run_dir is not None:  # every file unchanged (checked before building data and network)
         return FitResult(done, history_from_metrics(run_dir / "metrics.csv"), run_dir=run_dir)
 
@@ -294,11 +294,11 @@ def _run(request: Request, *, placement: Placement, progress: AbstractProgressMe
     setup, state = _start(
         request, placement=placement, fidelity=fidelity, checkpoint=checkpointer if has_ckpt else None
     )
-    met = state.step > 0 and run_dir is not None and _budget_met(budget, recorded=(old or {}).get("budget"),
+    met = state.step > 0 and run_dir is not None and budget_met(budget, recorded=(old or {}).get("budget"),
         step=state.step, seconds=state.train_time, epochs=setup.epochs, run_dir=run_dir)  # fmt: skip
     if met and run_dir is not None:  # a kill came after the final checkpoint: nothing to train, maybe the summary
         summary = read_summary(run_dir)
-        if summary and is_final(summary) and summary.get("steps") == state.step:
+        if summary and is_final(summary) and summary.get("steps") == state.step and not missing_final_files(run_dir):
             return _result(summary, history_from_metrics(run_dir / "metrics.csv"), state, setup, run_dir)
     setup = fidelity.problem_at(setup, state)
     state = state._replace(params=placement.put(state.params), opt_state=placement.put(state.opt_state))
@@ -309,7 +309,7 @@ def _run(request: Request, *, placement: Placement, progress: AbstractProgressMe
     if checkpointer.writes and run_dir is not None:
         run_dir.mkdir(parents=True, exist_ok=True)  # made by the lock already, unless the caller holds none
         write_json(run_dir / "config.json", request.record)
-        write_json(run_dir / "env.json", {**environment(), "mesh_devices": distributed.mesh_size(placement.mesh)})
+        write_environment(run_dir, {**environment(), "mesh_devices": distributed.mesh_size(placement.mesh)})
     # a checkpoint at step 0 precedes the first evaluation, which the resumed loop makes again
     keep = state.step if has_ckpt and state.step > 0 else None
     log = MetricsLog(None if run_dir is None else run_dir / "metrics.csv", keep_until_step=keep,
@@ -337,26 +337,6 @@ def _result(summary: dict[str, Any], history, state: TrainState, setup: Setup, r
     params, opt_state = distributed.to_host((state.params, state.opt_state))
     state = state._replace(params=params, opt_state=opt_state)
     return FitResult(summary, history, network=setup.network(params), state=state, run_dir=run_dir)
-
-
-def _recorded(request: Request) -> dict[str, Any] | None:
-    """The record (``config.json``) of the run already in the directory, None for a new
-    run (or a run in memory); refused unless the caller resumes that same run."""
-    run_dir = request.run_dir
-    if run_dir is None or not (run_dir / "config.json").exists():
-        return None
-    path = run_dir / "config.json"
-    if not request.resume:
-        raise ConfigError(f"run directory {run_dir} exists; resume it (resume=True) or choose another run directory")
-    old = read_json(path)
-    verdict = request.same_run(old)
-    if verdict is True or (not isinstance(verdict, bool) and not list(verdict)):
-        return old
-    differ = records.differences(records.identity(old), records.identity(records.like(json.loads(json.dumps(request.record, default=str)), old))) \
-        if isinstance(verdict, bool) else list(verdict)  # fmt: skip
-    what = f" ({'; '.join(differ[:6])}{'; …' if len(differ) > 6 else ''})" if differ else ""
-    raise ConfigError(f"run directory {run_dir} holds a different configuration{what}; resume it with its own "
-                      "settings or choose another run directory")  # fmt: skip
 
 
 def _start(
@@ -414,52 +394,6 @@ def _close(ending: Ending, *, request: Request, recorder: Recorder, checkpointer
     if writer and run_dir is not None:  # strict JSON: a diverged run's NaN loss as null
         rundir.atomic_write(run_dir / "summary.json", rundir.strict_json_text(summary))
     return summary
-
-
-def _done_already(run_dir: Path, budget: Budget, wall_cap: float = 0.0) -> dict[str, Any] | None:
-    """The summary of a run that needs nothing more for ``budget`` (diverged, or finished
-    exactly at it, or stopped by a wall-clock cap that ``wall_cap`` does not raise), read
-    before any work; None if it must train on or finish (a ``summary.json`` without its
-    final losses, as an older physgrad wrote after a resume, is finished again from the
-    checkpoint)."""
-    summary = read_summary(run_dir)
-    if summary is None or not is_final(summary):
-        return None
-    if summary["status"] == "diverged":
-        return summary
-    if summary.get("wall_capped") and wall_cap > 0 and summary.get("train_seconds", 0.0) >= wall_cap:
-        if summary.get("budget") == budget.to_dict():
-            return summary
-    if not isinstance(summary.get("steps"), int):
-        return None
-    met = _budget_met(budget, recorded=summary.get("budget"), step=summary["steps"],
-                      seconds=summary.get("train_seconds", 0.0), epochs=None, run_dir=run_dir)  # fmt: skip
-    return summary if met else None
-
-
-def _budget_met(
-    budget: Budget, *, recorded: Any, step: int, seconds: float, epochs: Callable[[int], float] | None, run_dir: Path
-) -> bool | None:
-    """Whether a run at ``step`` (after ``seconds`` of training) is done with ``budget``:
-    False (train on), True (met at exactly this step, or ``budget`` is the ``recorded`` one
-    it ran to), None (cannot tell without ``epochs``, the data's step-to-epoch map). A budget
-    the run went past is refused: a resumed run cannot undo steps."""
-    kind, amount = budget.kind, budget.amount
-    if kind == "epochs" and epochs is None:
-        return True if recorded == budget.to_dict() else None
-    epochs_at = epochs or (lambda step: math.nan)  # called for an epochs budget only, which has it
-    done = epochs_at(step) if kind == "epochs" else step if kind == "steps" else seconds
-    if done < amount - (1e-9 if kind == "epochs" else 0.0):
-        return False
-    if recorded == budget.to_dict():
-        return True
-    if kind == "steps" and step == amount or kind == "epochs" and epochs_at(step - 1) < amount - 1e-9:
-        return True
-    what = {"steps": f"{step} steps", "epochs": f"{done:g} epochs", "seconds": f"{seconds:.4g} training seconds"}[kind]
-    trained = (
-        f"the run in {run_dir} has already trained {what}, more than the budget of {budget}; resume it with at least"
-    )
-    raise ConfigError(f"{trained} that budget, or choose another run directory")
 
 
 # --- fit's arguments --------------------------------------------------------------------------

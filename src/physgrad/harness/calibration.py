@@ -298,6 +298,7 @@ def calibrate(
     test passes fakes with a fake ``clock``). With ``record_failures`` a method whose step
     cannot be built (the memory guard's refusal, a crash) is recorded with its error and
     the others are timed; otherwise the error stops the calibration."""
+    rundir.fault("calibrating")  # test hook: a signal while a study calibrates
     from ..cpu import report
     from ..precision import float64_scope
     from .failures import recordable

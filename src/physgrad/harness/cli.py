@@ -134,8 +134,15 @@ def cmd_train(args, console):
     )
     console.print(f"{config.problem} / {stages}; seed {config.seed}, budget {config.budget}{where} -> {out}")
     before = read_summary(out) if args.resume else None
+    from ..engine.recording import kept_path
+    from ..engine.resume import FINAL_FILES
+
+    missing = [name for name in FINAL_FILES if not kept_path(out / name).exists()]
     summary = train(config, out, resume=args.resume, progress=_progress(args, console), devices=devices)
-    if before is not None and summary == before:  # a resume with nothing to do leaves every file as it was
+    if before is not None and summary == before and missing:  # a finished run's deleted files, made again
+        console.print(f"done already ({summary['status']}): {describe_run(summary)}; made again from its final "
+                      f"checkpoint: {', '.join(missing)}")  # fmt: skip
+    elif before is not None and summary == before:  # a resume with nothing to do leaves every file as it was
         console.print(f"done already ({summary['status']}): {describe_run(summary)}; every file unchanged")
     else:
         console.print(f"{summary['status']}: {describe_run(summary)}")
@@ -251,7 +258,7 @@ def _print_paired_tests(console, out):
     )
     lines = []
     for name, directory in cells:
-        study = json.loads((directory / "study.json").read_text()) if (directory / "study.json").exists() else {}
+        study = rundir.read_json(directory / "study.json", rundir.NOT_A_STUDY, empty={})
         rows = paired_tests(directory, order=study.get("methods"))
         table = format_tests(rows, cell=name or "")
         lines += table if not lines else table[1:]
@@ -342,13 +349,12 @@ def cmd_bench(args, console):
 def _print_bench(console, result) -> None:
     """A bench's tables per problem, its two leaderboards and the files written
     (:class:`physgrad.harness.bench.BenchReport`; the budgets and seeds from its bench.json)."""
-    import json
 
     from . import bench
     from .config import Budget
 
     out = result.files["markdown"].parent
-    info = json.loads((out / "bench.json").read_text())
+    info = rundir.read_json(out / "bench.json", rundir.NOT_A_STUDY)
     budget = Budget(**info["budget"])
     budgets = {p: Budget(**b) for p, b in info.get("budgets", {}).items()}
     seeds = len(info["seeds"])
@@ -499,6 +505,22 @@ def _one_line_warnings(err: Console, show):
     return showwarning
 
 
+def _damaged_files_as_one_line(command, args, console):
+    """``report`` reads files it did not write (a copy, a foreign directory, a truncated
+    ``.gz``): what cannot be parsed is one line naming the directory, not a traceback."""
+    import csv
+    import gzip
+    import zlib
+
+    try:
+        return command(args, console)
+    except (EOFError, gzip.BadGzipFile, zlib.error, csv.Error, UnicodeDecodeError, KeyError, ValueError, TypeError) as e:
+        from ..errors import ConfigError
+
+        raise ConfigError(f"{args.dir}: a file cannot be read ({type(e).__name__}: {str(e)[:80]}); "
+                          f"{rundir.NOT_A_STUDY}") from None  # fmt: skip
+
+
 def cmd_tune(args, console):  # physgrad tune: harness/tune_cli.py
     from .tune_cli import tune_command
 
@@ -509,7 +531,7 @@ COMMANDS = {
     "list": cmd_list,
     "train": cmd_train,
     "compare": cmd_compare,
-    "report": cmd_report,
+    "report": lambda args, console: _damaged_files_as_one_line(cmd_report, args, console),
     "bench": cmd_bench,
     "calibrate": cmd_calibrate,
     "demo": cmd_demo,
@@ -583,6 +605,7 @@ def os_error_line(e: OSError) -> str:
     why = e.strerror or type(e).__name__
     advice = {
         errno.ENOSPC: "free some space, then run the same command (train: with --resume) to continue",
+        errno.EFBIG: "the file size limit (ulimit -f) was reached; raise it, then run the same command again",
         errno.EROFS: "the file system is read-only; choose a writable --out",
         errno.EACCES: "check the permissions, or choose another --out",
         errno.EPERM: "check the permissions, or choose another --out",

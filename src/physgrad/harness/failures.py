@@ -42,7 +42,7 @@ def recordable(error: Exception) -> bool:
 def read_failures(out: str | Path) -> dict[str, dict[str, Any]]:
     """A study's ``failures.json``: {run name: {method, seed, error[, traceback]}}; {} if absent."""
     path = Path(out) / FAILURES
-    return json.loads(path.read_text()) if path.exists() else {}
+    return rundir.read_json(path, f"remove {path} to record the study's failures afresh", empty={})
 
 
 class FailureLog:

@@ -39,6 +39,7 @@ import numpy as np
 
 from .. import rundir
 from ..engine.recording import kept_path, open_kept
+from ..errors import ConfigError
 
 # The first nine columns are the original layout of paired_tests.csv (readers index them
 # by name); the counts after them say what was left out of the pairs and why, then the
@@ -97,7 +98,7 @@ def _runs(out: Path) -> list[dict[str, Any]]:
         status = row.get("status") or ""
         if not status:
             path = out / row["run_dir"] / "summary.json"
-            status = json.loads(path.read_text()).get("status", "") if path.exists() else ""
+            status = rundir.read_json(path, rundir.RUN_DAMAGED, empty={}).get("status", "")
         row["status"] = status or "finished"
     return rows
 
@@ -112,8 +113,11 @@ def case_values(out: str | Path, metric: str | None = None) -> tuple[str, dict[s
         path = out / row["run_dir"] / "test_cases.json"  # or its packed copy (prune.py --pack)
         if row["status"] != "finished" or not kept_path(path).exists():
             continue
-        with open_kept(path) as f:
-            cases = json.load(f)
+        try:
+            with open_kept(path) as f:
+                cases = json.load(f)
+        except (OSError, ValueError, EOFError) as e:
+            raise ConfigError(f"{kept_path(path)} is damaged ({type(e).__name__}); {rundir.RUN_DAMAGED}") from None
         if metric is None:
             metric = "rel_error" if "rel_error" in cases else "loss"
         if metric in cases:

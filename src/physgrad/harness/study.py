@@ -238,7 +238,7 @@ def collect(out: str | Path) -> list[dict[str, Any]]:
 
     out = Path(out)
     rows, results = [], []
-    study = json.loads((out / "study.json").read_text()) if (out / "study.json").exists() else {}
+    study = rundir.read_json(out / "study.json", rundir.NOT_A_STUDY, empty={})
     planned = set(study.get("runs", [])) or None  # a reused directory keeps other plans' runs
     calibration = read_calibration(out)
     for run_dir in sorted((out / "runs").glob("*")):
@@ -247,8 +247,11 @@ def collect(out: str | Path) -> list[dict[str, Any]]:
         summary, config_path = read_summary(run_dir), run_dir / "config.json"
         if summary is None or summary.get("status") not in ("finished", "diverged") or not config_path.exists():
             continue
-        config = json.loads(config_path.read_text())
-        ident = {"problem": config["problem"], "method": config["method"], "seed": config["seed"]}
+        config = rundir.read_json(config_path, rundir.RUN_DAMAGED)
+        try:
+            ident = {"problem": config["problem"], "method": config["method"], "seed": config["seed"]}
+        except KeyError as e:
+            raise ConfigError(f"{config_path} lacks {e}; {rundir.RUN_DAMAGED}") from None
         clock = (lambda step, m=config["method"]: calibration.time_at(m, step)) if calibration and calibration.has(
             config["method"]) else None  # fmt: skip
         row = {**{k: summary.get(k) for k in SUMMARY_COLUMNS}, **ident, "run_dir": str(run_dir.relative_to(out))}
@@ -256,7 +259,11 @@ def collect(out: str | Path) -> list[dict[str, Any]]:
             row["calibrated_seconds"] = clock(summary["steps"])
             row["calibrated_ms_per_step"] = 1e3 * calibration.seconds_per_step(config["method"])  # type: ignore[union-attr]
         rows.append(row)
-        metrics = read_metrics(run_dir / "metrics.csv")
+        try:
+            metrics = read_metrics(run_dir / "metrics.csv")
+        except (OSError, ValueError, KeyError, TypeError, EOFError, csv.Error) as e:
+            raise ConfigError(f"{run_dir / 'metrics.csv'} cannot be read ({type(e).__name__}); "
+                              f"{rundir.RUN_DAMAGED}") from None  # fmt: skip
         results += [{**ident, **r, **({"calibrated_time": clock(r["step"])} if clock else {})} for r in metrics]
     write_csv(out / "summary.csv", SUMMARY_COLUMNS, rows)
     write_csv(out / "results.csv", RESULT_COLUMNS, results)
@@ -332,7 +339,7 @@ def report(out: str | Path) -> Report:
     for name in ("summary.csv", "results.csv"):
         if not kept_path(out / name).exists():
             raise ConfigError(f"{out} is not a study directory: {name} is missing")
-    study = json.loads((out / "study.json").read_text()) if (out / "study.json").exists() else {}
+    study = rundir.read_json(out / "study.json", rundir.NOT_A_STUDY, empty={})
     rows = read_csv(out / "summary.csv")
     order = method_order(rows, study)
     table = aggregate(rows, order, spread=case_spread(out, metric="loss"))
@@ -532,7 +539,7 @@ def grid_report(
     out = Path(out)
     if not (out / "grid.json").exists():
         raise ConfigError(f"{out} is not a grid directory: grid.json is missing")
-    info = json.loads((out / "grid.json").read_text())
+    info = rundir.read_json(out / "grid.json", rundir.NOT_A_STUDY)
     grid = info["grid"]
     panel = panel or next(iter(grid))
     choose("panel setting", panel, grid)

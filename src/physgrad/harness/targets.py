@@ -34,6 +34,7 @@ from typing import Any
 
 import numpy as np
 
+from .. import rundir
 from .papers import Target, protocol
 from .seeds import MIN_SEEDS_INTERVAL, as_float, interval, number, summarize
 
@@ -162,12 +163,11 @@ def study_times(
 ) -> tuple[Target | None, list[dict[str, Any]], list[dict[str, Any]]]:
     """(target, per-run rows, per-method table) of a study directory from its
     ``summary.csv`` and ``results.csv``; writes ``time_to_target.csv``. No target: (None, [], [])."""
-    import json
 
     from .study import method_order, read_csv, write_csv
 
     out = Path(out)
-    study = json.loads((out / "study.json").read_text()) if (out / "study.json").exists() else {}
+    study = rundir.read_json(out / "study.json", rundir.NOT_A_STUDY, empty={})
     if not (out / "summary.csv").exists():
         return None, [], []
     rows = read_csv(out / "summary.csv")

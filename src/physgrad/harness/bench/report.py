@@ -3,12 +3,12 @@ the heat map and ``bench.md`` (see :mod:`physgrad.harness.bench` for the layout)
 
 from __future__ import annotations
 
-import json
 import math
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, NamedTuple
 
+from ... import rundir
 from ...rundir import atomic_write
 from .. import plots, targets
 from ..config import ConfigError
@@ -103,7 +103,7 @@ def report(out: str | Path) -> BenchReport:
     out = Path(out)
     if not (out / "bench.json").exists():
         raise ConfigError(f"{out} is not a bench directory: bench.json is missing")
-    info = json.loads((out / "bench.json").read_text())
+    info = rundir.read_json(out / "bench.json", rundir.NOT_A_STUDY)
     tables, files = {}, {}
     for problem in info["problems"]:
         verdicts = [Verdict(**v) for v in info["verdicts"][problem]]
