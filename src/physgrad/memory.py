@@ -168,13 +168,14 @@ def check_step_fits(
     budget = SAFETY * min(free) - resident * shared
     n, b = len(devices), _batch_size(batch)
     where = "the host" if mine[0].platform == "cpu" else "the device"
-    if budget <= 0:  # the data and parameters alone do not fit: no batch size, variant or device count helps
-        raise DoesNotFit(f"the data and parameters need ~{_size(resident * shared)} but {where} has "
-                         f"{_size(min(free))} available; reduce the data (n_train, n_test) (memory_guard=false "
-                         "skips this check)")  # fmt: skip
     step = compiled_bytes(compiled, arguments=False) if compiled is not None else None
     footprint = method.footprint(objective, params, batch, n)
     need = max(footprint, step or 0)
+    if budget <= 0:  # the data and parameters alone do not fit: no batch size, variant or device count helps
+        raise DoesNotFit(f"{label or 'the'} step needs at least ~{_size((need + resident) * shared)}, "
+                         f"~{_size(resident * shared)} of it for the data and parameters alone, but {where} has "
+                         f"{_size(min(free))} available; reduce the data (n_train, n_test) (memory_guard=false "
+                         "skips this check)")  # fmt: skip
     if need * shared <= budget:
         return need
 
