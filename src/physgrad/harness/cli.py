@@ -514,7 +514,16 @@ def _damaged_files_as_one_line(command, args, console):
 
     try:
         return command(args, console)
-    except (EOFError, gzip.BadGzipFile, zlib.error, csv.Error, UnicodeDecodeError, KeyError, ValueError, TypeError) as e:
+    except (
+        EOFError,
+        gzip.BadGzipFile,
+        zlib.error,
+        csv.Error,
+        UnicodeDecodeError,
+        KeyError,
+        ValueError,
+        TypeError,
+    ) as e:
         from ..errors import ConfigError
 
         raise ConfigError(f"{args.dir}: a file cannot be read ({type(e).__name__}: {str(e)[:80]}); "
@@ -579,10 +588,12 @@ def main(argv=None) -> int:
                   markup=False, highlight=False, soft_wrap=True)  # fmt: skip
         return 1
     except Exception as e:
-        if "RESOURCE_EXHAUSTED" not in str(e):  # XLA's out of memory (its own exception type varies by version)
+        # XLA's out of memory (RESOURCE_EXHAUSTED, or INTERNAL "Out of memory allocating N bytes" on a CPU;
+        # its exception type varies by version)
+        if "RESOURCE_EXHAUSTED" not in str(e) and "Out of memory" not in str(e):
             raise
-        err.print("physgrad: error: the accelerator or host ran out of memory (XLA: RESOURCE_EXHAUSTED); reduce "
-                  "the data (n_train, n_test) or the batch size", markup=False, highlight=False, soft_wrap=True)  # fmt: skip
+        err.print("physgrad: error: the accelerator or host ran out of memory; reduce the data (n_train, n_test) "
+                  "or the batch size", markup=False, highlight=False, soft_wrap=True)  # fmt: skip
         return 1
     except KeyboardInterrupt as e:  # Ctrl-C, or SIGTERM (rundir.Terminated): runs checkpoint first
         from ..rundir import Terminated
