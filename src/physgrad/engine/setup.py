@@ -90,11 +90,15 @@ def _check_finite(problem: AbstractProblem, split: str, samples: Any) -> None:
     """A NaN or infinity in the data is refused as data, naming the split and the first
     sample that holds one; left to the loop it would read as the method diverging."""
     for path, x in jax.tree_util.tree_leaves_with_path(samples):
-        if isinstance(x, jax.ShapeDtypeStruct) or isinstance(x, jax.core.Tracer):
+        if isinstance(x, jax.ShapeDtypeStruct):
             return  # abstract data (the memory guard's preflight): nothing to look at
         if not jnp.issubdtype(jnp.result_type(x), jnp.inexact):
             continue
-        finite = np.isfinite(np.asarray(x)).reshape(np.shape(x)[0], -1).all(axis=1)
+        try:
+            values = np.asarray(x)
+        except (jax.errors.TracerArrayConversionError, jax.errors.ConcretizationTypeError):
+            return  # data made under a trace: nothing concrete to look at
+        finite = np.isfinite(values).reshape(np.shape(x)[0], -1).all(axis=1)
         if not finite.all():
             sample = int(np.argmin(finite))
             where = jax.tree_util.keystr(path) or "its array"
