@@ -55,6 +55,7 @@ def one_line(text: str) -> str:
 
 
 # --- 1: toy2d ---------------------------------------------------------------------------------------
+@pytest.mark.slow  # a few child processes: tens of seconds
 def test_1_a_toy2d_run_resumes_after_sigterm_and_when_finished(tmp_path, capsys):
     args = ["train", "toy2d", "--method", "adam", "--set", "checkpoint_seconds=0", "--quiet"]
     reference = tmp_path / "reference"
@@ -94,6 +95,7 @@ def test_3_10_a_failed_write_keeps_the_old_file(tmp_path):
     assert path.read_text() == "old" and [p.name for p in tmp_path.iterdir()] == ["record.json"]
 
 
+@pytest.mark.slow  # a few child processes: tens of seconds
 def test_3_calibrate_out_keeps_the_old_record_when_its_write_fails(tmp_path):
     out = tmp_path / "c.json"
     argv = ["calibrate", "hig_toy", "--methods", "adam", "--repeats", "3", "--out", str(out)]
@@ -105,6 +107,7 @@ def test_3_calibrate_out_keeps_the_old_record_when_its_write_fails(tmp_path):
     assert out.read_bytes() == before
 
 
+@pytest.mark.slow  # a few child processes: tens of seconds
 def test_10_report_keeps_its_files_when_a_write_fails(tmp_path):
     study = tmp_path / "s"
     assert main(["compare", "hig_toy", "--methods", "adam,sgd", "--steps", "20", "--seeds", "2", "--out", str(study),
@@ -217,6 +220,7 @@ def test_8_22_data_beyond_memory_is_refused_at_once(tmp_path, monkeypatch, capsy
 
 
 # --- 9, 13, 14, 15, 22, 23, 24: the edge ------------------------------------------------------------
+@pytest.mark.slow  # a few child processes: tens of seconds
 def test_9_a_write_that_fails_mid_run_is_one_line_and_the_run_resumes(reference, tmp_path):
     out = tmp_path / "run"
     proc = child([*ARGS, "--steps", str(STEPS), "--out", str(out)], limit_kib=1)
@@ -226,6 +230,7 @@ def test_9_a_write_that_fails_mid_run_is_one_line_and_the_run_resumes(reference,
     assert result(out) == result(reference)
 
 
+@pytest.mark.slow  # a few child processes: tens of seconds
 def test_13_sigterm_during_a_calibration_is_one_line_and_releases_the_lock(tmp_path):
     study = tmp_path / "s"
     argv = ["compare", "hig_toy", "--methods", "adam", "--seconds", "0.05", "--out", str(study), "--quiet"]
@@ -310,6 +315,7 @@ def test_17_train_into_a_directory_of_other_files_is_refused(tmp_path, capsys, h
 
 
 # --- 18, 20, 21, 25: what a run directory keeps ---------------------------------------------------------
+@pytest.mark.slow  # a few child processes: tens of seconds
 def test_18_env_json_keeps_the_environment_that_started_the_run(reference, tmp_path):
     out = tmp_path / "run"
     proc = spawn(out, fault="step:term@10")
