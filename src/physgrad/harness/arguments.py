@@ -76,26 +76,25 @@ MAX_SEED = 2**63 - 1  # jax.random.key takes a signed 64-bit integer
 MAX_SEEDS = 10_000  # a study's seeds are planned as a list of runs: more is a typo, not a study
 
 
-def seed_number(text: str) -> int:
-    """``--seed``: an integer in [0, 2**63 - 1] (argparse's one-line error otherwise)."""
+def _integer(text: str, low: int, high: int, what: str) -> int:
+    """An integer argument in [low, high] (argparse's one-line error otherwise)."""
     try:
         value = int(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"expects an integer, got {text!r}") from None
-    if not 0 <= value <= MAX_SEED:
-        raise argparse.ArgumentTypeError(f"expects an integer from 0 to 2**63 - 1, got {text}")
+    if not low <= value <= high:
+        raise argparse.ArgumentTypeError(f"expects {what}, got {text}")
     return value
+
+
+def seed_number(text: str) -> int:
+    """``--seed``: an integer in [0, 2**63 - 1]."""
+    return _integer(text, 0, MAX_SEED, "an integer from 0 to 2**63 - 1")
 
 
 def seed_count(text: str) -> int:
     """``--seeds``: how many seeds (0..N-1), from 1 to :data:`MAX_SEEDS`."""
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expects an integer, got {text!r}") from None
-    if not 1 <= value <= MAX_SEEDS:
-        raise argparse.ArgumentTypeError(f"expects a number of seeds from 1 to {MAX_SEEDS:,}, got {text}")
-    return value
+    return _integer(text, 1, MAX_SEEDS, f"a number of seeds from 1 to {MAX_SEEDS:,}")
 
 
 def output_dir(path) -> Path:

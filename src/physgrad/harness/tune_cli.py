@@ -6,9 +6,6 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from rich.table import Table
-from rich.text import Text
-
 from .arguments import UsageError, budget_of, output_dir, run_settings
 
 
@@ -24,12 +21,9 @@ def executor_of(args, default: int | None = 1):
 
 
 def _print(console, lines, title="", caption=""):
-    table = Table(title=title or None, caption=caption or None)
-    for i, name in enumerate(lines[0]):
-        table.add_column(Text(name), justify="left" if i == 0 else "right")
-    for line in lines[1:]:
-        table.add_row(*(Text(cell) for cell in line))
-    console.print(table)
+    from .cli import _print_table  # the command line's one table printer (cli imports this module lazily)
+
+    _print_table(console, lines, title=title, caption=caption)
 
 
 def tune_command(args, console) -> int:
