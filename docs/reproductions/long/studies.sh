@@ -18,7 +18,7 @@
 # Lanes: oscillators, dipole, poisson (HIG, core 0); navier_stokes, dipole_screen, dipole_screen_cheap,
 # quantum_control, quantum_control_clip, guidance, ks_screen, ks_screen_shuffled, ks_screen_grouped, u1_screen_grouped,
 # kolmogorov_screen_grouped, ks, ks_prediction, kolmogorov_zero, kolmogorov_zero_grouped, kolmogorov, heat, sip_poisson, khig_oscillators,
-# khig_quantum_dipole, ks80, ks80_prediction (core 1: CORE=1).
+# khig_quantum_dipole, ks80, ks80_prediction, dipole_tuned, dipole_tuned_90min (core 1: CORE=1).
 # Environment: CORE (default 0), SEEDS (default 3: grow every lane to this many seeds), STUDY_COMMIT,
 # LATE_COMMIT, PY (python of an env with physgrad's deps).
 set -euo pipefail
@@ -187,6 +187,23 @@ lane_ks80_prediction() {
   ks80
   lane_study ks_prediction_80ep_plateau ks "one@224640@2808 nog@224640@2808 wig@224640@2808" \
     --set setup=prediction "${PLATEAU[@]}"
+}
+# Issue 54 item 4, H4 with every rule tuned on the same budget: HIG's tau was set to 1e-3 after its
+# stall at the paper's 1e-5 was seen, and Adam was never tuned. physgrad tune (TUNED_COMMIT) gives each
+# method the same 5 quasi-random trials of its declared space (Adam: lr; HIG: lr and truncation; trial 0
+# the untuned defaults), selected on validation, the winner re-run on 3 seeds and scored on test. Step
+# budgets from calibration.csv (adam 145.25 ms at batch 256; hig 95.89 ms, the structured route of
+# physgrad since 8c72cda): 150 s = adam 1,033 / hig 1,564 steps (≈ 20 min per method on one core);
+# 90 min = adam 37,180 / hig 56,300 steps (≈ 12 h per method). Re-time both on an idle core first
+# (physgrad calibrate quantum_dipole --methods adam,hig) and adjust the budgets if they moved.
+tuned() { use_commit "$ROOT/../studycode-tuned" "${TUNED_COMMIT:-f5d83a8}"; }
+tune_lane() {  # usage: tune_lane STUDY METHOD STEPS EVAL_EVERY
+  pg tune quantum_dipole --methods "$2" --trials 5 --seeds 3 --steps "$3" --set eval_every="$4" \
+    --out "$DATA/$1/$2" --quiet
+}
+lane_dipole_tuned() { tuned; tune_lane quantum_dipole_tuned_150s adam 1033 103; tune_lane quantum_dipole_tuned_150s hig 1564 156; }
+lane_dipole_tuned_90min() {
+  tuned; tune_lane quantum_dipole_tuned_90min adam 37180 1859; tune_lane quantum_dipole_tuned_90min hig 56300 2815
 }
 # Claim 2 after the scale fix, a screen before the 20-epoch lane: ONE / NOG / WIG correction at
 # 2 epochs (5,616 updates), evaluated after each epoch; ≈ 8–10 min per run on one core, 9 runs.
