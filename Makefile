@@ -4,7 +4,7 @@ VENV   ?= .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: demo test test-slow test-all lint format typecheck docs install bench clean
+.PHONY: demo test test-slow test-all lint format typecheck docs install bench dist clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -35,13 +35,17 @@ test-slow: $(STAMP)
 test-all: $(STAMP)
 	$(PYTEST)
 
+# the library, the tests and the scripts beside them (pyproject.toml's [tool.ruff] leaves out the
+# notebooks and the Markdown pages)
+LINT_PATHS := src tests examples benchmarks docs
+
 lint: $(STAMP)
-	$(BIN)/ruff check src tests
-	$(BIN)/ruff format --check src tests
+	$(BIN)/ruff check $(LINT_PATHS)
+	$(BIN)/ruff format --check $(LINT_PATHS)
 
 format: $(STAMP)  # rewrites files: ruff's safe fixes (import order, unused imports), then the formatter
-	$(BIN)/ruff check --fix src tests
-	$(BIN)/ruff format src tests
+	$(BIN)/ruff check --fix $(LINT_PATHS)
+	$(BIN)/ruff format $(LINT_PATHS)
 
 # pyright's PyPI wrapper runs the pyright it bundles on the `node` on PATH (none: it would
 # download one); IGNORE_WARNINGS skips its check for a newer release.
@@ -52,6 +56,14 @@ typecheck: $(STAMP)
 # warning (a broken link, an unknown cross-reference) fails. Open site/index.html.
 docs: $(STAMP)
 	NO_MKDOCS_2_WARNING=1 $(BIN)/mkdocs build --strict --site-dir site
+
+# The sdist and the wheel into dist/ (python -m build: hatchling in an isolated environment).
+# Neither carries the studies' data: pyproject.toml's [tool.hatch.build.targets.sdist] leaves
+# out docs/reproductions/data and figures and the benches' run directories; the wheel is
+# src/physgrad alone. `pip install dist/physgrad-*.whl` installs it (.ci/smoke.sh checks that).
+dist: $(STAMP)
+	rm -rf dist
+	$(BIN)/python -m build --outdir dist .
 
 bench: $(STAMP)
 	$(BIN)/python benchmarks/hig_step.py
@@ -74,4 +86,4 @@ test-floors:
 	$(FLOORS_VENV)/bin/python -m pytest -n auto --dist loadfile -m "not slow"
 
 clean:
-	rm -rf $(VENV) $(FLOORS_VENV) runs studies site
+	rm -rf $(VENV) $(FLOORS_VENV) runs studies site dist

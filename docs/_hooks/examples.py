@@ -16,7 +16,6 @@ from mkdocs.config.defaults import MkDocsConfig
 from mkdocs.plugins import event_priority
 from mkdocs.structure.files import File, Files
 
-
 # a link in examples/README.md to a file that is no page (a script) becomes its text and path
 SCRIPT_LINK = re.compile(r"\[(?P<text>[^\]]*)\]\((?P<target>(?![a-z][a-z0-9+.-]*:)[^)\s#]+\.py)\)")
 

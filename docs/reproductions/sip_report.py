@@ -64,7 +64,9 @@ def toy(root: Path):
 
     fig, (ax_x, ax_y) = plt.subplots(1, 2, figsize=(9, 4), dpi=120)
     labels = {"sgd": "GD (η 0.01)", "newton": "Newton (η 1/3)", "sip": "inverse simulator (η 0.3)"}
-    lines = [["method", "x after 10 iterations", "y after 10 iterations", "\\|x\\|", "L = \\|y\\|²"]]  # pipes escaped for Markdown
+    lines = [
+        ["method", "x after 10 iterations", "y after 10 iterations", "\\|x\\|", "L = \\|y\\|²"]
+    ]  # pipes escaped for Markdown
     for method, steps in paths.items():
         order = sorted(steps)
         xs = np.array([[steps[k]["x0"], steps[k]["x1"]] for k in order])

@@ -26,8 +26,8 @@ import jax
 import numpy as np
 
 from physgrad.harness.config import RunConfig
-from physgrad.rollout import M, R, cosine, joint_gradients, sign_mask
 from physgrad.harness.train import build, load_network
+from physgrad.rollout import M, R, cosine, joint_gradients, sign_mask
 
 DATA = Path(__file__).resolve().parent.parent / "data"
 RUNS = [  # (study, method directory, seeds)
@@ -58,7 +58,9 @@ def mask_statistics(setup, network, batches: int = 4, batch_size: int = 8) -> np
 
 
 def main() -> None:
-    print("| study | method | seed | network | loss | agree | \\|g_C\\|/\\|g_M\\| | cos(g_M, g_R) | \\|g_R\\|/\\|g_M\\| |")
+    print(
+        "| study | method | seed | network | loss | agree | \\|g_C\\|/\\|g_M\\| | cos(g_M, g_R) | \\|g_R\\|/\\|g_M\\| |"
+    )
     print("|---|---|---|---|---|---|---|---|---|")
     for study, method, seeds in RUNS:
         for seed in seeds:
