@@ -9,12 +9,14 @@ and :func:`fit` trains a problem object with a method object into a run director
 Importing physgrad changes nothing in JAX's configuration: float64 is scoped to the
 computations that need it (the Gram route's eigendecomposition, float64 problems), and
 no thread pool: ``with physgrad.threads(1):`` limits the BLAS/LAPACK pools around a loop
-(:mod:`physgrad.cpu`; the ``physgrad`` command line does it for its own runs).
+(:mod:`physgrad.cpu`); :func:`fit` does it for its own duration (``threads=1``, as the
+``physgrad`` command line does for its runs; ``threads=None`` leaves the pools alone).
 """
 
 from . import acceptance, cpu, distributed, inverse, routes, transforms
+from ._fit import fit  # the engine's fit with the BLAS/LAPACK pools limited (threads=1)
 from .cpu import threads
-from .engine import Budget, Callback, FitResult, Phase, TrainSettings, TrainState, fit
+from .engine import Budget, Callback, FitResult, Phase, TrainSettings, TrainState
 from .errors import ConfigError
 from .harness.train import load_network
 from .harness.tune import tune

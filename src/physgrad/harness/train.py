@@ -10,12 +10,12 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import json
 from pathlib import Path
 from typing import Any
 
 import equinox as eqx
 
+from .. import rundir
 from ..engine import (
     Phase,
     Setup,
@@ -122,10 +122,17 @@ def load_network(run_dir: str | Path, like=None):
     on your own problem); without it the network is rebuilt from the run's ``config.json``
     (runs of the command line and of :func:`train`)."""
     run_dir = Path(run_dir)
+    params = run_dir / "params.eqx"
+    if not run_dir.is_dir():
+        raise ConfigError(f"{run_dir} is no run directory (it does not exist); give the directory a run wrote")
+    if not params.is_file():  # one line, not Equinox's traceback
+        raise ConfigError(f"{params} is missing: the run has not finished (a run writes it when it ends); "
+                          "resume the run to finish it")  # fmt: skip
     if like is None:
-        config = RunConfig.from_dict(json.loads((run_dir / "config.json").read_text()))
+        advice = "pass like=, a network of the run's structure (runs of physgrad.fit on your own problem)"
+        config = RunConfig.from_dict(rundir.read_json(run_dir / "config.json", advice))
         like = build(config).network()
-    return eqx.tree_deserialise_leaves(run_dir / "params.eqx", like)
+    return eqx.tree_deserialise_leaves(params, like)
 
 
 __all__ = ["Setup", "build", "is_complete", "load_network", "make_evaluate", "make_step", "read_metrics",

@@ -1,0 +1,89 @@
+""":func:`physgrad.fit`: :func:`physgrad.engine.run.fit` with the BLAS/LAPACK thread pools
+limited for its own duration (``threads=1`` by default, as the ``physgrad`` command line does).
+
+A Jacobian method's float64 ``eigh`` runs in jaxlib's CPU LAPACK kernels on SciPy's
+OpenBLAS, which starts one thread per core and spins them; beside a busy neighbour those
+threads wait for each other and the step collapses (a user's script beside a busy
+neighbour: a HIG step at 170 ms median with the default pools, 6.4 ms inside
+``physgrad.threads(1)``; ``docs/performance.md``, "Threads under load", for more). The
+command line runs the engine's ``fit`` inside :func:`physgrad.cpu.process_threads`; a user's
+script calls this one, which limits the pools loaded in the process
+(:func:`physgrad.cpu.threads`) and restores them on return. XLA's own Eigen pool is set
+once, when JAX's backend starts, and is left alone (``physgrad.cpu``).
+"""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+from . import cpu as _cpu
+from .engine import run as _run
+from .engine.callbacks import Callback
+from .engine.result import FitResult
+from .engine.types import Budget, Phase, TrainSettings
+from .methods import AbstractMethod
+from .problems import AbstractProblem
+from .progress import AbstractProgressMeter
+
+
+def fit(
+    problem: AbstractProblem,
+    method: AbstractMethod | Phase | Sequence[Phase],
+    *,
+    budget: Budget,
+    out: str | Path | None = None,
+    seed: int = 0,
+    batch_size: int | None = None,
+    settings: TrainSettings = _run.DEFAULT_SETTINGS,
+    resume: bool = False,
+    progress: AbstractProgressMeter | None = None,
+    devices: int | str | None = 1,
+    record: dict[str, Any] | None = None,
+    same_run: Callable[[dict[str, Any]], Any] | None = None,
+    label: str = "",
+    name: str = "",
+    callbacks: Sequence[Callback | Callable[[int, dict[str, float]], Any]] | None = None,
+    threads: int | None = 1,
+) -> FitResult:
+    """Train ``method`` (or a sequence of phases) on ``problem`` and return a
+    :class:`~physgrad.engine.FitResult`: :func:`physgrad.engine.fit`, whose page documents
+    every other argument, the run directory, ``resume``, the keys and the result, with the
+    BLAS/LAPACK thread pools limited while it runs.
+
+    ``threads`` (default 1) limits the BLAS/LAPACK and OpenMP thread pools of this process
+    to that many threads while ``fit`` runs and restores them on return
+    (:func:`physgrad.cpu.threads`), as the ``physgrad`` command line does for its runs
+    (``--threads``): a Jacobian method's LAPACK calls (the float64 ``eigh`` of HIG and
+    Gauss–Newton) collapse beside a busy neighbour with one spinning thread per core.
+    ``threads=None`` leaves the pools as they are (a limit of the caller's own, such as
+    ``with physgrad.threads(4):``, stays in force). XLA's own CPU thread pool is not
+    affected (:mod:`physgrad.cpu`).
+    """
+    limit = contextlib.nullcontext() if threads is None else _cpu.threads(threads)
+    with limit:
+        return _run.fit(
+            problem,
+            method,
+            budget=budget,
+            out=out,
+            seed=seed,
+            batch_size=batch_size,
+            settings=settings,
+            resume=resume,
+            progress=progress,
+            devices=devices,
+            record=record,
+            same_run=same_run,
+            label=label,
+            name=name,
+            callbacks=callbacks,
+        )
+
+
+# help(physgrad.fit): the above, then the engine's own description of every argument
+fit.__doc__ = (
+    (fit.__doc__ or "").rstrip() + "\n\n    physgrad.engine.fit:\n\n    " + (_run.fit.__doc__ or "").strip() + "\n"
+)
