@@ -8,10 +8,9 @@ settings), compiles its step with the engine's own :class:`~physgrad.engine.step
 (the compiled program is kept in :data:`physgrad.programs.STEPS`, so the runs that follow
 do not compile it again), calls it once more to warm it up, and then times it in
 **interleaved rounds** (one call of every method per round, so that a change of load
-touches every method alike) under the thread setting the study runs with. A call is a
-chunk of the run's own loop, as many steps as take about 10 ms (:func:`chunk_steps`; one
-where a step takes longer), so that a step of a fraction of a millisecond is charged its
-share of a dispatch, as in the run, not a whole one. The median over the rounds of the
+touches every method alike) under the thread setting the study runs with. A call replays
+the run's own chunks between evaluations, read-back and each epoch's order included
+(:mod:`physgrad.harness.run_chunks`), until they take about 10 ms. The median over the rounds of the
 seconds per step is the method's cost (the quartiles and the extremes are kept as its
 spread). Each run then trains for
 
@@ -59,12 +58,14 @@ REPEATS = 15  # rounds of interleaved timing, at most
 CALL_SECONDS = 0.01  # a timed call takes at least this many steps' worth (chunk_steps)
 # 2: a timed call is a chunk of the run's loop (1: one step per call, which charged a cheap
 # step a whole dispatch). A resumed study keeps its record (its runs were budgeted by it).
-VERSION = 2
+# 3: a timed call replays the run's own chunks between evaluations, read-back and epoch orders
+# included (harness.run_chunks).
+VERSION = 3
 MIN_REPEATS = 3  # every method gets at least this many rounds
 MAX_SECONDS = 10.0  # a method leaves the rounds once its timed steps add up to this (after MIN_REPEATS)
 RULE = ("median over interleaved rounds (one call of every method per round) of the compiled step's wall-clock per "
-        "step, each call a chunk of the run's loop of about 10 ms (one step where a step takes longer); "
-        "compilation and the first call excluded; seed 0's data and network")  # fmt: skip
+        "step, each call the run's own chunks between evaluations (dispatch to read-back, each epoch's order drawn "
+        "between chunks) adding up to about 10 ms; compilation and the first call excluded; seed 0's data and network")  # fmt: skip
 
 Program = Callable[[], Any]  # one training step, blocking until its results are ready
 
@@ -128,8 +129,8 @@ def time_programs(
     """Seconds per step of each program, in interleaved rounds: every round calls each
     key's programs (a sequence's stages) once, in order; a key leaves the rounds once it
     has ``MIN_REPEATS`` rounds and its timed calls add up to ``max_seconds``. A program
-    that returns a Python ``int`` n took n steps in that call (a chunk of the run's loop),
-    and its call's seconds are divided by n; any other return value is one step. Returns
+    that returns a Python ``int`` n took n steps in that call, ``(n, seconds)`` n steps in
+    seconds it timed itself (a :class:`~.run_chunks.Replay`); anything else one step. Returns
     ``{key: [per-program list of seconds per step]}``. ``clock`` is the timer (a fake one
     makes the tests deterministic)."""
     times: dict[str, list[list[float]]] = {k: [[] for _ in progs] for k, progs in programs.items()}
@@ -141,6 +142,8 @@ def time_programs(
                 t0 = clock()
                 steps = program()
                 seconds = clock() - t0
+                if isinstance(steps, tuple):  # (steps, seconds): a replay of the run's chunks timed itself
+                    steps, seconds = steps
                 spent[key] += seconds
                 n = steps if isinstance(steps, int) and not isinstance(steps, bool) and steps > 0 else 1
                 times[key][i].append(seconds / n)
@@ -175,9 +178,11 @@ def step_programs(config: RunConfig, devices: int | str | None = 1) -> tuple[lis
     import jax
     import numpy as np
 
+    from .. import distributed
     from ..engine.step import Steps
     from ..engine.strategies import Placement
     from ..engine.types import TrainState
+    from .run_chunks import Replay, epoch_inputs, run_chunks
     from .train import build, settings_of
 
     setup = build(config)
@@ -196,15 +201,20 @@ def step_programs(config: RunConfig, devices: int | str | None = 1) -> tuple[lis
             chunk = functools.partial(compiled, params, opt_state, steps.data, order, np.int32(0))
             jax.block_until_ready(chunk(np.int32(1)))  # the first call: warm-up, not timed
         warmups.append(time.perf_counter() - t0)
-        # the run's longest chunk in this stage: an epoch where each epoch has a new order or
-        # new data (engine.run._steps_left), the stage's length in a sequence, the program's
-        # own chunk (1 for a convolutional step on a CPU, engine.step.loop_chunk), else CHUNK
-        limits = [n for n in (None if steps.same_every_epoch else stage.steps_per_epoch, stage.steps,
-                              compiled.chunk) if n]  # fmt: skip
-        count = sized_chunk(lambda n, chunk=chunk: _chunk_call(chunk, np.int32(n)), min(limits) if limits else None)
-        program = functools.partial(_chunk_call, chunk, np.int32(count))
-        program.steps_per_call = count  # type: ignore[attr-defined]  # recorded with the stage's cost
-        programs.append(program)
+        # the run's own chunks between evaluations, replayed (harness.run_chunks), sized at this step's cost
+        count = sized_chunk(lambda n, chunk=chunk: _chunk_call(chunk, np.int32(n)), compiled.chunk)
+        t0 = time.perf_counter()
+        done = _chunk_call(chunk, np.int32(count))
+        per_step = (time.perf_counter() - t0) / max(done, 1)
+        settings = settings_of(config)
+        chunks = run_chunks(steps_per_epoch=stage.steps_per_epoch, epoch_end=not steps.same_every_epoch,
+                            stage_steps=stage.steps, program_chunk=compiled.chunk, eval_every=settings.eval_every,
+                            eval_seconds=settings.eval_seconds, per_step=per_step)  # fmt: skip
+        programs.append(Replay(
+            lambda p, s, d, o, b, c, compiled=compiled: compiled(p, s, d, o, np.int32(b), np.int32(c)),
+            lambda result: jax.device_get(distributed.to_host(result)),
+            lambda epoch, i=i: epoch_inputs(steps, setup, i, epoch), (params, opt_state), chunks,
+            same_every_epoch=steps.same_every_epoch, call_seconds=CALL_SECONDS))  # fmt: skip
     return programs, warmups, list(setup.stages)
 
 
@@ -429,9 +439,9 @@ def study_calibration(
     fresh = calibrate(missing, echo=echo, devices=devices, record_failures=record_failures, **options)
     if record is not None:  # keep the earlier measurements, with their own conditions
         if record.get("version", 1) != VERSION:
-            echo(f"calibration: {out / CALIBRATION_FILE} was timed one step per call (version {record.get('version', 1)}); "
-                 f"{', '.join(missing)} are timed per chunk of the run's loop, so cheap steps read lower than the "
-                 "recorded ones (move the file away to time every method again)")  # fmt: skip
+            echo(f"calibration: {out / CALIBRATION_FILE} was timed by an earlier rule (version {record.get('version', 1)}); "
+                 f"{', '.join(missing)} are timed as the run's own chunks between evaluations, so their costs are not "
+                 "comparable to the recorded ones (move the file away to time every method again)")  # fmt: skip
         stamped = {k: {**v, "measured": fresh["measured"], "load": fresh["load_before"], "version": VERSION}
                    for k, v in fresh["methods"].items()}  # fmt: skip
         fresh = {**record, "methods": stamped}

@@ -163,10 +163,10 @@ def _run_compare(console, problem, methods, seeds, budget, settings, out, quiet=
     meter = None if quiet or not console.is_terminal else RichProgressMeter
     compare(problem, methods, seeds, budget, out, settings=settings, progress=meter, echo=console.print,
             devices=devices, calibrate=calibrate, executor=executor)  # fmt: skip
-    from .seeds import TABLE_NOTE
+    from .seeds import table_note
 
     result = report(out)
-    _print_table(console, result.lines, title=f"{problem}: {budget} per run", caption=TABLE_NOTE)
+    _print_table(console, result.lines, title=f"{problem}: {budget} per run", caption=table_note(result.table))
     _print_paired_tests(console, out)
     _print_targets(console, out)
     extra = [Path(out) / name for name in ("calibration.json", "time_to_target.csv") if (Path(out) / name).exists()]
@@ -287,10 +287,10 @@ def cmd_report(args, console):
         _print_paired_tests(console, args.dir)
         console.print(f"wrote {_files(Path(args.dir) / 'grid_summary.csv', result.figure)}")
         return 0
-    from .seeds import TABLE_NOTE
+    from .seeds import table_note
 
     result = report(args.dir)
-    _print_table(console, result.lines, title=str(args.dir), caption=TABLE_NOTE)
+    _print_table(console, result.lines, title=str(args.dir), caption=table_note(result.table))
     _print_paired_tests(console, args.dir)
     _print_targets(console, args.dir)
     if result.figure:

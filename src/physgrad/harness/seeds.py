@@ -187,6 +187,34 @@ TABLE_NOTE = ("over seeds: medians [95% bootstrap CI, from 3 seeds], a diverged 
               "of the per-seed ratios; test-case spread: median over seeds of each seed's std over the test cases")  # fmt: skip
 
 
+# a run whose in-run ms/step is outside [1/RATIO_LIMIT, RATIO_LIMIT] x its calibrated one is flagged
+RATIO_LIMIT = 1.2
+
+
+def calibration_ratio(row: Mapping[str, Any]) -> float:
+    """A method's in-run ms/step over its calibrated one (medians over seeds; NaN without)."""
+    wall, calibrated = row.get("ms_per_step", math.nan), row.get("calibrated_ms", math.nan)
+    return wall / calibrated if math.isfinite(wall) and math.isfinite(calibrated) and calibrated > 0 else math.nan
+
+
+def mismatched(row: Mapping[str, Any]) -> bool:
+    """Whether a method's in-run step cost is more than RATIO_LIMIT away from its calibrated one."""
+    r = calibration_ratio(row)
+    return math.isfinite(r) and not 1 / RATIO_LIMIT <= r <= RATIO_LIMIT
+
+
+def table_note(table: Sequence[Mapping[str, Any]]) -> str:
+    """:data:`TABLE_NOTE`, and a line naming the methods whose in-run step cost is outside
+    [1/1.2, 1.2]x the calibrated one (their budgets did not take the seconds they stand for)."""
+    flagged = [f"{t['method']} {calibration_ratio(t):.2f}x" for t in table if mismatched(t)]
+    if not flagged:
+        return TABLE_NOTE
+    return (
+        f"{TABLE_NOTE}\n* in-run / calibrated ms/step outside [1/{RATIO_LIMIT:g}, {RATIO_LIMIT:g}]: "
+        f"{', '.join(flagged)} (a loaded machine, or a calibration that did not time the run's step)"
+    )
+
+
 def seed_values(rows: Sequence[Mapping[str, Any]], method: str, key: str) -> dict[str, float]:
     """{seed: value of ``key``} of one method's runs, +∞ for a diverged run (a finished run
     without a value keeps NaN: nothing was recorded, which is not a failure)."""
@@ -239,14 +267,16 @@ def format_table(table: list[dict[str, Any]], reference: str | None = None) -> l
     loss as median [95 % interval] over seeds and as mean ± std over seeds (``∞`` once a seed
     diverged), the test-case spread, the best test loss (median over seeds), steps and
     ms/step (medians); ``reference`` adds the median over seeds of the per-seed ratio to that
-    method (:func:`ratio_summary`). :data:`TABLE_NOTE` says so under a table."""
+    method (:func:`ratio_summary`). :data:`TABLE_NOTE` says so under a table. A calibrated
+    study adds the calibrated ms/step and the in-run over calibrated ratio, marked ``*``
+    outside [1/1.2, 1.2] (:func:`table_note` names them under the table)."""
     ref = next((t for t in table if t["method"] == reference), None)
     header = ["method", "runs", "final test loss, median [95% CI]", "mean ± std", "test-case spread",
               "best test loss", "steps", "ms/step"]  # fmt: skip
     calibrated = any(math.isfinite(t.get("calibrated_ms", math.nan)) for t in table)
     if calibrated:
         header[-1] = "ms/step (wall)"
-        header.append("calibrated ms/step")
+        header += ["calibrated ms/step", "wall / calibrated"]
     if ref is not None:
         header.append(f"final / {reference}")
     lines = [header]
@@ -255,7 +285,9 @@ def format_table(table: list[dict[str, Any]], reference: str | None = None) -> l
                 number(t["spread"], ".1e"), number(t["best"]["median"]), f"{t['steps']:.0f}",
                 f"{t['ms_per_step']:.2f}"]  # fmt: skip
         if calibrated:
-            line.append(number(t.get("calibrated_ms", math.nan), ".3g"))
+            ratio = calibration_ratio(t)
+            line += [number(t.get("calibrated_ms", math.nan), ".3g"),
+                     "-" if math.isnan(ratio) else f"{ratio:.2f}{' *' if mismatched(t) else ''}"]  # fmt: skip
         if ref is not None:
             ratio = paired_ratio(t, ref)
             line.append("-" if ratio["n"] == 0 else f"{number(ratio['median'], '.3g')} {interval(ratio, '.3g')}")

@@ -1,0 +1,133 @@
+"""The run's own chunks, replayed for the calibration (issue 50, item 4).
+
+A calibrated budget is only fair if the calibrated step costs what the run's step costs.
+The run (:func:`physgrad.engine.run.loop`) takes its steps in chunks of one compiled
+program (:func:`physgrad.engine.step.make_steps`) that end at each evaluation, each
+epoch's new batch order, the stage's end (:class:`~physgrad.engine.strategies.ChunkSize`),
+draws each epoch's order (and fresh data) between chunks, and counts each chunk from its
+dispatch to the read-back of its statistics. Timing a chunk of a fixed size with the
+same parameters, without the read-back or the epoch's new order, read a step of the
+oscillators' Adam at 4.8 ms that cost 10.4 ms in its runs (issue 50).
+
+So a calibration call is a stretch of the run itself: :func:`run_chunks` lists the chunks
+the run's loop takes from step 0 (after its first one-step chunk) to the first step where
+an evaluation and an epoch's end meet again (at most :data:`MAX_CHUNKS` chunks), and
+:class:`Replay` takes them in turn, with the parameters and optimizer state carried from
+chunk to chunk, each epoch's order and data drawn as the run draws them, and each chunk
+timed from its dispatch to its read-back, as the run's ``train_seconds`` counts it.
+"""
+
+from __future__ import annotations
+
+import math
+import statistics
+import time
+from collections.abc import Callable
+from typing import Any
+
+MAX_CHUNKS = 256  # the replayed cycle's length at most (then it starts again)
+CALL_SECONDS = 0.01  # a timed call takes chunks until their seconds add up to this
+
+Chunk = tuple[int, int, int]  # (epoch, batch within the epoch, steps)
+
+
+def run_chunks(
+    *,
+    steps_per_epoch: int,
+    epoch_end: bool,
+    stage_steps: int | None,
+    program_chunk: int,
+    eval_every: int,
+    eval_seconds: float,
+    per_step: float,
+    max_chunks: int = MAX_CHUNKS,
+) -> list[Chunk]:
+    """The chunks ``(epoch, batch, count)`` the run's loop takes in one stage from its
+    first step on, as :func:`physgrad.engine.run._steps_left` and
+    :class:`~physgrad.engine.strategies.ChunkSize` size them at ``per_step`` seconds per
+    step: to the end of an epoch (``epoch_end``: each epoch has a new order or new data),
+    of the stage, to the next evaluation (every ``eval_every`` steps, else every epoch; for
+    ``eval_seconds`` the chunks halve towards it), at most ``program_chunk``. Ends at the
+    first step where the cycle starts again (an evaluation at an epoch's start), the
+    stage's end, or after ``max_chunks`` chunks."""
+    from ..engine.step import CHUNK
+    from ..engine.strategies import ChunkSize
+
+    sizer = ChunkSize()
+    sizer.per_step = max(per_step, 1e-9)
+    per_epoch = max(steps_per_epoch, 1)
+    chunks: list[Chunk] = []
+    step, t, next_eval = 0, 0.0, eval_seconds if eval_seconds > 0 else math.inf
+    while len(chunks) < max_chunks and (stage_steps is None or step < stage_steps):
+        limit = min(CHUNK, per_epoch - step % per_epoch) if epoch_end else CHUNK
+        if stage_steps is not None:
+            limit = min(limit, stage_steps - step)
+        if eval_seconds <= 0:
+            limit = min(limit, eval_every - step % eval_every if eval_every else per_epoch - step % per_epoch)
+        count = sizer.size(min(program_chunk, max(limit, 1)), seconds_left=next_eval - t)
+        chunks.append((*divmod(step, per_epoch), count))
+        step, t = step + count, t + count * sizer.per_step
+        evaluated = eval_seconds <= 0 and (step % eval_every == 0 if eval_every else step % per_epoch == 0)
+        if eval_seconds > 0 and t >= next_eval:
+            next_eval, evaluated = eval_seconds * (1 + math.floor(t / eval_seconds)), True
+        if evaluated and step % per_epoch == 0:
+            break
+    return chunks
+
+
+def epoch_inputs(steps: Any, setup: Any, stage: int, epoch: int) -> tuple[Any, Any]:
+    """A stage's epoch's training data and order (:class:`~physgrad.engine.step.Steps`),
+    drawn as the run's loop draws them."""
+    steps.draw(setup, stage, epoch)
+    return steps.data, steps.order(stage, epoch)
+
+
+class Replay:
+    """A no-argument program for :func:`~physgrad.harness.calibration.time_programs`: each
+    call takes the next chunks of ``chunks`` (cycling) until their timed seconds add up to
+    ``call_seconds`` (at least one chunk) and returns ``(steps, seconds)``: the steps
+    computed and the seconds from each chunk's dispatch to its read-back, summed.
+
+    ``dispatch(params, opt_state, data, order, batch, count)`` is the run's compiled chunk
+    (its result ``(params, opt_state, taken, diverged, stats)``); ``read(result)`` reads
+    ``(taken, diverged, stats)`` back to the host (the run's ``jax.device_get``);
+    ``epoch_inputs(epoch)`` gives the epoch's ``(data, order)``, drawn between chunks as the
+    run draws them (``same_every_epoch``: once). The cycle starts again from the initial
+    parameters, as does a chunk after a divergent step."""
+
+    def __init__(
+        self,
+        dispatch: Callable[..., Any],
+        read: Callable[[Any], tuple[Any, Any, Any]],
+        epoch_inputs: Callable[[int], tuple[Any, Any]],
+        initial: tuple[Any, Any],
+        chunks: list[Chunk],
+        *,
+        same_every_epoch: bool = False,
+        call_seconds: float = CALL_SECONDS,
+        clock: Callable[[], float] = time.perf_counter,
+    ):
+        self.dispatch, self.read, self.epoch_inputs = dispatch, read, epoch_inputs
+        self.initial, self.chunks, self.same = initial, chunks or [(0, 0, 1)], same_every_epoch
+        self.call_seconds, self.clock = call_seconds, clock
+        self.position, self.state, self.epoch, self.inputs = 0, initial, None, None
+        self.steps_per_call = int(statistics.median(c for _, _, c in self.chunks))
+
+    def __call__(self) -> tuple[int, float]:
+        steps, seconds, done = 0, 0.0, 0
+        while done == 0 or seconds < self.call_seconds:
+            if self.position == 0:
+                self.state = self.initial
+            epoch, batch, count = self.chunks[self.position]
+            self.position = (self.position + 1) % len(self.chunks)
+            key = 0 if self.same else epoch
+            if key != self.epoch:  # the run draws a new epoch's order (and data) between chunks
+                self.inputs, self.epoch = self.epoch_inputs(key), key
+            data, order = self.inputs  # type: ignore[misc]
+            t0 = self.clock()
+            params, opt_state, *rest = self.dispatch(*self.state, data, order, batch, count)
+            taken, diverged, _ = self.read(tuple(rest))
+            seconds += self.clock() - t0
+            steps, done = steps + int(taken) + int(bool(diverged)), done + 1
+            self.state = self.initial if diverged else (params, opt_state)
+        return steps, seconds
