@@ -206,10 +206,11 @@ def step_programs(config: RunConfig, devices: int | str | None = 1) -> tuple[lis
         t0 = time.perf_counter()
         done = _chunk_call(chunk, np.int32(count))
         per_step = (time.perf_counter() - t0) / max(done, 1)
-        settings = settings_of(config)
+        # a calibrated run evaluates eval_seconds as eval_every steps (study.calibrated_config)
+        every = max(1, round(config.eval_seconds / per_step)) if config.eval_seconds > 0 else config.eval_every
         chunks = run_chunks(steps_per_epoch=stage.steps_per_epoch, epoch_end=not steps.same_every_epoch,
-                            stage_steps=stage.steps, program_chunk=compiled.chunk, eval_every=settings.eval_every,
-                            eval_seconds=settings.eval_seconds, per_step=per_step)  # fmt: skip
+                            stage_steps=stage.steps, program_chunk=compiled.chunk, eval_every=every,
+                            eval_seconds=0.0, per_step=per_step)  # fmt: skip
         programs.append(Replay(
             lambda p, s, d, o, b, c, compiled=compiled: compiled(p, s, d, o, np.int32(b), np.int32(c)),
             lambda result: jax.device_get(distributed.to_host(result)),
