@@ -244,7 +244,7 @@ def test_13_sigterm_during_a_calibration_is_one_line_and_releases_the_lock(tmp_p
     [
         (["train", "toy2d", "--method", "adam", "--out", "x" * 300], "255"),
         (["train", "toy2d", "--method", "adam", "--seed", str(2**63)], "2**63"),
-        (["compare", "toy2d", "--methods", "adam", "--seeds", str(10**9)], "10,000"),
+        (["compare", "toy2d", "--methods", "adam", "--seeds", str(10**9)], "up to 10,000"),
         (["train", "toy2d", "--method", "adam", "--out", ""], "--out is empty"),
         (["compare", "toy2d", "--methods", "adam", "--set", "lr=1e-3,"], "empty value"),
         (["compare", "toy2d", "--methods", "adam", "--set", "lr=1e-3", "--set", "lr=1e-2"], "given twice"),

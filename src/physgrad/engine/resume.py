@@ -17,6 +17,9 @@ from . import record as records
 from .recording import is_final, kept_path, read_json, read_summary, write_json
 from .types import Budget
 
+# What a run directory may hold before its config.json: a study's record of a run that failed
+# before it began (harness/failures.py writes traceback.txt there).
+EARLY_RUN_FILES = ("traceback.txt",)
 FINAL_FILES = ("params.eqx", "test_cases.json")  # written after the final checkpoint, before the summary
 
 
@@ -45,7 +48,8 @@ def recorded(request: Any) -> dict[str, Any] | None:
     if run_dir is None:
         return None
     if not (run_dir / "config.json").exists():
-        foreign = sorted(p.name for p in run_dir.iterdir() if not p.name.startswith(".")) if run_dir.is_dir() else []
+        names = (p.name for p in run_dir.iterdir()) if run_dir.is_dir() else ()
+        foreign = sorted(n for n in names if not n.startswith(".") and n not in EARLY_RUN_FILES)
         if foreign:
             shown = ", ".join(foreign[:3]) + (", …" if len(foreign) > 3 else "")
             raise ConfigError(f"{run_dir} holds files that are not a physgrad run ({shown}); a run would overwrite "

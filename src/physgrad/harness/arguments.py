@@ -93,8 +93,9 @@ def seed_number(text: str) -> int:
 
 
 def seed_count(text: str) -> int:
-    """``--seeds``: how many seeds (0..N-1), from 1 to :data:`MAX_SEEDS`."""
-    return _integer(text, 1, MAX_SEEDS, f"a number of seeds from 1 to {MAX_SEEDS:,}")
+    """``--seeds``: how many seeds (0..N-1), at most :data:`MAX_SEEDS` (fewer than 1 is
+    refused where the seeds are planned, in the commands' own words)."""
+    return _integer(text, -(2**63), MAX_SEEDS, f"a number of seeds up to {MAX_SEEDS:,}")
 
 
 def output_dir(path) -> Path:
