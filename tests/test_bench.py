@@ -135,17 +135,17 @@ def test_heatmap_marks_failed_and_blank_cells(tmp_path):
 
 
 def test_a_failing_run_is_recorded_and_the_problem_goes_on(tmp_path, monkeypatch):
-    import physgrad.harness.study
+    import physgrad.harness.study.running
     from physgrad.errors import DoesNotFit
 
-    real = physgrad.harness.study.train  # the one run loop: study.compare's
+    real = physgrad.harness.study.running.train  # the one run loop: study.compare's
 
     def refuse_hig(config, run_dir, **kwargs):
         if config.method == "hig":  # the memory guard's refusal (a ConfigError, but the machine's, not the input's)
             raise DoesNotFit("hig step needs ~1 TiB; would fit: batch_size=1")
         return real(config, run_dir, **kwargs)
 
-    monkeypatch.setattr(physgrad.harness.study, "train", refuse_hig)
+    monkeypatch.setattr(physgrad.harness.study.running, "train", refuse_hig)
     lines = []
     verdicts = [Verdict("adam", "applicable"), Verdict("hig", "applicable")]
     out = tmp_path / "toy2d"
@@ -165,7 +165,7 @@ def test_a_failing_run_is_recorded_and_the_problem_goes_on(tmp_path, monkeypatch
 def fail_on(monkeypatch, error, method="hig", seed=None):
     """study.compare's train raising ``error`` for one method (one seed of it, where given);
     returns the list of (method, seed) that train was called with."""
-    import physgrad.harness.study
+    import physgrad.harness.study.running
     from physgrad.harness.train import train as real  # study's own, also where an earlier call patched it
 
     calls = []
@@ -176,7 +176,7 @@ def fail_on(monkeypatch, error, method="hig", seed=None):
             raise error
         return real(config, run_dir, **kwargs)
 
-    monkeypatch.setattr(physgrad.harness.study, "train", train)
+    monkeypatch.setattr(physgrad.harness.study.running, "train", train)
     return calls
 
 
