@@ -223,7 +223,7 @@ def test_a_two_seed_study_prints_no_p_value(tmp_path):
     """The command line's table (compare, report, demo) is built from format_tests."""
     from rich.console import Console
 
-    from physgrad.harness.cli import _print_paired_tests
+    from physgrad.harness.study.console import print_paired_tests as _print_paired_tests
 
     for seed in (0, 1):
         a, b = reference_arrays(seed)

@@ -21,7 +21,7 @@ def executor_of(args, default: int | None = 1):
 
 
 def _print(console, lines, title="", caption=""):
-    from .cli import _print_table  # the command line's one table printer (cli imports this module lazily)
+    from .console import print_table as _print_table  # the command line's one table printer
 
     _print_table(console, lines, title=title, caption=caption)
 

@@ -1,0 +1,143 @@
+"""``physgrad bench`` and ``physgrad report`` on a bench directory, on the console: the
+profile's choices resolved, the plan and its estimated time, each problem's table, the two
+leaderboards and the files written (:class:`~physgrad.harness.options.BenchOptions` carries
+the flags)."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+from typing import Any
+
+from ... import rundir
+from ..arguments import DEFAULT_SECONDS, UsageError, output_dir
+from ..config import Budget
+from ..console import files, print_table
+from ..options import BenchOptions
+
+
+@dataclasses.dataclass(frozen=True)
+class BenchChoices:
+    """What a bench runs: the flags of :class:`~physgrad.harness.options.BenchOptions` with
+    the profile's problems, methods, settings, budgets and seeds filled in."""
+
+    problems: list[str]
+    methods: list[str]
+    seeds: range
+    budget: Budget
+    budgets: dict[str, Budget]  # a problem's own budget where the profile gives it one
+    settings: dict[str, Any]
+    out: Path
+
+
+def choices(options: BenchOptions) -> BenchChoices:
+    """The profile's (``--quick``, ``--standard``) choices where a flag leaves them open,
+    checked; the output directory made."""
+    from .. import bench
+
+    name, settings = options.profile, options.settings
+    if name:
+        profile = bench.profile_choice(name)
+        problems = bench.choose_problems(options.problems) if options.problems else list(profile["problems"])
+        methods = bench.choose_methods(options.methods) if options.methods else list(profile["methods"])
+        settings = {**bench.quick_settings(problems, methods, name), **settings}
+        budget = options.budget or Budget(seconds=profile["seconds"])
+        budgets = {} if options.budget else bench.profile_budgets(profile, problems)
+        seeds = options.seeds or profile["seeds"]
+    else:
+        problems = bench.choose_problems(options.problems)
+        methods = bench.choose_methods(options.methods)
+        budget, seeds, budgets = options.budget or Budget(seconds=DEFAULT_SECONDS), options.seeds or 1, {}
+    out = output_dir(options.out if options.out is not None else (f"bench-{name}" if name else "bench"))
+    return BenchChoices(problems, methods, range(seeds), budget, budgets, settings, out)
+
+
+def bench_command(console, options: BenchOptions) -> int:
+    """The bench of ``options``: the plan (``--plan``, ``--calibrate-only``) or the runs and
+    their tables."""
+    from .. import bench
+
+    run, name = choices(options), options.profile
+    budget, budgets, settings = run.budget, run.budgets, run.settings
+    calibrate = not options.no_calibrate and budget.kind == "seconds"
+    console.print(
+        f"bench{f' ({name} profile)' if name else ''}: {len(run.problems)} problems x {len(run.methods)} candidate "
+        f"methods, budget {budget}{' (calibrated)' if calibrate else ''} per run"
+        + "".join(f", {p} {b}" for p, b in budgets.items())
+        + f", seeds {list(run.seeds)}, "
+        f"settings {settings or 'paper defaults'} -> {run.out}"
+    )
+    if options.plan or options.calibrate_only:
+        return print_plan(console, options, run)
+    console.print("deciding which methods apply to which problem (from shapes; no data, no training)")
+    from ...progress import RichProgressMeter
+    from ..tune_cli import executor_of  # --workers / --scheduler (harness/workers.py)
+
+    meter = None if options.quiet or not console.is_terminal else RichProgressMeter
+    with executor_of(options) as executor:
+        result = bench.bench(run.problems, run.methods, run.seeds, budget, run.out, settings=settings, progress=meter,
+                             echo=console.print, devices=options.devices, profile=name,
+                             calibrate=not options.no_calibrate, budgets=budgets, executor=executor)  # fmt: skip
+    print_bench(console, result)
+    return 0
+
+
+def print_bench(console, result) -> None:
+    """A bench's tables per problem, its two leaderboards and the files written
+    (:class:`physgrad.harness.bench.BenchReport`; the budgets and seeds from its bench.json)."""
+    from .. import bench
+
+    out = result.files["markdown"].parent
+    info = rundir.read_json(out / "bench.json", rundir.NOT_A_STUDY)
+    budget = Budget(**info["budget"])
+    budgets = {p: Budget(**b) for p, b in info.get("budgets", {}).items()}
+    seeds = len(info["seeds"])
+    for problem in info["problems"]:
+        table = result.tables[problem]
+        print_table(
+            console,
+            bench.table_lines(table, inapplicable=False),
+            title=f"{problem}: {budgets.get(problem, budget)} per run",
+        )
+        for status in ("skipped", "not applicable"):
+            names = [t["method"] for t in table if t["status"] == status]
+            if names:
+                console.print(f"  {status}: {', '.join(names)} (reasons in {out / problem / 'bench_table.md'})")
+    plural = "s" if seeds != 1 else ""
+    print_table(console, result.profile_lines, title=f"leaderboard: performance profile of the time to target, "
+                f"{budget} per run, {seeds} seed{plural}",
+                caption="rho(tau): fraction of all problems within a factor tau of the fastest method's median "
+                        "time to the problem's target test loss; geo-mean over the problems run (unsolved: 2x the "
+                        "budget); profile.png draws rho(tau)")  # fmt: skip
+    print_table(console, result.lines, title=f"by final test loss: {budget} per run, {seeds} seed{plural}")
+    written = files(*(result.files[k] for k in ("markdown", "leaderboard", "profile", "table", "heatmap",
+                                                "profile_figure")))  # fmt: skip
+    console.print(f"wrote {written} and per problem {out}/PROBLEM/bench_table.csv")
+
+
+def print_plan(console, options: BenchOptions, run: BenchChoices) -> int:
+    """``--plan`` (and ``--calibrate-only``, which calibrates first): the runs per problem
+    and their estimated time from the calibration (:mod:`physgrad.harness.bench.estimate`);
+    nothing trains."""
+    from .. import bench
+    from .estimate import LOOP_SECONDS_PER_STEP, RUN_OVERHEAD_SECONDS, UNCALIBRATED_COMPILE_SECONDS, duration
+
+    problems, seeds, budget, budgets, out = run.problems, run.seeds, run.budget, run.budgets, run.out
+    verdicts = bench.plan(problems, run.methods, run.settings, echo=console.print)
+    if options.calibrate_only:
+        if budget.kind != "seconds" or options.no_calibrate:
+            raise UsageError("--calibrate-only needs a calibrated --seconds budget")
+        bench.calibrate_only(problems, verdicts, budget, out, settings=run.settings, echo=console.print,
+                             devices=options.devices, budgets=budgets)  # fmt: skip
+    rows = bench.estimate(problems, verdicts, seeds, budget, out, budgets)
+    print_table(console, bench.plan_lines(rows), title=f"plan: {budget} per run, {len(seeds)} seeds -> {out}",
+                caption=f"a calibrated method: steps x (calibrated s/step + {1e6 * LOOP_SECONDS_PER_STEP:g} us of "
+                        f"loop per step) + {RUN_OVERHEAD_SECONDS:g} s per run; not calibrated: its budget + "
+                        f"{RUN_OVERHEAD_SECONDS:g} s per run and {UNCALIBRATED_COMPILE_SECONDS:g} s to calibrate it; "
+                        "on an idle machine")  # fmt: skip
+    uncalibrated = sum(r["methods"] - r["calibrated"] for r in rows)
+    note = (f"; {uncalibrated} method(s) not calibrated yet (--calibrate-only times them)" if uncalibrated else
+            "; every method calibrated")  # fmt: skip
+    console.print(f"estimated total: {duration(bench.total_seconds(rows))} for {sum(r['runs'] for r in rows)} runs"
+                  f"{note}; nothing was trained")  # fmt: skip
+    return 0

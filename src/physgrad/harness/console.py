@@ -1,0 +1,24 @@
+"""The command line's one table printer and its list of files written, shared by the
+commands' bodies (:mod:`physgrad.harness.study.console`, :mod:`physgrad.harness.bench.console`,
+:mod:`physgrad.harness.tune_cli`)."""
+
+from __future__ import annotations
+
+from rich.console import Console
+from rich.table import Table
+from rich.text import Text
+
+
+def print_table(console: Console, lines: list[list[str]], title: str = "", caption: str = ""):
+    """A table of plain text (cells such as ``[n/a: 2 seeds]`` are not rich markup)."""
+    table = Table(title=title or None, caption=caption or None)
+    for i, name in enumerate(lines[0]):
+        table.add_column(Text(name), justify="left" if i == 0 else "right")
+    for line in lines[1:]:
+        table.add_row(*(Text(cell) for cell in line))
+    console.print(table)
+
+
+def files(*paths) -> str:
+    """The files written, comma-separated (a figure that could not be drawn is None: left out)."""
+    return ", ".join(str(p) for p in paths if p is not None)
