@@ -13,38 +13,113 @@ no thread pool: ``with physgrad.threads(1):`` limits the BLAS/LAPACK pools aroun
 ``physgrad`` command line does for its runs; ``threads=None`` leaves the pools alone).
 """
 
-from . import acceptance, cpu, distributed, inverse, routes, transforms
-from ._fit import fit  # the engine's fit with the BLAS/LAPACK pools limited (threads=1)
-from .cpu import threads
-from .engine import Budget, Callback, FitResult, Phase, TrainSettings, TrainState
-from .errors import ConfigError
-from .harness.train import load_network
-from .harness.tune import tune
-from .jacobian import stacked_jacobian
-from .methods import (
-    AbstractMethod,
-    AbstractRule,
-    Estimator,
-    Method,
-    Objective,
-    Stepper,
-    bptt,
-    dp,
-    gauss_newton,
-    hig,
-    kronecker_hig,
-    levenberg_marquardt,
-    newton,
-    sip,
-    stabilised_bptt,
-    unrolled,
-)
-from .nets import MLP, UNet, parameter_count
-from .problems import AbstractProblem
-from .rollout import System, closed_loop
-from .routes import blockgram_half_inverse, half_inverse, lanczos_half_inverse
+from __future__ import annotations
+
+import importlib
+from typing import TYPE_CHECKING, Any
 
 __version__ = "0.1.0"
+
+# The public names are imported on first use (PEP 562), so that ``physgrad --version`` and
+# ``physgrad --help`` answer without importing JAX (the command line imports this package
+# first). The imports below are the same names for static readers (type checkers, the API
+# reference); _PUBLIC says where each lives at run time, and a test keeps the two in step.
+if TYPE_CHECKING:
+    from . import acceptance, cpu, distributed, inverse, routes, transforms
+    from ._fit import fit  # the engine's fit with the BLAS/LAPACK pools limited (threads=1)
+    from .cpu import threads
+    from .engine import Budget, Callback, FitResult, Phase, TrainSettings, TrainState
+    from .errors import ConfigError
+    from .harness.train import load_network
+    from .harness.tune import tune
+    from .jacobian import stacked_jacobian
+    from .methods import (
+        AbstractMethod,
+        AbstractRule,
+        Estimator,
+        Method,
+        Objective,
+        Stepper,
+        bptt,
+        dp,
+        gauss_newton,
+        hig,
+        kronecker_hig,
+        levenberg_marquardt,
+        newton,
+        sip,
+        stabilised_bptt,
+        unrolled,
+    )
+    from .nets import MLP, UNet, parameter_count
+    from .problems import AbstractProblem
+    from .rollout import System, closed_loop
+    from .routes import blockgram_half_inverse, half_inverse, lanczos_half_inverse
+
+
+# name -> the module it comes from ("" : a submodule of physgrad)
+_PUBLIC: dict[str, str] = {
+    **dict.fromkeys(("acceptance", "cpu", "distributed", "inverse", "routes", "transforms"), ""),
+    "fit": "._fit",
+    "threads": ".cpu",
+    **dict.fromkeys(("Budget", "Callback", "FitResult", "Phase", "TrainSettings", "TrainState"), ".engine"),
+    "ConfigError": ".errors",
+    "load_network": ".harness.train",
+    "tune": ".harness.tune",
+    "stacked_jacobian": ".jacobian",
+    **dict.fromkeys(
+        (
+            "AbstractMethod",
+            "AbstractRule",
+            "Estimator",
+            "Method",
+            "Objective",
+            "Stepper",
+            "bptt",
+            "dp",
+            "gauss_newton",
+            "hig",
+            "kronecker_hig",
+            "levenberg_marquardt",
+            "newton",
+            "sip",
+            "stabilised_bptt",
+            "unrolled",
+        ),
+        ".methods",
+    ),
+    **dict.fromkeys(("MLP", "UNet", "parameter_count"), ".nets"),
+    "AbstractProblem": ".problems",
+    **dict.fromkeys(("System", "closed_loop"), ".rollout"),
+    **dict.fromkeys(("blockgram_half_inverse", "half_inverse", "lanczos_half_inverse"), ".routes"),
+}
+
+
+def __getattr__(name: str) -> Any:
+    """A public name, imported on first use (then kept in the module's namespace); any other
+    submodule (``physgrad.engine``) as ``import physgrad.engine`` gives it."""
+    where = _PUBLIC.get(name)
+    if where is None:
+        if name.startswith("__"):
+            raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+        try:
+            return importlib.import_module(f"{__name__}.{name}")
+        except ModuleNotFoundError as e:
+            if e.name != f"{__name__}.{name}":  # the submodule exists but one of its imports does not
+                raise
+            raise AttributeError(f"module {__name__!r} has no attribute {name!r}") from None
+    value = (
+        importlib.import_module(f"{__name__}.{name}")
+        if not where
+        else getattr(importlib.import_module(where, __name__), name)
+    )
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(__all__))
+
 
 __all__ = [
     "MLP",
