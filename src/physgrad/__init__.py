@@ -13,10 +13,8 @@ no thread pool: ``with physgrad.threads(1):`` limits the BLAS/LAPACK pools aroun
 ``physgrad`` command line does for its runs; ``threads=None`` leaves the pools alone).
 """
 
-from __future__ import annotations
-
-import importlib
-from typing import TYPE_CHECKING, Any
+import importlib as _importlib
+from typing import TYPE_CHECKING
 
 __version__ = "0.1.0"
 
@@ -95,7 +93,7 @@ _PUBLIC: dict[str, str] = {
 }
 
 
-def __getattr__(name: str) -> Any:
+def __getattr__(name: str) -> object:
     """A public name, imported on first use (then kept in the module's namespace); any other
     submodule (``physgrad.engine``) as ``import physgrad.engine`` gives it."""
     where = _PUBLIC.get(name)
@@ -103,15 +101,15 @@ def __getattr__(name: str) -> Any:
         if name.startswith("__"):
             raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
         try:
-            return importlib.import_module(f"{__name__}.{name}")
+            return _importlib.import_module(f"{__name__}.{name}")
         except ModuleNotFoundError as e:
             if e.name != f"{__name__}.{name}":  # the submodule exists but one of its imports does not
                 raise
             raise AttributeError(f"module {__name__!r} has no attribute {name!r}") from None
     value = (
-        importlib.import_module(f"{__name__}.{name}")
+        _importlib.import_module(f"{__name__}.{name}")
         if not where
-        else getattr(importlib.import_module(where, __name__), name)
+        else getattr(_importlib.import_module(where, __name__), name)
     )
     globals()[name] = value
     return value

@@ -79,7 +79,7 @@ def _progress(args, console):
     return NoProgressMeter() if args.quiet or not console.is_terminal else RichProgressMeter()
 
 
-def _start_processes(args) -> str | None:
+def _start_processes(args) -> str:
     """Join a multi-process run if asked (before any JAX work); the default --devices."""
     multi = (args.coordinator, args.num_processes, args.process_id)
     if all(v is None for v in multi):
