@@ -87,39 +87,46 @@ class Phase:
 class TrainSettings:
     """How a run evaluates, orders its batches, checkpoints and refines its solver.
 
-    Every field is checked by type and range on construction (:mod:`physgrad.checks`)."""
+    Every field declares its range (:func:`physgrad.checks.declared`) and is checked by type
+    and range on construction."""
 
-    eval_every: int = 0  # steps between full train/test evaluations; 0 = once per epoch
-    eval_seconds: float = 0.0  # if > 0: evaluate every this many training seconds instead
-    eval_samples: int = 0  # evaluate the train split on its first N samples only; 0 = all
+    # steps between full train/test evaluations; 0 = once per epoch
+    eval_every: int = checks.declared(0, checks.NON_NEGATIVE_INT)
+    # if > 0: evaluate every this many training seconds instead
+    eval_seconds: float = checks.declared(0.0, checks.NON_NEGATIVE)
+    # evaluate the train split on its first N samples only; 0 = all
+    eval_samples: int = checks.declared(0, checks.NON_NEGATIVE_INT)
     # None: the problem's ``default_shuffle`` (the papers' fixed order; a fresh permutation
     # every epoch for the time-steppers); True/False: shuffled or fixed for any problem
-    shuffle: bool | None = None
+    shuffle: bool | None = checks.declared(None, checks.FLAG)
     # None: the problem's ``default_fresh_samples``; True: every epoch after the first trains
     # on a new train split drawn by ``make_data`` (a stream, as the SIP paper), False: the
-    # same training set every epoch
-    fresh_samples: bool | None = None
-    checkpoint_seconds: float = 60.0  # wall-clock seconds between checkpoints; also at every evaluation and the end
-    prdp: bool = False  # refine the solver's iteration count on validation plateaus (physgrad.prdp)
-    prdp_start: int = 1
-    prdp_increment: int = 1
-    prdp_tau_step: float = 0.98
-    prdp_tau_stop: float = 0.9
-    memory_guard: bool = True  # refuse a step that cannot fit in memory before it runs (physgrad.memory)
+    # same training set every epoch. Runs recorded before it existed had False.
+    fresh_samples: bool | None = checks.declared(None, checks.FLAG, earlier=False)
+    # wall-clock seconds between checkpoints; also at every evaluation and the end
+    checkpoint_seconds: float = checks.declared(60.0, checks.NON_NEGATIVE)
+    # refine the solver's iteration count on validation plateaus (physgrad.prdp)
+    prdp: bool = checks.declared(False, checks.FLAG)
+    prdp_start: int = checks.declared(1, checks.POSITIVE_INT)
+    prdp_increment: int = checks.declared(1, checks.POSITIVE_INT)
+    prdp_tau_step: float = checks.declared(0.98, checks.UNIT)
+    prdp_tau_stop: float = checks.declared(0.9, checks.UNIT)
+    # refuse a step that cannot fit in memory before it runs (physgrad.memory)
+    memory_guard: bool = checks.declared(True, checks.FLAG, guards=True)
     # if > 0: stop as well once the training wall-clock reaches this many seconds, a cap beside
     # a steps (or calibrated) budget; the summary then says ``wall_capped``
-    wall_cap: float = 0.0
+    wall_cap: float = checks.declared(0.0, checks.NON_NEGATIVE, guards=True)
 
     def __post_init__(self):
         checks.check_fields(self, "TrainSettings field")
 
 
 # Settings that change how a run is guarded, not what it computes: a run resumes under
-# either value (they are not part of a run's identity).
-UNGUARDED_SETTINGS = ("memory_guard", "wall_cap")
+# either value (they are not part of a run's identity). Read from the fields' declarations.
+UNGUARDED_SETTINGS = tuple(f.name for f in dataclasses.fields(TrainSettings) if f.metadata["guards"])
 # Settings added after runs were recorded without them, with the value those runs had: a
-# recorded run resumes when the setting holds that value.
-ADDED_SETTINGS = {"fresh_samples": False}
+# recorded run resumes when the setting holds that value. Read from the fields' declarations.
+ADDED_SETTINGS = {f.name: f.metadata["earlier"] for f in dataclasses.fields(TrainSettings) if "earlier" in f.metadata}
 
 
 # --- built before the first step -------------------------------------------------------------
