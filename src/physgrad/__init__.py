@@ -17,6 +17,7 @@ from . import acceptance, cpu, distributed, inverse, routes, transforms
 from ._fit import fit  # the engine's fit with the BLAS/LAPACK pools limited (threads=1)
 from .cpu import threads
 from .engine import Budget, Callback, FitResult, Phase, TrainSettings, TrainState
+from .engine.types import Epochs, Seconds, Steps
 from .errors import ConfigError
 from .harness.train import load_network
 from .harness.tune import tune
@@ -54,12 +55,15 @@ __all__ = [
     "Budget",
     "Callback",
     "ConfigError",
+    "Epochs",
     "Estimator",
     "FitResult",
     "Method",
     "Objective",
     "Phase",
+    "Seconds",
     "Stepper",
+    "Steps",
     "System",
     "TrainSettings",
     "TrainState",

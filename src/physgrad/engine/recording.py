@@ -1,8 +1,9 @@
 """What a run records: evaluations in ``metrics.csv`` and in memory, for the history
 (:class:`Recorder`), checkpoints of the loop state (:class:`Checkpointer`), the final files
 and summary (:func:`finish`), and reading run directories back (:func:`read_summary`,
-:func:`is_complete`; ``metrics.csv``, plain or packed: :mod:`physgrad.engine.packed`). Every file is written whole
-(:mod:`physgrad.rundir`); a run in memory (``fit(..., out=None)``) writes none of them.
+:func:`is_complete`; ``metrics.csv``, plain or packed: :mod:`physgrad.engine.packed`).
+Every file is written whole (:mod:`physgrad.rundir`); a run in memory
+(``fit(..., out=None)``) writes none of them.
 
 A run directory holds ``config.json`` (what the caller says identifies the run),
 ``metrics.csv`` (long format: step, wall_time, split, metric, value), ``env.json``,

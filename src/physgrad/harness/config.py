@@ -241,7 +241,7 @@ class RunConfig:
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> RunConfig:
         data = dict(data)
-        data["budget"] = Budget(**data["budget"])
+        data["budget"] = Budget.of(data["budget"])
         data["phases"] = tuple(Phase(**p) for p in data["phases"])
         known = {f.name for f in dataclasses.fields(cls)} | set(_SETTING_NAMES)
         return cls(**{k: v for k, v in data.items() if k in known and k != "settings"})
