@@ -27,6 +27,7 @@ if TYPE_CHECKING:
     from ._fit import fit  # the engine's fit with the BLAS/LAPACK pools limited (threads=1)
     from .cpu import threads
     from .engine import Budget, Callback, FitResult, Phase, TrainSettings, TrainState
+    from .engine.types import Epochs, Seconds, Steps
     from .errors import ConfigError
     from .harness.train import load_network
     from .harness.tune import tune
@@ -61,6 +62,7 @@ _PUBLIC: dict[str, str] = {
     "fit": "._fit",
     "threads": ".cpu",
     **dict.fromkeys(("Budget", "Callback", "FitResult", "Phase", "TrainSettings", "TrainState"), ".engine"),
+    **dict.fromkeys(("Epochs", "Seconds", "Steps"), ".engine.types"),
     "ConfigError": ".errors",
     "load_network": ".harness.train",
     "tune": ".harness.tune",
@@ -127,12 +129,15 @@ __all__ = [
     "Budget",
     "Callback",
     "ConfigError",
+    "Epochs",
     "Estimator",
     "FitResult",
     "Method",
     "Objective",
     "Phase",
+    "Seconds",
     "Stepper",
+    "Steps",
     "System",
     "TrainSettings",
     "TrainState",

@@ -7,9 +7,12 @@ Every setting is checked by type and range where it enters (the command line's `
 
     setting 'lr' must be a finite number > 0, got nan
 
-:data:`SHARED` holds the ranges of settings that mean the same wherever a problem or
-method declares them (sizes, learning rates, dtypes); a setting not listed there is held to
-its default's kind: a finite number for a float, an integer >= 0 for an integer.
+A dataclass field declares its own range (:func:`declared`, read by :func:`check_fields`):
+:class:`physgrad.TrainSettings`' fields do, and a :class:`physgrad.Budget` class holds its
+amount's. :data:`SHARED` holds the ranges of the problems' and methods' settings that mean the
+same wherever a problem or method declares them (sizes, learning rates, dtypes); a setting
+not listed there is held to its default's kind: a finite number for a float, an integer >= 0
+for an integer.
 """
 
 from __future__ import annotations
@@ -143,7 +146,8 @@ FRACTION = Number(0.0, high=1.0, high_open=True)  # [0, 1)
 FLAG = Flag()
 TEXT = Text()
 
-# Settings that mean the same wherever a problem or a method declares them. A check applies
+# Problem and method settings that mean the same wherever a problem or a method declares them
+# (the engine's TrainSettings declare their ranges on their own fields: declared). A check applies
 # where the setting's default is of its kind (``blocks`` is K-FAC's block type, a string,
 # and HIG's number of sample groups, an integer).
 # fmt: off
@@ -151,19 +155,16 @@ SHARED: dict[str, Check] = {
     **dict.fromkeys(("batch_size", "hidden", "width", "filters", "levels", "n_train", "n_test", "resolution",
                      "n_steps", "n_oscillators", "n_grid", "blocks", "lanczos_steps", "steps", "n", "n_ics", "frames",
                      "substeps", "poles", "drivers", "evaders", "nx", "max_steps", "inverse_every", "damping_interval",
-                     "prdp_start", "prdp_increment", "eval_horizon", "long_horizon", "iterations", "refinement",
-                     "horizon"), POSITIVE_INT),
+                     "eval_horizon", "long_horizon", "iterations", "refinement", "horizon"), POSITIVE_INT),
     **dict.fromkeys(("lr", "dt", "tol", "clip_threshold", "length", "size", "time", "amount", "pole_mass",
                      "total_mass", "half_length", "eta", "stage_epochs", "box", "swirl_sigma", "falloff", "rc",
                      "min_damping"), POSITIVE),
     **dict.fromkeys(("truncation", "eps", "damping", "momentum", "clip", "l2_reg", "rcond", "uncertainty",
-                     "eval_seconds", "checkpoint_seconds", "wall_cap", "noise_scale", "noise_smoothness", "fluctuations", "lam",
-                     "initial_accumulator", "decay", "gravity"), NON_NEGATIVE),
+                     "noise_scale", "noise_smoothness", "fluctuations", "lam", "initial_accumulator", "decay",
+                     "gravity"), NON_NEGATIVE),
     **dict.fromkeys(("b1", "b2", "rho", "damping_decay", "curvature_ema"), FRACTION),
-    **dict.fromkeys(("prdp_tau_step", "prdp_tau_stop", "dataset_fraction"), UNIT),
+    "dataset_fraction": UNIT,
     "dtype": OneOf(("float32", "float64")),
-    "shuffle": FLAG,  # TrainSettings: None stands for the problem's default
-    "fresh_samples": FLAG,  # TrainSettings: None stands for the problem's default
 }
 # fmt: on
 
@@ -186,15 +187,40 @@ def check_for(name: str, default: Any) -> Check:
     return Check()  # anything else (a tuple such as toy2d's start) is the owner's to check
 
 
-def check_setting(name: str, value: Any, default: Any, what: str = "setting") -> Any:
+def check_setting(name: str, value: Any, default: Any, what: str = "setting", check: Check | None = None) -> Any:
     """``value`` if it is valid for the setting ``name`` (default ``default``), else a one-line
-    :class:`ConfigError` naming the valid range. An integer is accepted for a float setting
-    (and returned as a float)."""
-    check = check_for(name, default)
+    :class:`ConfigError` naming the valid range. ``check`` is the setting's declared range
+    (:func:`declared`); without one, :func:`check_for` finds it by name and default. An
+    integer is accepted for a float setting (and returned as a float)."""
+    check = check or check_for(name, default)
     value = check(name, value, what)
     if isinstance(default, float) and _is_int(value):
         return float(value)
     return value
+
+
+_UNSET = object()
+
+
+def declared(default: Any, check: Check, *, earlier: Any = _UNSET, guards: bool = False) -> Any:
+    """A dataclass field that carries its range: ``name: int = declared(0, NON_NEGATIVE_INT)``.
+
+    ``check`` is the field's :class:`Check` (read by :func:`check_fields` and by
+    :func:`check_of`); ``earlier`` is the value that runs recorded before the setting existed
+    had (a recorded run without it resumes while it holds that value); ``guards`` marks a
+    setting that changes how a run is guarded, not what it computes (not part of a run's
+    identity)."""
+    metadata = {"check": check, "guards": guards}
+    if earlier is not _UNSET:
+        metadata["earlier"] = earlier
+    return dataclasses.field(default=default, metadata=metadata)
+
+
+def check_of(cls: Any, name: str) -> Check | None:
+    """The :class:`Check` that field ``name`` of the dataclass ``cls`` declares (None: it
+    declares none, or ``cls`` has no such field)."""
+    field = next((f for f in dataclasses.fields(cls) if f.name == name), None)
+    return None if field is None else field.metadata.get("check")
 
 
 def check_fields(obj: Any, what: str) -> None:

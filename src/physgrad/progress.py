@@ -45,7 +45,7 @@ class RichProgressMeter(AbstractProgressMeter):
 
     def start(self, *, budget, steps_per_epoch, step, train_time, label):
         self._budget, self._spe = budget, steps_per_epoch
-        self._total = budget.amount * (steps_per_epoch if budget.kind == "epochs" else 1)
+        self._total = budget.meter_total(steps_per_epoch)
         self._progress = Progress(
             TextColumn("{task.description}"),
             BarColumn(),
@@ -65,11 +65,7 @@ class RichProgressMeter(AbstractProgressMeter):
         if now - self._last < self.refresh_seconds:
             return
         self._last = now
-        if self._budget.kind == "seconds":
-            done, left = train_time, max(self._total - train_time, 0.0)
-        else:
-            done = step
-            left = (self._total - step) * train_time / max(step, 1)
+        done, left = self._budget.meter(step, train_time, self._total)
         self._progress.update(
             self._task, completed=done, step=step, loss=f"{loss:.3e}", time=f"{train_time:.1f}s", left=f"{left:.0f}s"
         )

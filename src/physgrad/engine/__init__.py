@@ -26,6 +26,8 @@ The package, in the order of a run:
   :class:`Placement` and :class:`Fidelity` (PRDP);
 - :mod:`~physgrad.engine.recording`: :class:`Recorder` (``metrics.csv``),
   :class:`Checkpointer`, the final files and reading run directories back;
+  :mod:`~physgrad.engine.packed`: run-directory files kept gzipped, read whichever form
+  they have;
 - :mod:`~physgrad.engine.record`: the run's record (``config.json``) and when a recorded
   run is the same run; :mod:`~physgrad.engine.hyperparams`: the optimizer's
   hyperparameters in it;

@@ -1,8 +1,9 @@
 """What a run records: evaluations in ``metrics.csv`` and in memory, for the history
 (:class:`Recorder`), checkpoints of the loop state (:class:`Checkpointer`), the final files
 and summary (:func:`finish`), and reading run directories back (:func:`read_summary`,
-:func:`read_metrics`, :func:`is_complete`). Every file is written whole
-(:mod:`physgrad.rundir`); a run in memory (``fit(..., out=None)``) writes none of them.
+:func:`is_complete`; ``metrics.csv``, plain or packed: :mod:`physgrad.engine.packed`).
+Every file is written whole (:mod:`physgrad.rundir`); a run in memory
+(``fit(..., out=None)``) writes none of them.
 
 A run directory holds ``config.json`` (what the caller says identifies the run),
 ``metrics.csv`` (long format: step, wall_time, split, metric, value), ``env.json``,
@@ -15,7 +16,6 @@ from __future__ import annotations
 import contextlib
 import csv
 import dataclasses
-import gzip
 import io
 import json
 import math
@@ -24,7 +24,7 @@ import platform
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import IO, Any
+from typing import Any
 
 import equinox as eqx
 import jax
@@ -35,6 +35,7 @@ from ..errors import ConfigError
 from ..nets import parameter_count
 from ..precision import x64_enabled
 from .callbacks import Callbacks
+from .packed import gzip_bytes, kept_path, open_kept, pack_file, packed_path, read_metrics  # noqa: F401 — their old home
 from .result import Row, rows_from_metrics
 from .step import make_evaluate
 from .strategies import Fidelity, Placement
@@ -339,55 +340,6 @@ def environment() -> dict[str, Any]:
 def write_json(path: Path, data: dict[str, Any]):
     """Write ``data`` as JSON all at once (:func:`physgrad.rundir.atomic_write`)."""
     rundir.atomic_write(path, rundir.json_text(data))
-
-
-def kept_path(path: str | Path) -> Path:
-    """``path``, or its gzipped copy ``path.gz`` where only that exists (kept results and
-    finished runs' curves are committed compressed: docs/reproductions/keep_studies.py
-    --gzip, docs/reproductions/long/prune.py --pack)."""
-    path = Path(path)
-    packed = packed_path(path)
-    return packed if not path.exists() and packed.exists() else path
-
-
-def packed_path(path: str | Path) -> Path:
-    """Where the gzipped copy of ``path`` is kept: ``path.gz`` beside it."""
-    return Path(path).with_name(Path(path).name + ".gz")
-
-
-def open_kept(path: str | Path) -> IO[str]:
-    """``path`` opened for reading as text, or its gzipped copy where only that exists
-    (:func:`kept_path`); ``newline=""`` as the csv module wants."""
-    path = kept_path(path)
-    return (gzip.open if path.suffix == ".gz" else open)(path, "rt", encoding="utf-8", newline="")
-
-
-def pack_file(source: str | Path, target: str | Path) -> Path:
-    """``source`` gzipped to ``target``, the same bytes for the same file: no name or time in
-    the gzip header, so that packing a kept file again changes nothing in git. Written all at
-    once (:func:`physgrad.rundir.atomic_write`), so ``target`` is never half-written;
-    :func:`kept_path` finds it."""
-    rundir.atomic_write(target, gzip_bytes(Path(source).read_bytes()))
-    return Path(target)
-
-
-def gzip_bytes(data: bytes) -> bytes:
-    """``data`` gzipped with no name or time in the header: the same bytes give the same file."""
-    packed = io.BytesIO()
-    with gzip.GzipFile(filename="", mode="wb", fileobj=packed, mtime=0) as out:
-        out.write(data)
-    return packed.getvalue()
-
-
-def read_metrics(path: Path) -> list[dict[str, Any]]:
-    """``metrics.csv`` as a list of typed rows (from its gzipped copy where only that exists:
-    :func:`kept_path`)."""
-    with open_kept(path) as f:
-        return [
-            {"step": int(r["step"]), "wall_time": float(r["wall_time"]), "split": r["split"], "metric": r["metric"],
-             "value": float(r["value"])}
-            for r in csv.DictReader(f)
-        ]  # fmt: skip
 
 
 def read_summary(run_dir: str | Path) -> dict[str, Any] | None:

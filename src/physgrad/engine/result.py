@@ -14,6 +14,8 @@ from typing import Any
 
 import numpy as np
 
+from .packed import kept_path, read_metrics
+
 # An evaluation as the history holds it: (step, training seconds, {metric: value}).
 Row = tuple[int, float, dict[str, float]]
 
@@ -51,8 +53,6 @@ def rows_from_metrics(records: Sequence[Mapping[str, Any]]) -> list[Row]:
 def history_from_metrics(path: str | Path) -> dict[str, np.ndarray]:
     """A run directory's ``metrics.csv`` as :func:`history_of`'s columns (empty columns
     ``step`` and ``time`` if it has no file)."""
-    from .recording import kept_path, read_metrics
-
     path = Path(path)  # a finished run's curves may be kept gzipped (read_metrics reads them)
     return history_of(rows_from_metrics(read_metrics(path)) if kept_path(path).exists() else [])
 

@@ -15,7 +15,7 @@ from .. import rundir
 from ..errors import ConfigError
 from . import record as records
 from .recording import is_final, kept_path, read_json, read_summary, write_json
-from .types import Budget
+from .types import Budget, Epochs
 
 # What a run directory may hold before its config.json: a study's record of a run that failed
 # before it began (harness/failures.py writes traceback.txt there).
@@ -110,18 +110,14 @@ def budget_met(
     False (train on), True (met at exactly this step, or ``budget`` is the ``recorded`` one
     it ran to), None (cannot tell without ``epochs``, the data's step-to-epoch map). A budget
     the run went past is refused: a resumed run cannot undo steps."""
-    kind, amount = budget.kind, budget.amount
-    if kind == "epochs" and epochs is None:
+    if epochs is None and isinstance(budget, Epochs):
         return True if recorded == budget.to_dict() else None
     epochs_at = epochs or (lambda step: math.nan)  # called for an epochs budget only, which has it
-    done = epochs_at(step) if kind == "epochs" else step if kind == "steps" else seconds
-    if done < amount - (1e-9 if kind == "epochs" else 0.0):
+    if not budget.met(step, seconds, epochs_at):
         return False
-    if recorded == budget.to_dict():
+    if recorded == budget.to_dict() or budget.first_met_at(step, epochs_at):
         return True
-    if kind == "steps" and step == amount or kind == "epochs" and epochs_at(step - 1) < amount - 1e-9:
-        return True
-    what = {"steps": f"{step} steps", "epochs": f"{done:g} epochs", "seconds": f"{seconds:.4g} training seconds"}[kind]
+    what = budget.spent(step, seconds, epochs_at)
     trained = (
         f"the run in {run_dir} has already trained {what}, more than the budget of {budget}; resume it with at least"
     )

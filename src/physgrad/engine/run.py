@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import math
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -209,7 +208,7 @@ def loop(state: TrainState, *, setup: Setup, compiled: Any, strategies: Strategi
                 order, order_key = steps.order(index, epoch), (index, 0 if steps.same_every_epoch else epoch)
             limit = min(compiled.chunk, _steps_left(state, stage, stop, schedule, epoch_end=not steps.same_every_epoch))
             count = placement.agree(chunks.size(limit, seconds_left=min(
-                stop.budget.amount - state.train_time if stop.budget.kind == "seconds" else math.inf,
+                stop.seconds_left(state.train_time),
                 schedule.seconds_left(state.train_time), checkpointer.seconds_left())))  # fmt: skip
             t_start = time.perf_counter()
             params, opt_state, taken, diverged, stats = compiled(state.params, state.opt_state, steps.data, order,

@@ -35,27 +35,16 @@ class StopRule:
         return self.wall_cap > 0 and train_time >= self.wall_cap
 
     def budget_met(self, step: int, train_time: float) -> bool:
-        kind, amount = self.budget.kind, self.budget.amount
-        if kind == "seconds":
-            return train_time >= amount
-        if kind == "steps":
-            return step >= amount
-        return self.setup.epochs(step) >= amount - 1e-9
+        return self.budget.met(step, train_time, self.setup.epochs)
 
     def steps_left(self, step: int, limit: int) -> int:
         """The fewest steps after ``step`` that meet a steps or epochs budget, at most
         ``limit`` (a seconds budget: ``limit``; time is :class:`ChunkSize`'s to bound)."""
-        if self.budget.kind == "seconds":
-            return limit
-        if self.budget.kind == "steps":
-            return max(1, min(limit, int(self.budget.amount) - step))
-        low, high = 1, limit  # epochs(step) grows with step: the first step that meets it
-        if not self.met(step + high, 0.0):
-            return limit
-        while low < high:
-            middle = (low + high) // 2
-            low, high = (low, middle) if self.met(step + middle, 0.0) else (middle + 1, high)
-        return low
+        return self.budget.steps_left(step, limit, self.setup.epochs)
+
+    def seconds_left(self, train_time: float) -> float:
+        """Training seconds left to a seconds budget (else inf)."""
+        return self.budget.seconds_left(train_time)
 
 
 @dataclasses.dataclass

@@ -1,16 +1,19 @@
 """What the caller gives and what the run carries: the engine's types.
 
-:class:`Budget`, :class:`Phase` and :class:`TrainSettings` are :func:`physgrad.fit`'s
-arguments; :class:`Stage` and :class:`Setup` are what a run builds before its first step
-(:mod:`physgrad.engine.setup`); :class:`TrainState` is the loop's state (and what a
-checkpoint holds); :class:`Ending` is how the loop ends.
+:class:`Budget` (:class:`Steps`, :class:`Epochs` or :class:`Seconds`), :class:`Phase` and
+:class:`TrainSettings` are :func:`physgrad.fit`'s arguments; :class:`Stage` and
+:class:`Setup` are what a run builds before its first step (:mod:`physgrad.engine.setup`);
+:class:`TrainState` is the loop's state (and what a checkpoint holds); :class:`Ending` is
+how the loop ends.
 """
 
 from __future__ import annotations
 
+import abc
 import dataclasses
 import math
-from typing import Any, NamedTuple
+from collections.abc import Callable
+from typing import Any, ClassVar, NamedTuple, final
 
 import equinox as eqx
 
@@ -21,34 +24,83 @@ from ..problems import AbstractProblem
 
 
 # --- what the caller gives -----------------------------------------------------------------
+class _KeywordSpelling(abc.ABCMeta):
+    """``Budget(steps=N)`` is ``Steps(N)``: the keyword spelling, as ``config.json`` writes a
+    budget (``{"steps": N}``), builds the final class it names (:meth:`Budget.of`)."""
+
+    def __call__(cls, *args: Any, **kwargs: Any):
+        if cls is Budget:
+            given = dict(zip(("steps", "epochs", "seconds"), args), **kwargs)
+            return Budget.of({k: v for k, v in given.items() if v is not None})
+        return super().__call__(*args, **kwargs)
+
+
 @dataclasses.dataclass(frozen=True)
-class Budget:
-    """How long to train: exactly one of steps, epochs or training seconds.
+class Budget(metaclass=_KeywordSpelling):
+    """How long to train: a number of steps (:class:`Steps`), of epochs (:class:`Epochs`,
+    each stage counted at its own batch size) or of training seconds (:class:`Seconds`).
 
     Seconds count training steps only (evaluation excluded, as in the HIG paper); the run
-    stops at the first step that reaches the budget.
-    """
+    stops at the first step that reaches the budget. ``Budget(steps=N)`` builds ``Steps(N)``.
 
-    steps: int | None = None
-    epochs: int | None = None
-    seconds: float | None = None
+    Each budget answers, for a run after ``step`` steps and ``seconds`` training seconds
+    (``epochs_at``: the run's step-to-epochs map, :meth:`Setup.epochs`), whether it is met
+    (:meth:`met`) and how many steps are left (:meth:`steps_left`)."""
+
+    amount: Any
+    kind: ClassVar[str]  # its key in config.json, summary.json and study.json
+    check: ClassVar[checks.Check]  # the range of its amount
 
     def __post_init__(self):
-        given = [k for k in ("steps", "epochs", "seconds") if getattr(self, k) is not None]
-        if len(given) != 1:
+        if not self.check.valid(self.amount):  # a NaN or infinite budget would never be met
+            raise ConfigError(f"Budget({self.kind}={self.amount!r}): {self.kind} must be {self.check.text}")
+
+    @staticmethod
+    def of(record: dict[str, Any]) -> Budget:
+        """The budget a record writes as ``{kind: amount}`` (``{"steps": 2000}``)."""
+        if len(record) != 1 or not set(record) <= set(_BUDGETS):
+            unknown = set(record) - set(_BUDGETS)
+            if unknown:
+                raise TypeError(f"Budget() got an unexpected keyword argument {sorted(unknown)[0]!r}")
             raise ConfigError("give exactly one budget: Budget(steps=N), Budget(epochs=E) or Budget(seconds=S)")
-        kind, amount = given[0], getattr(self, given[0])
-        check = checks.POSITIVE if kind == "seconds" else checks.POSITIVE_INT
-        if not check.valid(amount):  # a NaN or infinite budget would never be met
-            raise ConfigError(f"Budget({kind}={amount!r}): {kind} must be {check.text}")
+        ((kind, amount),) = record.items()
+        return _BUDGETS[kind](amount)
 
-    @property
-    def kind(self) -> str:
-        return next(k for k in ("steps", "epochs", "seconds") if getattr(self, k) is not None)
+    @abc.abstractmethod
+    def done(self, step: int, seconds: float, epochs_at: Callable[[int], float]) -> float:
+        """How much of the budget a run after ``step`` steps and ``seconds`` training seconds
+        has spent, in the budget's unit."""
 
-    @property
-    def amount(self) -> float:
-        return getattr(self, self.kind)
+    @abc.abstractmethod
+    def spent(self, step: int, seconds: float, epochs_at: Callable[[int], float]) -> str:
+        """What a run after ``step`` steps and ``seconds`` training seconds has spent, in words
+        ("12 steps")."""
+
+    @abc.abstractmethod
+    def met(self, step: int, seconds: float, epochs_at: Callable[[int], float]) -> bool:
+        """Whether a run after ``step`` steps and ``seconds`` training seconds has spent it."""
+
+    @abc.abstractmethod
+    def first_met_at(self, step: int, epochs_at: Callable[[int], float]) -> bool:
+        """Whether ``step`` is the first step that meets it (a recorded run ended exactly at
+        this budget); a seconds budget cannot tell (False)."""
+
+    @abc.abstractmethod
+    def steps_left(self, step: int, limit: int, epochs_at: Callable[[int], float]) -> int:
+        """The fewest steps after ``step`` that meet it, at most ``limit`` (a seconds budget:
+        ``limit``; time is for :meth:`seconds_left` to bound)."""
+
+    @abc.abstractmethod
+    def seconds_left(self, seconds: float) -> float:
+        """Training seconds left after ``seconds`` (inf for a budget counted in steps)."""
+
+    @abc.abstractmethod
+    def meter_total(self, steps_per_epoch: int) -> float:
+        """The progress meter's full length: steps, or seconds for a seconds budget."""
+
+    @abc.abstractmethod
+    def meter(self, step: int, seconds: float, total: float) -> tuple[float, float]:
+        """The progress meter's ``(done, seconds left)`` out of ``total`` (:meth:`meter_total`)."""
 
     def to_dict(self) -> dict[str, float]:
         """``{kind: amount}``, as written in config.json, summary.json and study.json."""
@@ -56,6 +108,127 @@ class Budget:
 
     def __str__(self):
         return f"{self.amount:g} {self.kind}"
+
+
+def _step_meter(step: int, seconds: float, total: float) -> tuple[float, float]:
+    """A budget counted in steps: done steps, and the seconds left at the mean time per step."""
+    return step, (total - step) * seconds / max(step, 1)
+
+
+@final
+@dataclasses.dataclass(frozen=True)
+class Steps(Budget):
+    """``amount`` training steps."""
+
+    amount: int
+    kind: ClassVar[str] = "steps"
+    check: ClassVar[checks.Check] = checks.POSITIVE_INT
+
+    def done(self, step, seconds, epochs_at):
+        return step
+
+    def spent(self, step, seconds, epochs_at):
+        return f"{step} steps"
+
+    def met(self, step, seconds, epochs_at):
+        return step >= self.amount
+
+    def first_met_at(self, step, epochs_at):
+        return step == self.amount
+
+    def steps_left(self, step, limit, epochs_at):
+        return max(1, min(limit, int(self.amount) - step))
+
+    def seconds_left(self, seconds):
+        return math.inf
+
+    def meter_total(self, steps_per_epoch):
+        return self.amount
+
+    def meter(self, step, seconds, total):
+        return _step_meter(step, seconds, total)
+
+
+# Epochs are sums of fractions (each stage at its own batch size): met within this much.
+_EPOCH_TOLERANCE = 1e-9
+
+
+@final
+@dataclasses.dataclass(frozen=True)
+class Epochs(Budget):
+    """``amount`` epochs: passes over the training split, each stage counted at its own
+    batch size (:meth:`Setup.epochs`)."""
+
+    amount: int
+    kind: ClassVar[str] = "epochs"
+    check: ClassVar[checks.Check] = checks.POSITIVE_INT
+
+    def done(self, step, seconds, epochs_at):
+        return epochs_at(step)
+
+    def spent(self, step, seconds, epochs_at):
+        return f"{epochs_at(step):g} epochs"
+
+    def met(self, step, seconds, epochs_at):
+        return epochs_at(step) >= self.amount - _EPOCH_TOLERANCE
+
+    def first_met_at(self, step, epochs_at):
+        return epochs_at(step - 1) < self.amount - _EPOCH_TOLERANCE
+
+    def steps_left(self, step, limit, epochs_at):
+        low, high = 1, limit  # epochs_at(step) grows with step: the first step that meets it
+        if not self.met(step + high, 0.0, epochs_at):
+            return limit
+        while low < high:
+            middle = (low + high) // 2
+            low, high = (low, middle) if self.met(step + middle, 0.0, epochs_at) else (middle + 1, high)
+        return low
+
+    def seconds_left(self, seconds):
+        return math.inf
+
+    def meter_total(self, steps_per_epoch):
+        return self.amount * steps_per_epoch
+
+    def meter(self, step, seconds, total):
+        return _step_meter(step, seconds, total)
+
+
+@final
+@dataclasses.dataclass(frozen=True)
+class Seconds(Budget):
+    """``amount`` seconds of training (evaluation and compilation excluded)."""
+
+    amount: float
+    kind: ClassVar[str] = "seconds"
+    check: ClassVar[checks.Check] = checks.POSITIVE
+
+    def done(self, step, seconds, epochs_at):
+        return seconds
+
+    def spent(self, step, seconds, epochs_at):
+        return f"{seconds:.4g} training seconds"
+
+    def met(self, step, seconds, epochs_at):
+        return seconds >= self.amount
+
+    def first_met_at(self, step, epochs_at):
+        return False
+
+    def steps_left(self, step, limit, epochs_at):
+        return limit
+
+    def seconds_left(self, seconds):
+        return self.amount - seconds
+
+    def meter_total(self, steps_per_epoch):
+        return self.amount
+
+    def meter(self, step, seconds, total):
+        return seconds, max(total - seconds, 0.0)
+
+
+_BUDGETS: dict[str, type[Budget]] = {cls.kind: cls for cls in (Steps, Epochs, Seconds)}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -87,39 +260,46 @@ class Phase:
 class TrainSettings:
     """How a run evaluates, orders its batches, checkpoints and refines its solver.
 
-    Every field is checked by type and range on construction (:mod:`physgrad.checks`)."""
+    Every field declares its range (:func:`physgrad.checks.declared`) and is checked by type
+    and range on construction."""
 
-    eval_every: int = 0  # steps between full train/test evaluations; 0 = once per epoch
-    eval_seconds: float = 0.0  # if > 0: evaluate every this many training seconds instead
-    eval_samples: int = 0  # evaluate the train split on its first N samples only; 0 = all
+    # steps between full train/test evaluations; 0 = once per epoch
+    eval_every: int = checks.declared(0, checks.NON_NEGATIVE_INT)
+    # if > 0: evaluate every this many training seconds instead
+    eval_seconds: float = checks.declared(0.0, checks.NON_NEGATIVE)
+    # evaluate the train split on its first N samples only; 0 = all
+    eval_samples: int = checks.declared(0, checks.NON_NEGATIVE_INT)
     # None: the problem's ``default_shuffle`` (the papers' fixed order; a fresh permutation
     # every epoch for the time-steppers); True/False: shuffled or fixed for any problem
-    shuffle: bool | None = None
+    shuffle: bool | None = checks.declared(None, checks.FLAG)
     # None: the problem's ``default_fresh_samples``; True: every epoch after the first trains
     # on a new train split drawn by ``make_data`` (a stream, as the SIP paper), False: the
-    # same training set every epoch
-    fresh_samples: bool | None = None
-    checkpoint_seconds: float = 60.0  # wall-clock seconds between checkpoints; also at every evaluation and the end
-    prdp: bool = False  # refine the solver's iteration count on validation plateaus (physgrad.prdp)
-    prdp_start: int = 1
-    prdp_increment: int = 1
-    prdp_tau_step: float = 0.98
-    prdp_tau_stop: float = 0.9
-    memory_guard: bool = True  # refuse a step that cannot fit in memory before it runs (physgrad.memory)
+    # same training set every epoch. Runs recorded before it existed had False.
+    fresh_samples: bool | None = checks.declared(None, checks.FLAG, earlier=False)
+    # wall-clock seconds between checkpoints; also at every evaluation and the end
+    checkpoint_seconds: float = checks.declared(60.0, checks.NON_NEGATIVE)
+    # refine the solver's iteration count on validation plateaus (physgrad.prdp)
+    prdp: bool = checks.declared(False, checks.FLAG)
+    prdp_start: int = checks.declared(1, checks.POSITIVE_INT)
+    prdp_increment: int = checks.declared(1, checks.POSITIVE_INT)
+    prdp_tau_step: float = checks.declared(0.98, checks.UNIT)
+    prdp_tau_stop: float = checks.declared(0.9, checks.UNIT)
+    # refuse a step that cannot fit in memory before it runs (physgrad.memory)
+    memory_guard: bool = checks.declared(True, checks.FLAG, guards=True)
     # if > 0: stop as well once the training wall-clock reaches this many seconds, a cap beside
     # a steps (or calibrated) budget; the summary then says ``wall_capped``
-    wall_cap: float = 0.0
+    wall_cap: float = checks.declared(0.0, checks.NON_NEGATIVE, guards=True)
 
     def __post_init__(self):
         checks.check_fields(self, "TrainSettings field")
 
 
 # Settings that change how a run is guarded, not what it computes: a run resumes under
-# either value (they are not part of a run's identity).
-UNGUARDED_SETTINGS = ("memory_guard", "wall_cap")
+# either value (they are not part of a run's identity). Read from the fields' declarations.
+UNGUARDED_SETTINGS = tuple(f.name for f in dataclasses.fields(TrainSettings) if f.metadata["guards"])
 # Settings added after runs were recorded without them, with the value those runs had: a
-# recorded run resumes when the setting holds that value.
-ADDED_SETTINGS = {"fresh_samples": False}
+# recorded run resumes when the setting holds that value. Read from the fields' declarations.
+ADDED_SETTINGS = {f.name: f.metadata["earlier"] for f in dataclasses.fields(TrainSettings) if "earlier" in f.metadata}
 
 
 # --- built before the first step -------------------------------------------------------------

@@ -3,12 +3,13 @@ against the registries, with clear errors."""
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import hashlib
 import json
 from typing import Any
 
-from ..checks import check_setting
+from ..checks import check_of, check_setting
 from ..engine import ADDED_SETTINGS, UNGUARDED_SETTINGS, Budget, TrainSettings
 from ..engine.record import CARRIED_OUT_SETTINGS, EVALUATION_CADENCE
 from ..errors import ConfigError
@@ -17,9 +18,9 @@ from .registry import METHODS, PROBLEMS, hyperparameters, is_optax_name, optax_m
 
 # Training-engine settings, settable with --set like problem and method settings: the batch
 # size (None: the paper's for the method), every field of the engine's TrainSettings (their
-# one definition, with its comments; shuffle and fresh_samples default to the problem's:
-# train_settings) and no_network (optimise x itself for each test sample: problems/direct.py).
-# RunConfig mirrors them as fields, the run directories' record (a test checks that they agree).
+# one definition, with its comments and ranges; shuffle and fresh_samples default to the
+# problem's: train_settings) and no_network (optimise x itself for each test sample:
+# problems/direct.py). RunConfig holds them as its ``settings`` (and ``no_network``).
 TRAIN_SETTINGS: dict[str, Any] = {
     "batch_size": None,
     **{field.name: field.default for field in dataclasses.fields(TrainSettings)},
@@ -64,8 +65,9 @@ def parse_value(name: str, text: Any, default: Any) -> Any:
 
 def setting(name: str, value: Any, default: Any) -> Any:
     """A setting's value converted to its default's type (:func:`parse_value`) and checked
-    by range (:func:`physgrad.checks.check_setting`): one-line errors naming the valid range."""
-    return check_setting(name, parse_value(name, value, default), default)
+    by range (:func:`physgrad.checks.check_setting`; a training setting by the range its
+    :class:`~physgrad.TrainSettings` field declares): one-line errors naming the valid range."""
+    return check_setting(name, parse_value(name, value, default), default, check=check_of(TrainSettings, name))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -149,10 +151,12 @@ def phase_methods(spec: str) -> list[str]:
     return [name for name, _ in parse_method(spec)]
 
 
-# Settings added after run directories were first written, with the default that keeps the
-# earlier behaviour. While they hold it they are left out of the digest (run directory
-# names) and of run comparisons, so studies written before they existed still match and
-# resume. Add a setting here when it joins an existing method or problem.
+# The settings added after run directories were first written, with the value that keeps
+# the earlier behaviour: the one table of them. While they hold it they are left out of the
+# digest (run directory names) and of run comparisons, so studies written before they
+# existed still match and resume. Add a setting here when it joins an existing method or
+# problem; a training setting declares it on its TrainSettings field (``earlier=``), which
+# the engine's own records read as well (engine.ADDED_SETTINGS).
 ADDED_LATER: dict[str, dict[str, dict[str, Any]]] = {
     "methods": {
         **{name: {"blocks": 8, "lanczos_steps": 64} for name in ("hig", "gn")},  # issue 7
@@ -162,16 +166,32 @@ ADDED_LATER: dict[str, dict[str, dict[str, Any]]] = {
         },
     },
     "problems": {"poisson": {"dtype": "float32"}},  # issue 7
+    "training": ADDED_SETTINGS,
 }
 _ABSENT = object()
 
 
-@dataclasses.dataclass(frozen=True)
+# A configuration's training settings are resolved: ``shuffle`` and ``fresh_samples`` hold
+# the problem's choice (make_config), never None. A record written without them (an older
+# physgrad's) had them False.
+RESOLVED_SETTINGS = TrainSettings(shuffle=False, fresh_samples=False)
+_SETTING_NAMES = tuple(f.name for f in dataclasses.fields(TrainSettings))
+
+
+@dataclasses.dataclass(frozen=True, init=False)
 class RunConfig:
     """Everything needed to re-run a training run exactly (written as ``config.json``).
 
     ``method`` is the user's spec (``"hig"`` or ``"adam:2000,hig"``); ``phases`` holds each
-    stage's resolved hyperparameters and batch size.
+    stage's resolved hyperparameters and batch size; ``settings`` the engine's
+    :class:`~physgrad.TrainSettings`, resolved (``shuffle`` and ``fresh_samples`` as the
+    problem chose them); ``no_network`` optimises x itself (problems/direct.py).
+
+    ``config.json`` holds the settings flattened beside the other keys, as it always has
+    (so every recorded run keeps its identity and its directory's name). The constructor
+    takes them flattened as well (``RunConfig(..., eval_every=5)``, as ``from_dict`` and
+    :func:`dataclasses.replace` pass them), and ``config.eval_every`` reads
+    ``config.settings.eval_every``.
     """
 
     problem: str
@@ -180,40 +200,59 @@ class RunConfig:
     budget: Budget
     problem_settings: dict[str, Any]
     phases: tuple[Phase, ...]
-    eval_every: int = 0
-    eval_seconds: float = 0.0
-    shuffle: bool = False
-    fresh_samples: bool = False
-    checkpoint_seconds: float = 60.0
-    eval_samples: int = 0
+    settings: TrainSettings = RESOLVED_SETTINGS
     no_network: bool = False
-    prdp: bool = False
-    prdp_start: int = 1
-    prdp_increment: int = 1
-    prdp_tau_step: float = 0.98
-    prdp_tau_stop: float = 0.9
-    memory_guard: bool = True
-    wall_cap: float = 0.0
+
+    def __init__(
+        self,
+        problem: str,
+        method: str,
+        seed: int,
+        budget: Budget,
+        problem_settings: dict[str, Any],
+        phases: tuple[Phase, ...],
+        settings: TrainSettings = RESOLVED_SETTINGS,
+        no_network: bool = False,
+        **flat: Any,
+    ):
+        unknown = set(flat) - set(_SETTING_NAMES)
+        if unknown:
+            raise TypeError(f"RunConfig got unexpected settings {sorted(unknown)}")
+        for name, value in (("problem", problem), ("method", method), ("seed", seed), ("budget", budget),
+                            ("problem_settings", problem_settings), ("phases", phases),
+                            ("settings", dataclasses.replace(settings, **flat) if flat else settings),
+                            ("no_network", no_network)):  # fmt: skip
+            object.__setattr__(self, name, value)
+
+    def __getattr__(self, name: str) -> Any:
+        # Only called for names that are not fields: a training setting reads through
+        # ``settings`` (config.eval_seconds), as the flattened record spells it.
+        if name in _SETTING_NAMES:
+            return getattr(self.settings, name)
+        raise AttributeError(f"{type(self).__name__!r} object has no attribute {name!r}")
 
     def to_dict(self) -> dict[str, Any]:
-        out = dataclasses.asdict(self)
-        out["budget"] = self.budget.to_dict()
-        out["phases"] = [dataclasses.asdict(p) for p in self.phases]
-        return out
+        """The record (``config.json``): the training settings flattened among the keys."""
+        return {"problem": self.problem, "method": self.method, "seed": self.seed, "budget": self.budget.to_dict(),
+                "problem_settings": copy.deepcopy(self.problem_settings),
+                "phases": [dataclasses.asdict(p) for p in self.phases],
+                **dataclasses.asdict(self.settings), "no_network": self.no_network}  # fmt: skip
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> RunConfig:
         data = dict(data)
-        data["budget"] = Budget(**data["budget"])
+        data["budget"] = Budget.of(data["budget"])
         data["phases"] = tuple(Phase(**p) for p in data["phases"])
-        fields = {f.name for f in dataclasses.fields(cls)}
-        return cls(**{k: v for k, v in data.items() if k in fields})
+        known = {f.name for f in dataclasses.fields(cls)} | set(_SETTING_NAMES)
+        return cls(**{k: v for k, v in data.items() if k in known and k != "settings"})
 
     def canonical_dict(self) -> dict[str, Any]:
-        """``to_dict`` without the settings of ``ADDED_LATER`` that hold their default and
-        without those that only guard a run (``UNGUARDED_SETTINGS``: the same run either way)."""
+        """``to_dict`` without the settings of :data:`ADDED_LATER` that hold their earlier
+        value and without those that only guard a run (``UNGUARDED_SETTINGS``: the same run
+        either way)."""
+        later = ADDED_LATER["training"]
         out = {k: v for k, v in self.to_dict().items()
-               if k not in UNGUARDED_SETTINGS and ADDED_SETTINGS.get(k, _ABSENT) != v}  # fmt: skip
+               if k not in UNGUARDED_SETTINGS and later.get(k, _ABSENT) != v}  # fmt: skip
         later = ADDED_LATER["problems"].get(self.problem, {})
         out["problem_settings"] = {k: v for k, v in out["problem_settings"].items() if later.get(k, _ABSENT) != v}
         for phase in out["phases"]:
@@ -227,7 +266,7 @@ class RunConfig:
         (:data:`NOT_IDENTITY`: how often it checkpoints; how often it evaluates, unless PRDP
         reads those evaluations). Compared after :func:`physgrad.engine.record.normalised`."""
         out = {k: v for k, v in self.canonical_dict().items() if k != "budget" and k not in NOT_IDENTITY}
-        if not self.prdp:
+        if not self.settings.prdp:
             out = {k: v for k, v in out.items() if k not in EVALUATION_CADENCE}
         return out
 
@@ -235,7 +274,7 @@ class RunConfig:
         """A stable hash of the canonical configuration (never Python's ``hash()``): the
         run directory's name in a study. The checkpoint interval is hashed at its default
         whatever it is (runs named before it left the identity keep their names)."""
-        named = dataclasses.replace(self, **{k: _DEFAULTS[k] for k in NOT_IDENTITY})
+        named = dataclasses.replace(self, **{k: getattr(RESOLVED_SETTINGS, k) for k in NOT_IDENTITY})
         text = json.dumps(named.canonical_dict(), sort_keys=True, default=str)
         return hashlib.sha256(text.encode()).hexdigest()[:10]
 
@@ -244,7 +283,6 @@ class RunConfig:
 # record.CARRIED_OUT_SETTINGS): left out of its identity and hashed at their defaults in its
 # name; the evaluation cadence is left out of the identity unless PRDP refines on it.
 NOT_IDENTITY = CARRIED_OUT_SETTINGS
-_DEFAULTS = {f.name: f.default for f in dataclasses.fields(RunConfig)}
 
 
 def valid_settings(problem: str, method: str) -> dict[str, Any]:
@@ -330,6 +368,7 @@ def make_config(
         if "fresh_samples" in run_level and train["fresh_samples"]:
             raise ConfigError("fresh_samples=true cannot go with no_network: the samples are the variables' targets")
         train["fresh_samples"] = False
+    no_network = train.pop("no_network")
     return RunConfig(
         problem=problem,
         method=method,
@@ -337,5 +376,6 @@ def make_config(
         budget=budget,
         problem_settings=problem_settings,
         phases=tuple(phases),
-        **train,
+        settings=TrainSettings(**train),
+        no_network=no_network,
     )

@@ -38,7 +38,7 @@ from typing import Any
 import numpy as np
 
 from .. import rundir
-from ..engine.recording import kept_path, open_kept
+from ..engine.packed import kept_path, open_kept
 from ..errors import ConfigError
 
 # The first nine columns are the original layout of paired_tests.csv (readers index them

@@ -8,7 +8,6 @@ configuration into a run directory with the same engine a notebook uses.
 
 from __future__ import annotations
 
-import dataclasses
 import functools
 from pathlib import Path
 from typing import Any
@@ -70,7 +69,9 @@ def _build_method(name: str, hyperparameters: dict[str, Any]):
 
 
 def settings_of(config: RunConfig) -> TrainSettings:
-    return TrainSettings(**{f.name: getattr(config, f.name) for f in dataclasses.fields(TrainSettings)})
+    """The engine's settings of a configuration (resolved: the problem's shuffle and
+    fresh_samples as make_config chose them)."""
+    return config.settings
 
 
 def build(config: RunConfig, overrides: dict[str, Any] | None = None) -> Setup:
@@ -105,7 +106,7 @@ def train(
     ``config.budget`` (which may be larger than the original one); a finished run whose
     budget is already met returns its summary unchanged. Runs written before settings were
     added keep matching (:data:`physgrad.harness.config.ADDED_LATER`)."""
-    if config.prdp and PROBLEMS[config.problem].refinable_setting is None:
+    if config.settings.prdp and PROBLEMS[config.problem].refinable_setting is None:
         valid = [name for name, cls in PROBLEMS.items() if cls.refinable_setting]
         raise ConfigError(f"prdp needs a problem with an iterative solver; valid choices: {', '.join(valid)}")
     return fit(

@@ -47,6 +47,7 @@ from typing import Any, NamedTuple
 
 from .. import rundir
 from ..engine import Budget, TrainSettings
+from ..engine.types import Seconds, Steps
 from ..errors import ConfigError
 from .spaces import Space, describe_space, distributions
 from .workers import AbstractExecutor, ConfiguredRun, ObjectRun, executor_for, run_directory
@@ -224,7 +225,7 @@ def _plan_registered(problem, methods, budget, out, settings, spaces, holdout, s
 
     configs = plan(problem, methods, [seed], budget, settings)  # every name and setting checked first
     calibration = None
-    if budget.kind == "seconds":
+    if isinstance(budget, Seconds):
         calibration = study_calibration(out, {c.method: c for c in configs}, echo=echo)
     plans = []
     for config in configs:
@@ -243,7 +244,7 @@ def _plan_registered(problem, methods, budget, out, settings, spaces, holdout, s
             return ConfiguredRun(c, run_dir, validation=True, holdout=holdout)
 
         steps = calibration.steps(config.method, float(budget.amount)) if calibration is not None else (
-            budget.steps if budget.kind == "steps" else None)  # fmt: skip
+            budget.amount if isinstance(budget, Steps) else None)  # fmt: skip
         plans.append(_Method(config.method, defaults, distributions(config.method, defaults, spaces), steps, make))
     return plans
 
@@ -267,7 +268,7 @@ def object_settings(problem, method: str, settings: dict[str, Any]) -> tuple[int
 def _plan_object(problem, methods, budget, settings, spaces, holdout, seed) -> list[_Method]:
     from .registry import METHODS, hyperparameters
 
-    if budget.kind == "seconds":
+    if isinstance(budget, Seconds):
         raise ConfigError("a problem object is tuned on a steps or epochs budget (a seconds budget is calibrated "
                           "from a registered problem's configuration): Budget(steps=N)")  # fmt: skip
     plans = []
@@ -284,7 +285,7 @@ def _plan_object(problem, methods, budget, settings, spaces, holdout, seed) -> l
             return ObjectRun(problem, method, {**defaults, **params}, batch, seed, run_budget, run_dir, train,
                              validation=True, holdout=holdout)  # fmt: skip
 
-        steps = budget.steps if budget.kind == "steps" else None
+        steps = budget.amount if isinstance(budget, Steps) else None
         plans.append(_Method(method, defaults, distributions(method, defaults, spaces), steps, make))
     return plans
 

@@ -56,6 +56,7 @@ from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
+from ...engine.types import Seconds
 from ...rundir import atomic_write, one_writer
 from ..calibration import machine
 from ..config import Budget
@@ -147,7 +148,7 @@ def bench(
         atomic_write(out / "bench.json", json.dumps({
             "problems": list(problems), "methods": list(methods), "seeds": list(seeds), "budget": budget.to_dict(),
             "settings": settings, "profile": profile, "devices": devices,
-            "calibrated": calibrate and budget.kind == "seconds",
+            "calibrated": calibrate and isinstance(budget, Seconds),
             "budgets": {p: b.to_dict() for p, b in budgets.items()},
             "verdicts": {p: [dataclasses.asdict(v) for v in vs] for p, vs in verdicts.items()},
             "machine": machine(),

@@ -24,6 +24,7 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
+from ...engine.types import Seconds, Steps
 from ..calibration import read
 from ..config import Budget
 
@@ -62,16 +63,16 @@ def estimate(
         for method in methods:
             if calibration is not None and calibration.has(method):
                 calibrated += 1
-                if budget.kind == "seconds":
+                if isinstance(budget, Seconds):
                     steps = calibration.steps(method, float(budget.amount))
-                elif budget.kind == "steps":
+                elif isinstance(budget, Steps):
                     steps = int(budget.amount)
                 else:
                     steps = math.nan  # epochs: unknown without the data's size
                 train = calibration.time_at(method, steps) + steps * LOOP_SECONDS_PER_STEP
             else:
-                train = float(budget.amount) if budget.kind == "seconds" else math.nan
-                if budget.kind == "seconds":
+                train = float(budget.amount) if isinstance(budget, Seconds) else math.nan
+                if isinstance(budget, Seconds):
                     calibration_seconds += UNCALIBRATED_COMPILE_SECONDS
             seconds += len(seeds) * (train + RUN_OVERHEAD_SECONDS)
         rows.append({"problem": problem, "budget": str(budget), "methods": len(methods), "runs": len(methods) * len(seeds),
