@@ -164,12 +164,8 @@ def summarize_times(values: Sequence[float]) -> dict[str, Any]:
 def fingerprint(config: RunConfig) -> str:
     """What a calibration is valid for: the run's configuration with seed 0 and no budget
     (the problem, its settings, every stage's method, hyperparameters and batch size)."""
-    return dataclasses.replace(
-        config,
-        seed=0,
-        budget=Budget(steps=1),
-        settings=dataclasses.replace(config.settings, eval_every=0, eval_seconds=0.0),
-    ).digest()
+    untimed = dataclasses.replace(config.settings, eval_every=0, eval_seconds=0.0)
+    return dataclasses.replace(config, seed=0, budget=Budget(steps=1), settings=untimed).digest()
 
 
 def step_programs(config: RunConfig, devices: int | str | None = 1) -> tuple[list[Program], list[float], list[Any]]:
@@ -212,8 +208,8 @@ def step_programs(config: RunConfig, devices: int | str | None = 1) -> tuple[lis
         done = _chunk_call(chunk, np.int32(count))
         per_step = (time.perf_counter() - t0) / max(done, 1)
         # a calibrated run evaluates eval_seconds as eval_every steps (study.calibrated_config)
-        settings = config.settings
-        every = max(1, round(settings.eval_seconds / per_step)) if settings.eval_seconds > 0 else settings.eval_every
+        every = (max(1, round(config.settings.eval_seconds / per_step)) if config.settings.eval_seconds > 0
+                 else config.settings.eval_every)  # fmt: skip
         chunks = run_chunks(steps_per_epoch=stage.steps_per_epoch, epoch_end=not steps.same_every_epoch,
                             stage_steps=stage.steps, program_chunk=compiled.chunk, eval_every=every,
                             eval_seconds=0.0, per_step=per_step)  # fmt: skip

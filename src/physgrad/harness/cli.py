@@ -94,8 +94,8 @@ def _start_processes(args) -> str:
 
 def cmd_train(args, console):
     from .config import make_config, method_slug
+    from .console import describe_run
     from .options import TrainOptions
-    from .study import describe_run
     from .train import read_summary, train
 
     options = TrainOptions.from_args(args, devices=_start_processes(args))

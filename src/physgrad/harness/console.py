@@ -22,3 +22,15 @@ def print_table(console: Console, lines: list[list[str]], title: str = "", capti
 def files(*paths) -> str:
     """The files written, comma-separated (a figure that could not be drawn is None: left out)."""
     return ", ".join(str(p) for p in paths if p is not None)
+
+
+def describe_run(summary: dict) -> str:
+    """One line about a finished run."""
+    if summary["status"] == "diverged":
+        return f"diverged at step {summary['diverged_step']} (last finite loss {summary['last_finite_loss']})"
+    failures = (summary.get("step_stat_totals") or {}).get("inverse_failures", 0)
+    return (
+        f"test loss {summary['final_test_loss']:.3e} after {summary['steps']} steps "
+        f"({1e3 * summary['time_per_step']:.2f} ms/step)"
+        + (f"; {failures:.0f} local inverse solves failed (their samples got no update)" if failures else "")
+    )

@@ -244,8 +244,8 @@ def run_pending(executor: Any, pending, log, *, record_failures: bool, echo, dev
     :func:`physgrad.harness.study.compare`) on ``executor``, all at once; each finished run
     is echoed as it comes back, a failed one recorded in ``log`` (``record_failures``) or
     raised, as the one-after-the-other loop does."""
+    from .console import describe_run
     from .failures import recordable
-    from .study import describe_run
 
     jobs = [ConfiguredRun(config, run_directory(run_dir), devices=devices) for _, config, run_dir in pending]
     for i, summary, error in executor.run(jobs):

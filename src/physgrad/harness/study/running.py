@@ -25,6 +25,7 @@ from ..config import (
     split_scope,
     valid_settings,
 )
+from ..console import describe_run
 from ..failures import FailureLog, recordable
 from ..papers import protocol
 from ..registry import PROBLEMS
@@ -205,15 +206,3 @@ def calibrated_config(config: RunConfig, calibration, seconds: float) -> RunConf
         every = max(1, round(config.eval_seconds / calibration.seconds_per_step(config.method)))
         changes.update(eval_every=every, eval_seconds=0.0)
     return dataclasses.replace(config, **changes)
-
-
-def describe_run(summary: dict[str, Any]) -> str:
-    """One line about a finished run."""
-    if summary["status"] == "diverged":
-        return f"diverged at step {summary['diverged_step']} (last finite loss {summary['last_finite_loss']})"
-    failures = (summary.get("step_stat_totals") or {}).get("inverse_failures", 0)
-    return (
-        f"test loss {summary['final_test_loss']:.3e} after {summary['steps']} steps "
-        f"({1e3 * summary['time_per_step']:.2f} ms/step)"
-        + (f"; {failures:.0f} local inverse solves failed (their samples got no update)" if failures else "")
-    )
