@@ -10,6 +10,7 @@ from pathlib import Path
 from typing import Any
 
 from ... import rundir
+from ...engine.types import Seconds
 from ..arguments import DEFAULT_SECONDS, UsageError, output_dir
 from ..config import Budget
 from ..console import files, print_table
@@ -59,7 +60,7 @@ def bench_command(console, options: BenchOptions) -> int:
 
     run, name = choices(options), options.profile
     budget, budgets, settings = run.budget, run.budgets, run.settings
-    calibrate = not options.no_calibrate and budget.kind == "seconds"
+    calibrate = not options.no_calibrate and isinstance(budget, Seconds)
     console.print(
         f"bench{f' ({name} profile)' if name else ''}: {len(run.problems)} problems x {len(run.methods)} candidate "
         f"methods, budget {budget}{' (calibrated)' if calibrate else ''} per run"
@@ -125,7 +126,7 @@ def print_plan(console, options: BenchOptions, run: BenchChoices) -> int:
     problems, seeds, budget, budgets, out = run.problems, run.seeds, run.budget, run.budgets, run.out
     verdicts = bench.plan(problems, run.methods, run.settings, echo=console.print)
     if options.calibrate_only:
-        if budget.kind != "seconds" or options.no_calibrate:
+        if not isinstance(budget, Seconds) or options.no_calibrate:
             raise UsageError("--calibrate-only needs a calibrated --seconds budget")
         bench.calibrate_only(problems, verdicts, budget, out, settings=run.settings, echo=console.print,
                              devices=options.devices, budgets=budgets)  # fmt: skip

@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import Any
 
 from ... import rundir
+from ...engine.types import Seconds
 from ..arguments import UsageError
 from ..console import files, print_table
 from ..options import CalibrateOptions, ReportOptions, StudyOptions
@@ -32,7 +33,7 @@ def run_compare(console, options: StudyOptions, executor=None):
     problem, methods, seeds, budget, settings, out = (options.problem, options.methods, options.seeds, options.budget,
                                                       options.settings, options.out)  # fmt: skip
     plan(problem, methods, seeds, budget, settings)  # validate every name before anything runs
-    calibrated = options.calibrate and budget.kind == "seconds"
+    calibrated = options.calibrate and isinstance(budget, Seconds)
     console.print(
         f"comparing on {problem}: budget {budget}{' (calibrated)' if calibrated else ''} per run, seeds {list(seeds)}, "
         f"settings {settings or 'paper defaults'}"
@@ -74,7 +75,7 @@ def calibrate_only(console, options: StudyOptions) -> int:
     from . import calibrate_study, split_grid
 
     budget = options.budget
-    if budget.kind != "seconds" or not options.calibrate:
+    if not isinstance(budget, Seconds) or not options.calibrate:
         raise UsageError("--calibrate-only needs a calibrated --seconds budget")
     if split_grid(options.settings)[1]:
         raise UsageError("--calibrate-only takes one study, not a sweep (a comma-separated --set value)")

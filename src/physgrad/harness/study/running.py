@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Any
 
 from ... import rundir
+from ...engine.types import Seconds
 from ...errors import ConfigError
 from ...progress import AbstractProgressMeter
 from ..config import (
@@ -117,7 +118,7 @@ def compare(
     out = Path(out)
     configs = plan(problem, methods, seeds, budget, settings)
     with rundir.one_writer(out, "study"):  # one writer per study directory, for the whole study
-        calibrated = budget.kind == "seconds" and calibrate
+        calibrated = isinstance(budget, Seconds) and calibrate
         if calibrated:
             calibration = _calibration(out, configs, echo=echo, devices=devices, record_failures=record_failures,
                                        **(calibration_options or {}))  # fmt: skip
