@@ -15,9 +15,9 @@ and the eigendecompositions of ``G_t`` and ``A_t`` recomputed every ``inverse_ev
     ΔW̄ = Q_G [ φ(γ αᵀ / b) ⊙ (Q_Gᵀ ∇W̄ Q_A) ] Q_Aᵀ,   φ(λ) = (λ + δ)^p,
 
 with (γ, Q_G), (α, Q_A) the last eigendecompositions. The running factors are the state of a
-control (:class:`RunningFactors`, :class:`physgrad.methods.base.AbstractControl`) that hands
+control (:class:`RunningFactors`, :class:`physgrad.methods.AbstractControl`) that hands
 the rule its per-layer direction; :class:`AveragedKronecker` is the final method that fills
-:class:`physgrad.methods.base.AbstractOptaxMethod`'s fields with it.
+:class:`physgrad.methods.AbstractOptaxMethod`'s fields with it.
 
 The state's layout
 ------------------

@@ -191,10 +191,10 @@ class Plateau(eqx.Module):
 class Unrolled(AbstractOptaxMethod):
     """The unrolled gradient applied by Adam with the stabilisers of the module docstring.
 
-    A final class that fills :class:`physgrad.methods.base.AbstractOptaxMethod`'s fields
+    A final class that fills :class:`physgrad.methods.AbstractOptaxMethod`'s fields
     from its settings: the schedule and clipping in ``optimizer``, the skipping in
     ``acceptance``; plus the curriculum's stages. The state is
-    :class:`physgrad.methods.base.MethodState` (the running norm bound is its acceptance
+    :class:`physgrad.methods.MethodState` (the running norm bound is its acceptance
     state's ``bound``).
 
     Fields: ``rule``; ``lr``, ``lr_warmup``, ``decay``, ``decay_every`` (:func:`schedule`);
