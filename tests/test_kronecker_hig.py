@@ -315,7 +315,7 @@ def test_running_factors_and_their_refresh_period(mlp, inverse_every):
     for k, name in enumerate(("l1", "l2")):
         A = beta * np.asarray(first[k].A) + (1 - beta) * np.asarray(now[k].A)
         G = beta * np.asarray(first[k].G) + (1 - beta) * np.asarray(now[k].G)
-        left, right = state.factors[2 * k]  # leaf 2k: the layer's W (d_out × d_in): G left, A right
+        left, right = state.control.factors[2 * k]  # leaf 2k: the layer's W (d_out × d_in): G left, A right
         np.testing.assert_allclose(np.asarray(left)[: G.shape[0], : G.shape[0]], G, rtol=1e-10)
         np.testing.assert_allclose(np.asarray(right)[: A.shape[0], : A.shape[0]], A, rtol=1e-10)
         used = (A, G) if inverse_every == 1 else (np.asarray(first[k].A), np.asarray(first[k].G))
@@ -350,7 +350,7 @@ def test_running_factors_of_a_transposed_layer_without_bias():
     for name in ("W1", "W2"):
         np.testing.assert_allclose(np.asarray(p_a[name]), np.asarray(p_f[name]), rtol=1e-10)
     (f1,) = [f for f in layer_factors(predict, params, batch) if f.weight == 0]
-    left, right = state.factors[0]  # W1 (3 × 4) as x @ W1: A (3 × 3, no bias) left, G (4 × 4) right
+    left, right = state.control.factors[0]  # W1 (3 × 4) as x @ W1: A (3 × 3, no bias) left, G (4 × 4) right
     np.testing.assert_allclose(np.asarray(left)[:3, :3], np.asarray(f1.A), rtol=1e-10)
     np.testing.assert_allclose(np.asarray(right)[:4, :4], np.asarray(f1.G), rtol=1e-10)
     assert not np.any(np.asarray(left)[3]) and not np.any(np.asarray(right)[4])  # the unused bias slots

@@ -140,13 +140,13 @@ def test_lm_step_accepts_good_steps_and_rejects_bad_ones():
     new, state1, stats = step(objective, params, state, batch)
     assert bool(stats["accepted"]) and float(stats["gain_ratio"]) > 0
     assert float(objective.batch_loss(new, batch)) < float(stats["loss"])
-    assert float(state1.damping) < 1e-2  # a good step shrinks the damping
+    assert float(state1.acceptance.damping) < 1e-2  # a good step shrinks the damping
     # An optimizer that overshoots 50-fold makes the loss rise: the step is refused.
     bad = LevenbergMarquardt(method.rule, __import__("optax").sgd(50.0), damping=1e-2)
     same, state2, stats = jax.jit(bad.step, static_argnums=0)(objective, params, bad.init(params), batch)
     assert not bool(stats["accepted"])
     assert all(np.array_equal(x, y) for x, y in zip(jax.tree.leaves(same), jax.tree.leaves(params)))
-    assert float(state2.damping) == pytest.approx(2e-2) and float(state2.growth) == 4.0
+    assert float(state2.acceptance.damping) == pytest.approx(2e-2) and float(state2.acceptance.growth) == 4.0
 
 
 def test_levenberg_marquardt_entry_point_is_the_method_with_the_users_chain_under_plain_jit():
@@ -201,7 +201,9 @@ def test_lm_step_sharded_over_devices_equals_one_device(route):
         got = jax.jit(lambda p, s, b: method.step(objective, replicated(p), s, shard_batch(b)))(
             params, method.init(params), batch
         )
-    for x, y in zip(jax.tree.leaves((want[0], want[1].damping)), jax.tree.leaves((got[0], got[1].damping))):
+    for x, y in zip(
+        jax.tree.leaves((want[0], want[1].acceptance.damping)), jax.tree.leaves((got[0], got[1].acceptance.damping))
+    ):
         np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=1e-9, atol=1e-12)
 
 

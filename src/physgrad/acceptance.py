@@ -23,7 +23,7 @@ a single test reports the same two. Levenberg–Marquardt's gain-ratio test, whi
 adapts the damping, is :class:`physgrad.methods.lm.GainRatio`.
 """
 
-from __future__ import annotations
+# No `from __future__ import annotations`: Equinox reads `AbstractVar` fields from evaluated annotations.
 
 import abc
 from typing import Any, ClassVar, NamedTuple
@@ -32,6 +32,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import optax
+from equinox import AbstractClassVar, AbstractVar
 from jaxtyping import Array, PyTree
 
 Stats = dict[str, Array]
@@ -65,9 +66,9 @@ class AbstractAcceptance(eqx.Module):
     ``accepted`` is a boolean scalar; ``stats`` a dict of scalars the method adds to the
     step's statistics; ``state`` the acceptance's state after the verdict."""
 
+    @abc.abstractmethod
     def init(self, params: PyTree) -> Any:
-        """The state before the first step (default: none)."""
-        return ()
+        """The state before the first step."""
 
     @abc.abstractmethod
     def __call__(self, proposal: Proposal, state: Any) -> tuple[Array, Stats, Any]: ...
@@ -81,8 +82,12 @@ class AbstractTest(AbstractAcceptance):
     is still judged, so ``skip_<name>`` says whether it would have objected to a step that
     another test refused."""
 
-    name: eqx.AbstractClassVar[str]
-    enforce: eqx.AbstractVar[bool]
+    name: AbstractClassVar[str]
+    enforce: AbstractVar[bool]
+
+    def init(self, params):
+        """The state before the first step (default: none)."""
+        return ()
 
     @abc.abstractmethod
     def judge(self, proposal: Proposal, state: Any) -> tuple[Array, Array, Any]:

@@ -35,8 +35,9 @@ from ..methods import (
     Unrolled,
     UnrolledGradient,
 )
+from ..methods.averaged_kronecker import AveragedKronecker
 from ..methods.kfac import kfac
-from ..methods.kronecker_hig import AveragedKronecker, KroneckerPower
+from ..methods.kronecker_hig import KroneckerPower
 from ..methods.sip import L1Proxy, L2Proxy
 from ..methods.unrolling import Plateau
 from ..rollout import Combined, M, R, S

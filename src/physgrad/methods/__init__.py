@@ -22,23 +22,26 @@ Each rule declares the part of a problem's :class:`Objective` it uses (:class:`P
 :data:`ROLLOUT` (a rollout system: BPTT and its variants) or :data:`UNROLLED` (a
 time-stepper's windows: ONE / NOG / WIG); its ``check`` refuses a problem without it.
 
-What the engine runs is a rule with an optax transformation and, optionally, an acceptance
-test that may refuse a step (:class:`Method`, :mod:`physgrad.acceptance`);
-:class:`LevenbergMarquardt` (with :class:`GainRatio`), :class:`Unrolled` and
-:class:`AveragedKronecker` (KHIG with K-FAC's running factors) are such compositions, :func:`LossAwareDP` a constructor of one. The registry of names for the
+What the engine runs is a rule with an optax transformation, optionally an acceptance test
+that may refuse a step (:mod:`physgrad.acceptance`) and a control that hands the rule a
+value from the state (:class:`AbstractControl`): :class:`AbstractOptaxMethod` implements
+it once, and :class:`Method`, :class:`LevenbergMarquardt` (:class:`GainRatio` with the
+:class:`Damping` control), :class:`Unrolled` and :class:`AveragedKronecker` (KHIG with
+K-FAC's running factors, :class:`RunningFactors`) are its final classes, which only fill
+its fields; :func:`LossAwareDP` is a constructor of a :class:`Method`. The registry of names for the
 command line is :mod:`physgrad.harness.registry`.
 """
 
+from .averaged_kronecker import AveragedKronecker, RunningFactors
 from .base import (
     OPEN_LOOP,
     ROLLOUT,
     SPLIT,
     UNROLLED,
+    AbstractJacobianRule,
     AbstractMethod,
     AbstractRule,
     Estimator,
-    Method,
-    MethodState,
     Objective,
     Part,
     Stepper,
@@ -46,18 +49,23 @@ from .base import (
 )
 from .dp import Gradient, LossAwareDP, dp
 from .hig import JacobianPower, gauss_newton, hig
-from .kronecker_hig import AveragedKronecker, KroneckerPower, kronecker_hig
-from .lm import GainRatio, LevenbergMarquardt, adapt_damping, levenberg_marquardt, predicted_decrease
+from .kronecker_hig import KroneckerPower, kronecker_hig
+from .lm import Damping, GainRatio, LevenbergMarquardt, adapt_damping, levenberg_marquardt, predicted_decrease
+from .method import AbstractControl, AbstractOptaxMethod, Method, MethodState
 from .newton import Newton, newton
 from .sip import AbstractProxy, L1Proxy, L2Proxy, ScaleInvariantPhysics, sip
 from .stable_bptt import RolloutGradient, bptt, stabilised_bptt
 from .unrolling import Unrolled, UnrolledGradient, schedule, unrolled
 
 __all__ = [
+    "AbstractControl",
+    "AbstractJacobianRule",
     "AbstractMethod",
+    "AbstractOptaxMethod",
     "AbstractProxy",
     "AbstractRule",
     "AveragedKronecker",
+    "Damping",
     "Estimator",
     "GainRatio",
     "Gradient",
@@ -78,6 +86,7 @@ __all__ = [
     "SPLIT",
     "UNROLLED",
     "RolloutGradient",
+    "RunningFactors",
     "ScaleInvariantPhysics",
     "Unrolled",
     "UnrolledGradient",

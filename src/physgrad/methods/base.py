@@ -22,11 +22,12 @@ Three layers of objects:
   (an :class:`Objective`), the parameters and a batch; holds only the rule's settings.
 - :class:`Estimator`: a rule bound to a user's functions (what ``physgrad.hig(...)`` and
   friends return): ``estimate(params, batch) -> (direction, stats)``.
-- :class:`AbstractMethod`: what the training engine runs: a rule and an optax
-  transformation, ``init`` and one pure ``step``; :class:`Method` is the pairing, with an
-  optional acceptance test that may refuse a step (:mod:`physgrad.acceptance`).
-  Levenberg–Marquardt, unrolled training and the optax zoo's optimizers that need the
-  loss function are compositions of these parts, not subclasses of :class:`Method`.
+- :class:`AbstractMethod`: what the training engine runs, ``init`` and one pure ``step``.
+  :class:`physgrad.methods.method.AbstractOptaxMethod` writes them once for a rule applied
+  by an optax transformation, with an optional acceptance test that may refuse a step
+  (:mod:`physgrad.acceptance`) and an optional control that hands the rule a value from
+  the state; :class:`physgrad.methods.Method` (the pairing), Levenberg–Marquardt, unrolled
+  training and KHIG with running factors are its final classes, which only fill its fields.
 
 Parameters may be a whole Equinox module (an ``eqx.nn.MLP`` with its activation
 functions, a convolution with its settings): estimators and methods differentiate its
@@ -53,7 +54,6 @@ before the first step and says what would fit.
 from __future__ import annotations
 
 import abc
-import dataclasses
 from collections.abc import Callable
 from typing import Any, ClassVar, NamedTuple, TypeVar
 
@@ -62,8 +62,6 @@ import jax
 import jax.numpy as jnp
 import optax
 from jaxtyping import Array, PyTree
-
-from ..acceptance import AbstractAcceptance, Proposal, keep_where
 
 Stats = dict[str, Array]
 _T = TypeVar("_T")
@@ -258,6 +256,26 @@ class AbstractRule(eqx.Module):
         return {}
 
 
+class AbstractJacobianRule(AbstractRule):
+    """A rule on the joint Jacobian ``J = ∂y/∂θ`` of the open-loop chain (:data:`OPEN_LOOP`),
+    whose large arrays and choices follow from the step's shapes: ``J``'s ``(rows, P)`` and
+    the network's layers (:class:`physgrad.routes.JointJacobian`). It says them, from shapes
+    alone, for the memory guard (:meth:`footprint`, :meth:`footprint_note`) and for the
+    user (:meth:`describe`): HIG and Gauss–Newton (:class:`physgrad.methods.JacobianPower`)
+    and KHIG (:class:`physgrad.methods.KroneckerPower`)."""
+
+    part: ClassVar[Part | None] = OPEN_LOOP
+
+    @abc.abstractmethod
+    def footprint(self, objective: Objective, params: PyTree, batch: PyTree, devices: int = 1) -> int: ...
+
+    @abc.abstractmethod
+    def footprint_note(self, objective: Objective, params: PyTree, batch: PyTree) -> str: ...
+
+    @abc.abstractmethod
+    def describe(self, objective: Objective, params: PyTree, batch: PyTree) -> dict[str, Any]: ...
+
+
 class Estimator(eqx.Module):
     """A rule bound to a user's functions: ``estimate(params, batch) -> (direction, stats)``.
 
@@ -304,7 +322,10 @@ class AbstractMethod(eqx.Module):
     ``step(objective, params, state, batch) -> (params, state, stats)`` does everything a
     training step needs and is jit-compiled by the engine as one function. ``stats``
     holds ``"loss"`` (at the parameters *before* the update) and the rule's statistics.
-    A method may declare ``stages()``: a curriculum of methods (default: itself alone).
+    ``check`` refuses a problem the method cannot run on and ``footprint`` estimates the
+    step's own large arrays; a method may declare ``stages()``: a curriculum of methods
+    (default: itself alone). :class:`AbstractOptaxMethod` implements all of it once for a
+    rule applied by optax; :class:`physgrad.methods.kfac.KFAC` is the other kind.
     """
 
     @abc.abstractmethod
@@ -313,16 +334,17 @@ class AbstractMethod(eqx.Module):
     @abc.abstractmethod
     def step(self, objective: Objective, params: PyTree, state: Any, batch: PyTree) -> tuple[PyTree, Any, Stats]: ...
 
+    @abc.abstractmethod
     def check(self, objective: Objective) -> None:
         """Raise ``ValueError`` if this method cannot run on ``objective``."""
 
-    def check_batch_size(self, batch_size: int) -> None:
-        """Raise ``ValueError`` if this method cannot take batches of this size."""
-
+    @abc.abstractmethod
     def footprint(self, objective: Objective, params: PyTree, batch: PyTree, devices: int = 1) -> int:
         """Bytes per device of the step's own large arrays, from shapes alone (see
-        :meth:`AbstractRule.footprint`); 0, the default, when the method cannot tell."""
-        return 0
+        :meth:`AbstractRule.footprint`); 0 when the method cannot tell."""
+
+    def check_batch_size(self, batch_size: int) -> None:
+        """Raise ``ValueError`` if this method cannot take batches of this size."""
 
     def footprint_note(self, objective: Objective, params: PyTree, batch: PyTree) -> str:
         """What :meth:`footprint` counts, in a few words; empty by default."""
@@ -340,106 +362,6 @@ class AbstractMethod(eqx.Module):
     def stage_label(self) -> str:
         """What distinguishes this stage in a curriculum (e.g. ``m=2``); empty by default."""
         return ""
-
-
-class MethodState(NamedTuple):
-    """A :class:`Method`'s state when it has an acceptance: the optimizer's and the acceptance's."""
-
-    optimizer: PyTree
-    acceptance: Any
-
-
-_EXTRAS = ("value", "grad", "value_fn", "obj_fn")
-
-
-class Method(AbstractMethod):
-    """A rule applied by an optax transformation: ``θ ← θ + optimizer(d)``, d = rule(θ),
-    the step taken if ``acceptance`` accepts it.
-
-    ``params`` may be a whole Equinox module: the optimizer's state and updates cover its
-    inexact-array leaves (:func:`trainable`); the other leaves come back unchanged.
-
-    Fields:
-        rule: the direction (:class:`AbstractRule`).
-        optimizer: the optax transformation that turns it into updates.
-        acceptance: a :class:`physgrad.acceptance.AbstractAcceptance` that may refuse a
-            step (parameters and optimizer state then stay as they were) and adds its
-            statistics; None (the default) takes every step. The state is then
-            :class:`MethodState` ``(optimizer, acceptance)``, else the optimizer's alone.
-        extras: the keyword extras the optimizer's update receives, from ``value`` (the
-            batch loss), ``grad`` (the direction), ``value_fn`` and ``obj_fn`` (the batch
-            loss as a function of the parameters on this batch) — what optax's
-            line-search L-BFGS (``optax.lbfgs``: value, grad, value_fn) and Sophia's
-            Hessian estimate (``optax.contrib.sophia``: obj_fn) ask for. Only the named ones
-            are passed because some optax transformations refuse extras they do not
-            consume; the default ``("value",)`` is ignored by chains that do not use it.
-    """
-
-    rule: AbstractRule
-    optimizer: optax.GradientTransformation = eqx.field(static=True)
-    acceptance: AbstractAcceptance | None = None
-    extras: tuple[str, ...] = eqx.field(static=True, default=("value",))
-
-    def __check_init__(self):
-        unknown = set(self.extras) - set(_EXTRAS)
-        if unknown:
-            raise ValueError(f"unknown optimizer extras {sorted(unknown)}; valid choices: {', '.join(sorted(_EXTRAS))}")
-
-    def init(self, params):
-        arrays = trainable(params)[0]
-        if self.acceptance is None:
-            return self.optimizer.init(arrays)
-        return MethodState(self.optimizer.init(arrays), self.acceptance.init(arrays))
-
-    def check(self, objective):
-        self.rule.check(objective)
-
-    def check_batch_size(self, batch_size):
-        self.rule.check_batch_size(batch_size)
-
-    # The optimizer's state is a few copies of the parameters, small next to what the
-    # rules that estimate memory hold (Jacobians): the rule's footprint is the method's.
-    def footprint(self, objective, params, batch, devices=1):
-        arrays, static = trainable(params)
-        return self.rule.footprint(objective.bind_static(static), arrays, batch, devices)
-
-    def footprint_note(self, objective, params, batch):
-        arrays, static = trainable(params)
-        return self.rule.footprint_note(objective.bind_static(static), arrays, batch)
-
-    def lighter(self, batch_size):
-        return [dataclasses.replace(self, rule=rule) for rule in self.rule.lighter(batch_size)]
-
-    def step(self, objective, params, state, batch):
-        arrays, static = trainable(params)
-        objective = objective.bind_static(static)
-        direction, stats = self.rule(objective, arrays, batch)
-        arrays, state, stats = self.apply(objective, arrays, batch, direction, stats, state)
-        return eqx.combine(arrays, static), state, stats
-
-    def apply(
-        self, objective: Objective, params: PyTree, batch: PyTree, direction: PyTree, stats: Stats, state: Any
-    ) -> tuple[PyTree, Any, Stats]:
-        """The step along a given ``direction`` (with the rule's ``stats``): the optimizer's
-        update and the acceptance's verdict, ``(params, state, stats)``. ``objective`` and
-        ``params`` are the trainable arrays' (:func:`trainable`, :meth:`Objective.bind_static`);
-        :meth:`step` is the rule followed by this, and a method whose direction depends on
-        the acceptance's state (Levenberg–Marquardt's damping) calls it with its own."""
-        opt_state, accept_state = (state, None) if self.acceptance is None else state
-
-        def batch_loss(p):
-            return objective.batch_loss(p, batch)
-
-        available = {"value": stats["loss"], "grad": direction, "value_fn": batch_loss, "obj_fn": batch_loss}
-        extras = {name: available[name] for name in self.extras}
-        updates, new_opt_state = with_extra_args(self.optimizer).update(direction, opt_state, params, **extras)
-        candidate = optax.apply_updates(params, updates)
-        if self.acceptance is None:
-            return candidate, new_opt_state, stats
-        proposal = Proposal(objective, params, batch, direction, updates, candidate, stats)
-        accepted, verdict, accept_state = self.acceptance(proposal, accept_state)
-        params, opt_state = keep_where(accepted, (candidate, new_opt_state), (params, opt_state))
-        return params, MethodState(opt_state, accept_state), {**stats, **verdict}
 
 
 class Stepper(eqx.Module):

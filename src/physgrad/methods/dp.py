@@ -16,7 +16,8 @@ from typing import ClassVar
 import jax
 import optax
 
-from .base import OPEN_LOOP, AbstractRule, Estimator, Method, Objective, Part
+from .base import OPEN_LOOP, AbstractRule, Estimator, Objective, Part
+from .method import Method
 
 
 class Gradient(AbstractRule):

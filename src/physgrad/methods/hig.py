@@ -23,10 +23,10 @@ import equinox as eqx
 from jax.flatten_util import ravel_pytree
 
 from ..routes import AbstractRoute, Auto, JointJacobian, alternatives
-from .base import OPEN_LOOP, AbstractRule, Estimator, Objective, Part
+from .base import AbstractJacobianRule, Estimator, Objective
 
 
-class JacobianPower(AbstractRule):
+class JacobianPower(AbstractJacobianRule):
     """``d = J^κ g`` with the joint stacked Jacobian (HIG for κ = −½, GN for κ = −1)."""
 
     exponent: float = eqx.field(static=True)
@@ -39,14 +39,13 @@ class JacobianPower(AbstractRule):
         if not isinstance(self.route, AbstractRoute):
             raise ValueError(f"route must be a physgrad.routes object (Auto(), Gram(), SVD(), …), got {self.route!r}")
 
-    part: ClassVar[Part] = OPEN_LOOP
     name: ClassVar[str] = "the Jacobian methods"
 
     def check_batch_size(self, batch_size):
         self.route.check_batch_size(batch_size)
 
     def footprint(self, objective, params, batch, devices=1):
-        return self.route.footprint_of(JointJacobian.of(objective, params, batch), devices)
+        return self.route.footprint(objective, params, batch, devices)
 
     def footprint_note(self, objective, params, batch):
         jacobian = JointJacobian.of(objective, params, batch)
@@ -78,7 +77,7 @@ class JacobianPower(AbstractRule):
         ``sigma_max`` and ``sigma_min_kept`` (:mod:`physgrad.routes`)."""
         # The joint Jacobian's shape facts, built once (one trace of predict) for the route.
         jacobian = JointJacobian.of(objective, params, batch)
-        direction, loss, stats = self.route.compute(jacobian, spectrum, self.truncation)
+        direction, loss, stats = self.route.resolve(jacobian).compute(jacobian, spectrum, self.truncation)
         _, unravel = ravel_pytree(params)
         return unravel(direction), {"loss": loss, **stats}
 

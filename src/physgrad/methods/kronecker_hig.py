@@ -78,7 +78,8 @@ Cost: one backward pass per Jacobian row to the pre-activations (the same signal
 HIG's structured route uses), ``rows · d_out²`` and ``b · d_in'²`` multiply-adds for the
 factors, and two float64 ``eigh`` of d_out and d_in' per layer. The factors are fresh for
 every batch (HIG's way); :class:`AveragedKronecker` keeps running averages of them and
-recomputes their eigendecompositions every k steps (K-FAC's way). The factors and their eigendecompositions are computed in float64
+recomputes their eigendecompositions every k steps (K-FAC's way;
+:mod:`physgrad.methods.averaged_kronecker`). The factors and their eigendecompositions are computed in float64
 (``A`` and ``G`` square the conditioning of the activations and the signals, as the Gram
 matrix does in HIG's Gram route) and the direction is cast back to each leaf's dtype.
 """
@@ -86,18 +87,17 @@ matrix does in HIG's Gram route) and the direction is cast back to each leaf's d
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import Any, ClassVar, NamedTuple
+from typing import ClassVar, NamedTuple
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import optax
 from jaxtyping import Array, PyTree
 
 from ..precision import float64_scope, to_float64
 from ..routes import JointJacobian, structured
 from ..routes.base import DenseUse, Structure
-from .base import OPEN_LOOP, AbstractMethod, AbstractRule, Estimator, Method, Objective, Part, required, trainable
+from .base import AbstractJacobianRule, Estimator, Objective, required
 
 _F64 = 8
 # Operations that only move or relabel a kernel's numbers: a convolution whose kernel comes
@@ -219,7 +219,7 @@ class Plan(NamedTuple):
 DenseDirection = Callable[[DenseUse, Array, Array, Array], tuple[Array, BlockSpectrum]]
 
 
-class KroneckerPower(AbstractRule):
+class KroneckerPower(AbstractJacobianRule):
     """Per dense layer ``ΔW̄ = φ(G, A) ∇W̄``: the power ``p`` of K-FAC's block ``(1/b) G ⊗ A``
     of ``JᵀJ`` applied to the gradient (p = −¾: HIG's κ = −½; p = −1: Gauss–Newton), the
     leftover parameters' block exactly. See :mod:`physgrad.methods.kronecker_hig`."""
@@ -239,7 +239,6 @@ class KroneckerPower(AbstractRule):
         if self.explicit_max < 0:
             raise ValueError(f"explicit_max must be >= 0, got {self.explicit_max}")
 
-    part: ClassVar[Part] = OPEN_LOOP
     name: ClassVar[str] = "khig"
 
     def plan(self, objective: Objective, params: PyTree, batch: PyTree) -> Plan:
@@ -418,122 +417,14 @@ def kronecker_hig(predict, loss, *, truncation: float = 1e-6, power: float = -0.
     return Estimator(rule, Objective(predict, loss))
 
 
-# --- running averages of the factors (K-FAC's way) ------------------------------------------
-#
-# The factors of a dense layer are kept per parameter leaf, before the network is traced: a
-# 2-D leaf of shape (r, c) holds a left factor of (r + 1)² and a right factor of (c + 1)²
-# (one more row and column for a bias folded into either side). Once the trace shows which
-# leaves are dense layers, W @ x (W: d_out × d_in) keeps G in the top-left d_out² of the left
-# factor and A in the top-left d_in'² of the right one; a @ W (W: d_in × d_out) the other way
-# round. So the state's shapes follow from the parameters alone, as an optax state's do, and
-# a 2-D leaf that turns out not to be a dense layer only holds zeros.
+def __getattr__(name: str):
+    # The averaged method moved to its own module (issue 52); the old path works for one release.
+    if name in ("AveragedKronecker", "KroneckerAverages"):
+        import warnings
 
+        from . import averaged_kronecker
 
-class KroneckerAverages(NamedTuple):
-    """:class:`AveragedKronecker`'s state. Per parameter leaf (None for leaves that are not
-    2-D): ``factors`` the running ``(left, right)`` factors, ``eigen`` their last
-    eigendecompositions ``(λ_left, Q_left, λ_right, Q_right)``; ``count`` the steps taken."""
-
-    optimizer: Any
-    factors: tuple
-    eigen: tuple
-    count: Array
-
-
-class AveragedKronecker(AbstractMethod):
-    """Kronecker-factored HIG with running averages of the factors, refreshed as K-FAC does:
-
-        G_t = β G_{t−1} + (1 − β) G(batch_t),   A_t likewise   (G_0, A_0: the first batch's)
-
-    and the eigendecompositions of ``G_t`` and ``A_t`` recomputed every ``inverse_every``
-    steps (reused in between; the gradient ∇W̄ is always this batch's). ``curvature_ema = 0``
-    with ``inverse_every = 1`` is :class:`KroneckerPower` with fresh factors (HIG's way).
-    The leftover block (parameters outside the dense layers) stays exact and fresh.
-
-    The running factors are stored in the parameters' dtype; their eigendecompositions run
-    in float64 as the fresh rule's. Float32 storage keeps eigenvalues down to ~1e-7 of a
-    factor's largest, below the default damping (1e-4 of the block's largest product).
-
-    Fields:
-        rule: the :class:`KroneckerPower` whose power, truncation and damping apply.
-        optimizer: applies the direction (``optax.sgd(η)``: HIG's step).
-        curvature_ema: β, the weight of the past factors (K-FAC's ``curvature_ema``).
-        inverse_every: steps between eigendecompositions (K-FAC's ``inverse_update_period``).
-    """
-
-    rule: KroneckerPower
-    optimizer: optax.GradientTransformation = eqx.field(static=True, default=optax.sgd(1.0))
-    curvature_ema: float = eqx.field(static=True, default=0.95)
-    inverse_every: int = eqx.field(static=True, default=5)
-
-    def __check_init__(self):
-        if not 0.0 <= self.curvature_ema < 1.0:
-            raise ValueError(f"curvature_ema must be in [0, 1), got {self.curvature_ema}")
-        if self.inverse_every < 1:
-            raise ValueError(f"inverse_every must be >= 1, got {self.inverse_every}")
-
-    @property
-    def method(self) -> Method:
-        return Method(self.rule, self.optimizer)
-
-    def init(self, params):
-        arrays = trainable(params)[0]
-        factors, eigen = [], []
-        for leaf in jax.tree.leaves(arrays):
-            if leaf.ndim != 2 or jnp.iscomplexobj(leaf):
-                factors.append(None)
-                eigen.append(None)
-                continue
-            sides = [n + 1 for n in leaf.shape]
-            factors.append(tuple(jnp.zeros((n, n), leaf.dtype) for n in sides))
-            eigen.append(tuple(x for n in sides for x in (jnp.zeros((n,), leaf.dtype), jnp.eye(n, dtype=leaf.dtype))))
-        return KroneckerAverages(self.optimizer.init(arrays), tuple(factors), tuple(eigen), jnp.zeros((), jnp.int32))
-
-    def check(self, objective):
-        self.rule.check(objective)
-
-    def check_batch_size(self, batch_size):
-        self.rule.check_batch_size(batch_size)
-
-    def footprint(self, objective, params, batch, devices=1):
-        return self.method.footprint(objective, params, batch, devices)
-
-    def footprint_note(self, objective, params, batch):
-        return self.method.footprint_note(objective, params, batch)
-
-    def step(self, objective, params, state, batch):
-        arrays, static = trainable(params)
-        objective = objective.bind_static(static)
-        leaves = jax.tree.leaves(arrays)
-        factors, eigen = list(state.factors), list(state.eigen)
-        beta = jnp.where(state.count == 0, 0.0, self.curvature_ema)  # the first batch starts the average
-        refresh = state.count % self.inverse_every == 0
-        rule = self.rule
-
-        def dense(use: DenseUse, D, a, g):
-            bias = use.bias is not None
-            A, G = kronecker_factors(D, a, bias)
-            if factors[use.leaf] is None:
-                raise ValueError(f"khig: dense layer leaf {use.leaf} is not a 2-D parameter")
-            dtype = leaves[use.leaf].dtype
-            sides = {"G": 1 if use.transposed else 0, "A": 0 if use.transposed else 1}
-            slots, spectra = list(factors[use.leaf]), list(eigen[use.leaf])
-            out = {}
-            for name, fresh in (("G", G), ("A", A)):
-                side, n = sides[name], fresh.shape[0]
-                average = beta * slots[side][:n, :n].astype(fresh.dtype) + (1 - beta) * fresh
-                slots[side] = slots[side].at[:n, :n].set(average.astype(dtype))
-                old = (spectra[2 * side][:n].astype(fresh.dtype), spectra[2 * side + 1][:n, :n].astype(fresh.dtype))
-                lam, q = jax.lax.cond(refresh, lambda m=average: tuple(jnp.linalg.eigh(m)), lambda o=old: o)
-                spectra[2 * side] = spectra[2 * side].at[:n].set(lam.astype(dtype))
-                spectra[2 * side + 1] = spectra[2 * side + 1].at[:n, :n].set(q.astype(dtype))
-                out[name] = (lam, q)
-            factors[use.leaf], eigen[use.leaf] = tuple(slots), tuple(spectra)
-            (gamma, q_g), (alpha, q_a) = out["G"], out["A"]
-            return power_direction(layer_gradient(D, a, g, bias), gamma, q_g, alpha, q_a, a.shape[0], rule.power,
-                                   rule.truncation, rule.damping)  # fmt: skip
-
-        direction, stats = rule.directions(objective, arrays, batch, dense)
-        arrays, opt_state, stats = self.method.apply(objective, arrays, batch, direction, stats, state.optimizer)
-        new = KroneckerAverages(opt_state, tuple(factors), tuple(eigen), state.count + 1)
-        return eqx.combine(arrays, static), new, {**stats, "refreshed": refresh.astype(jnp.int32)}
+        warnings.warn(f"physgrad.methods.kronecker_hig.{name} moved to physgrad.methods.averaged_kronecker.{name}",
+                      DeprecationWarning, stacklevel=2)  # fmt: skip
+        return getattr(averaged_kronecker, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

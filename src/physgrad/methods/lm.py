@@ -31,7 +31,6 @@ adapts μ.
 
 from __future__ import annotations
 
-import dataclasses
 from typing import NamedTuple
 
 import equinox as eqx
@@ -43,16 +42,9 @@ from jaxtyping import Array, PyTree
 from ..acceptance import AbstractAcceptance
 from ..jacobian import require_forward_mode
 from ..routes import AbstractRoute, Auto, Damped
-from .base import AbstractMethod, Method, MethodState, Objective, Stepper, required, trainable
+from .base import Objective, Stepper, required
 from .hig import JacobianPower
-
-
-class LMState(NamedTuple):
-    """The optimizer's state, the relative damping μ and Nielsen's growth factor ν."""
-
-    optimizer: PyTree
-    damping: Array
-    growth: Array
+from .method import AbstractControl, AbstractOptaxMethod, Method
 
 
 class DampingState(NamedTuple):
@@ -109,8 +101,9 @@ class GainRatio(AbstractAcceptance):
     accepted ⇔ ρ > 0 (:func:`adapt_damping`; a ρ that is not finite, or a model that
     predicts no decrease, counts as a rejection). The damping is this test's state
     (:class:`DampingState`) because Nielsen's rule adapts it from the verdict, on refused
-    steps too; :class:`LevenbergMarquardt` reads μ from it for the next direction (in a
-    plain :class:`Method` the rule does not see μ, and the test only accepts or refuses).
+    steps too; the :class:`Damping` control hands μ to the rule for the next direction
+    (:class:`LevenbergMarquardt`; in a :class:`Method` without that control the rule does
+    not see μ, and the test only accepts or refuses).
     With ``reject=False`` every step is taken and μ is still adapted.
 
     Stats: ``damping`` (μ used by the step), ``gain_ratio`` (ρ) and ``accepted`` (1 or 0,
@@ -134,6 +127,9 @@ class GainRatio(AbstractAcceptance):
 
     def __call__(self, proposal, state):
         loss = proposal.stats["loss"]
+        sample = jax.tree.map(lambda a: a[0], proposal.batch)
+        require_forward_mode(required(proposal.objective.predict, "predict"), proposal.params, sample,
+                             what="Levenberg–Marquardt's gain ratio (J Δ)", alternative="use gn or hig")  # fmt: skip
         predicted = predicted_decrease(proposal.objective, proposal.params, proposal.batch, proposal.updates)
         actual = loss - proposal.objective.batch_loss(proposal.candidate, proposal.batch)
         gain_ratio = jnp.where(predicted > 0, actual / jnp.where(predicted > 0, predicted, 1.0), -jnp.inf)
@@ -143,7 +139,26 @@ class GainRatio(AbstractAcceptance):
         return (accepted if self.reject else jnp.asarray(True)), stats, DampingState(damping, growth)
 
 
-class LevenbergMarquardt(AbstractMethod):
+class Damping(AbstractControl):
+    """Levenberg–Marquardt's control: the rule's spectral filter damped by the μ of the
+    acceptance's state (:class:`DampingState`, kept by :class:`GainRatio`),
+
+        d = V Σ (Σ² + μ σ_max²)⁻¹ Uᵀ g        (:class:`physgrad.routes.Damped`),
+
+    by the rule's route and truncation (:meth:`JacobianPower.filtered`). Keeps no state of
+    its own: μ is the acceptance's, adapted from its verdict."""
+
+    def init(self, params):
+        return None
+
+    def direct(self, rule, objective, params, batch, state, acceptance):
+        if not isinstance(rule, JacobianPower):
+            raise ValueError(f"Levenberg–Marquardt's damping needs a JacobianPower rule, got {type(rule).__name__}")
+        direction, stats = rule.filtered(objective, params, batch, Damped(acceptance.damping))
+        return direction, stats, state
+
+
+class LevenbergMarquardt(AbstractOptaxMethod):
     """Levenberg–Marquardt on the joint Jacobian with Nielsen's damping rule.
 
     Use it in a training loop of your own like any engine method::
@@ -152,11 +167,13 @@ class LevenbergMarquardt(AbstractMethod):
         state = lm.init(params)
         params, state, stats = jax.jit(lm.step, static_argnums=0)(Objective(predict, loss), params, state, batch)
 
-    A composition, not a kind of :class:`Method`: the rule's damped direction (μ from the
-    state) applied by ``Method(rule, optimizer, acceptance=GainRatio(...))``
-    (:meth:`Method.apply`); checks, memory footprint and lighter variants are the rule's.
-    The state is :class:`LMState`. ``stats`` holds ``loss`` (before the step), the rule's
-    spectrum, ``damping`` (μ used by the step), ``gain_ratio`` (ρ) and ``accepted`` (1 or 0).
+    A final class that fills :class:`AbstractOptaxMethod`'s fields: the rule, the optimizer,
+    the acceptance :class:`GainRatio` (Nielsen's rule; μ is its state) and the control
+    :class:`Damping` that hands μ to the rule, so ``lm.method``, the same fields as a
+    :class:`Method`, steps alike. The state is :class:`physgrad.methods.MethodState`
+    ``(optimizer, DampingState(μ, ν))``. ``stats`` holds ``loss`` (before the step), the
+    rule's spectrum, ``damping`` (μ used by the step), ``gain_ratio`` (ρ) and ``accepted``
+    (1 or 0).
 
     Fields:
         rule: the Gauss–Newton rule whose route and truncation compute the damped direction.
@@ -173,6 +190,8 @@ class LevenbergMarquardt(AbstractMethod):
     reject: bool = eqx.field(static=True, default=True)
     min_damping: float = eqx.field(static=True, default=1e-12)
     max_damping: float = eqx.field(static=True, default=1e12)
+    extras: tuple[str, ...] = eqx.field(static=True, default=("value",), init=False)
+    control: Damping = eqx.field(default=Damping(), init=False)
 
     def __check_init__(self):
         _ = self.acceptance  # GainRatio checks μ's bounds
@@ -183,39 +202,8 @@ class LevenbergMarquardt(AbstractMethod):
 
     @property
     def method(self) -> Method:
-        """The rule, the optimizer and :class:`GainRatio` as a :class:`Method`."""
-        return Method(self.rule, self.optimizer, self.acceptance)
-
-    def init(self, params):
-        params = trainable(params)[0]
-        return LMState(self.optimizer.init(params), *self.acceptance.init(params))
-
-    def check(self, objective):
-        self.method.check(objective)
-
-    def check_batch_size(self, batch_size):
-        self.method.check_batch_size(batch_size)
-
-    def footprint(self, objective, params, batch, devices=1):
-        return self.method.footprint(objective, params, batch, devices)
-
-    def footprint_note(self, objective, params, batch):
-        return self.method.footprint_note(objective, params, batch)
-
-    def lighter(self, batch_size):
-        return [dataclasses.replace(self, rule=rule) for rule in self.rule.lighter(batch_size)]
-
-    def step(self, objective, params, state, batch):
-        params, static = trainable(params)  # the array leaves (a whole module's others come back unchanged)
-        objective = objective.bind_static(static)
-        sample = jax.tree.map(lambda a: a[0], batch)
-        predict = required(objective.predict, "predict")
-        require_forward_mode(predict, params, sample, what="Levenberg–Marquardt's gain ratio (J Δ)",
-                             alternative="use gn or hig")  # fmt: skip
-        direction, stats = self.rule.filtered(objective, params, batch, Damped(state.damping))
-        inner = MethodState(state.optimizer, DampingState(state.damping, state.growth))
-        params, (opt_state, damping), stats = self.method.apply(objective, params, batch, direction, stats, inner)
-        return eqx.combine(params, static), LMState(opt_state, *damping), stats
+        """The same fields as a :class:`Method`."""
+        return Method(self.rule, self.optimizer, self.acceptance, self.extras, self.control)
 
 
 def levenberg_marquardt(predict, loss, *, optimizer: optax.GradientTransformation | None = None,
@@ -231,8 +219,8 @@ def levenberg_marquardt(predict, loss, *, optimizer: optax.GradientTransformatio
     Nielsen's rule, which also adapts μ). LM is a :class:`Stepper` rather than an
     :class:`Estimator` because the acceptance needs the loss after the update: a direction
     alone cannot be accepted or refused. The same pieces apart: ``Method(JacobianPower(-1),
-    chain, acceptance=GainRatio())`` accepts and refuses without feeding μ back (the
-    direction is then undamped Gauss–Newton).
+    chain, acceptance=GainRatio(), control=Damping())``; without the control the test
+    accepts and refuses without feeding μ back (the direction is then undamped Gauss–Newton).
 
     Arguments:
         predict, loss: as :func:`physgrad.hig`.

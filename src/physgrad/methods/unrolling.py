@@ -45,7 +45,8 @@ import optax.contrib
 
 from ..acceptance import All, FiniteGradient, NormBound, SolverSuccess
 from ..rollout import GradientFlow, R, S, value_and_grad
-from .base import UNROLLED, AbstractMethod, AbstractRule, Estimator, Method, Objective, Part, required
+from .base import UNROLLED, AbstractRule, Estimator, Objective, Part, required
+from .method import AbstractOptaxMethod, Method
 
 
 class UnrolledGradient(AbstractRule):
@@ -187,13 +188,13 @@ class Plateau(eqx.Module):
         )
 
 
-class Unrolled(AbstractMethod):
+class Unrolled(AbstractOptaxMethod):
     """The unrolled gradient applied by Adam with the stabilisers of the module docstring.
 
-    A composition, not a kind of :class:`Method`: ``Method(rule, optimizer, acceptance)``
-    (:attr:`method`) with the schedule and clipping in ``optimizer`` and the skipping in
-    ``acceptance``, plus the curriculum's stages. The state is that method's
-    (:class:`physgrad.methods.base.MethodState`; the running norm bound is its acceptance
+    A final class that fills :class:`physgrad.methods.AbstractOptaxMethod`'s fields
+    from its settings: the schedule and clipping in ``optimizer``, the skipping in
+    ``acceptance``; plus the curriculum's stages. The state is
+    :class:`physgrad.methods.MethodState` (the running norm bound is its acceptance
     state's ``bound``).
 
     Fields: ``rule``; ``lr``, ``lr_warmup``, ``decay``, ``decay_every`` (:func:`schedule`);
@@ -217,6 +218,8 @@ class Unrolled(AbstractMethod):
     stage_epochs: float = eqx.field(static=True, default=1.0)
     stage_lr: tuple[float, ...] = eqx.field(static=True, default=())
     plateau: Plateau | None = eqx.field(static=True, default=None)
+    extras: tuple[str, ...] = eqx.field(static=True, default=("value",), init=False)
+    control: None = eqx.field(default=None, init=False)
 
     def __check_init__(self):
         if any(m < 1 for m in self.curriculum):
@@ -274,22 +277,20 @@ class Unrolled(AbstractMethod):
 
     @property
     def method(self) -> Method:
-        """The rule, :attr:`optimizer` and :attr:`acceptance` as a :class:`Method`."""
+        """The same rule, optimizer and acceptance as a :class:`Method` (whose step reports
+        the statistics as they come, without :meth:`statistics`)."""
         return Method(self.rule, self.optimizer, self.acceptance)
-
-    def init(self, params):
-        return self.method.init(params)
 
     def check(self, objective):
         self.rule.check(objective)
         for m in self.curriculum:
             required(objective.unrolled, "unrolled")(m, self.rule.teacher_forcing)  # raises if m exceeds the windows
 
-    def step(self, objective, params, state, batch):
-        params, state, stats = self.method.step(objective, params, state, batch)
+    def statistics(self, stats, state):
+        stats = dict(stats)
         del stats["solver_ok"]  # SolverSuccess's input, reported as skip_solver
         if not self.norm_guard:  # the same statistics with the bound off (the recorder sorts them)
             stats["skip_norm"] = jnp.zeros((), jnp.float32)
         if self.plateau is not None:
             stats["lr_scale"] = state.optimizer[-1].scale
-        return params, state, stats
+        return stats

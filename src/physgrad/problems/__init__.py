@@ -3,7 +3,7 @@
 from .advection_1d import Advection1d
 from .base import AbstractProblem
 from .cartpole import CartPole
-from .closed_loop import ClosedLoopProblem
+from .closed_loop import AbstractClosedLoop, ClosedLoopProblem
 from .exp_inverse import ExpInverse
 from .guidance import Guidance
 from .heat import Heat
@@ -28,6 +28,7 @@ __all__ = [
     "Advection1d",
     "AbstractProblem",
     "CartPole",
+    "AbstractClosedLoop",
     "ClosedLoopProblem",
     "Guidance",
     "QuantumControl",

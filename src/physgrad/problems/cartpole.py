@@ -30,12 +30,15 @@ import jax
 import jax.numpy as jnp
 
 from ..nets import MLP
-from .closed_loop import ClosedLoopProblem, zero_last_kernel
+from .closed_loop import AbstractClosedLoop, zero_last_kernel
 
 
-class CartPole(ClosedLoopProblem):
+class CartPole(AbstractClosedLoop):
     """Swing up 1-4 poles on one cart with one force in 1 s (final loss 1 − cos θ)."""
 
+    n_train: int = eqx.field(static=True, default=256)
+    n_test: int = eqx.field(static=True, default=256)
+    data_seed: int = eqx.field(static=True, default=42)
     poles: int = eqx.field(static=True, default=1)
     dt: float = eqx.field(static=True, default=0.01)
     n_steps: int = eqx.field(static=True, default=100)

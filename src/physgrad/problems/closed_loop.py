@@ -5,7 +5,7 @@
 
 (the closed-loop data flow of physgrad's rollout engine).
 A sample is an initial state s_0. The rollout methods (``bptt``, ``sbptt_m``, ``sbptt_c``,
-``no_temporal``) train through :meth:`ClosedLoopProblem.system`; every other method sees
+``no_temporal``) train through :meth:`AbstractClosedLoop.system`; every other method sees
 the problem through the open-loop contract as well:
 
 - ``network_output(network, s0)`` runs the closed loop and returns the controls c_0..c_{m−1};
@@ -20,35 +20,46 @@ once from ``data_seed`` (42), the first ``n_train`` for training, independent of
 seed (which only sets the network's initialisation); mini-batches of 8 in fixed order.
 """
 
-from __future__ import annotations
+# No `from __future__ import annotations`: Equinox reads `AbstractVar` fields from evaluated annotations.
 
 import abc
+import warnings
 from typing import ClassVar
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+from equinox import AbstractVar
 from jaxtyping import PyTree
 
 from ..rollout import System, closed_loop
 from .base import AbstractProblem, Sample
 
 
-class ClosedLoopProblem(AbstractProblem):
-    """Base class: subclasses define the physics, the controller and the per-step loss."""
+class AbstractClosedLoop(AbstractProblem):
+    """A closed-loop control problem: the rollout, the open-loop contract and the data
+    protocol shared by :class:`~physgrad.problems.CartPole`,
+    :class:`~physgrad.problems.Guidance` and :class:`~physgrad.problems.QuantumControl`.
+
+    Equinox's abstract/final pattern, as :class:`~physgrad.problems.oscillators.AbstractOscillators`:
+    this class holds the methods, each final class declares every setting (the protocol's
+    ``n_train``, ``n_test``, ``data_seed`` first, then its own with its ``n_steps``) and
+    defines the physics, the controller and the per-step loss (``initial_states``,
+    ``control``, ``physics``, ``step_loss``, ``loss_weights``).
+    """
 
     default_batch_size: ClassVar[int] = 8
 
-    # The protocol's data (§2.1): 256 train + 256 test initial states from one fixed seed.
-    n_train: int = eqx.field(static=True, default=256)
-    n_test: int = eqx.field(static=True, default=256)
-    data_seed: int = eqx.field(static=True, default=42)
+    # The protocol's data (§2.1): n_train + n_test initial states from one fixed seed.
+    n_train: AbstractVar[int]
+    n_test: AbstractVar[int]
+    data_seed: AbstractVar[int]
+    n_steps: AbstractVar[int]  # the rollout length m
 
-    # --- what a subclass defines (and a setting ``n_steps``, the rollout length) ---------
     @property
     def num_steps(self) -> int:
-        # not eqx.AbstractVar: that would move n_steps first among the subclasses' fields
-        return self.n_steps  # pyright: ignore[reportAttributeAccessIssue]  # a subclass's field
+        """The rollout length m (``n_steps``)."""
+        return self.n_steps
 
     @abc.abstractmethod
     def initial_states(self, key, n: int) -> Sample:
@@ -122,6 +133,22 @@ class ClosedLoopProblem(AbstractProblem):
         """The rollout :class:`~physgrad.rollout.System` over a batch, with
         ``control(params, s) -> c`` (the network with its trainable parameters split off)."""
         return closed_loop(control, self.physics, self.step_loss, self.num_steps, self.loss_weights())
+
+
+class ClosedLoopProblem(AbstractClosedLoop):
+    """Deprecated spelling of :class:`AbstractClosedLoop` for one release: a base that
+    fills the protocol's settings with their defaults (256 train and 256 test initial
+    states from seed 42); a subclass declares ``n_steps`` and the abstract methods."""
+
+    n_train: int = eqx.field(static=True, default=256)
+    n_test: int = eqx.field(static=True, default=256)
+    data_seed: int = eqx.field(static=True, default=42)
+
+    def __init_subclass__(cls, **kwargs):
+        super().__init_subclass__(**kwargs)
+        warnings.warn("physgrad.problems.ClosedLoopProblem is now physgrad.problems.AbstractClosedLoop, whose final "
+                      "classes declare n_train, n_test, data_seed and n_steps themselves", DeprecationWarning,
+                      stacklevel=2)  # fmt: skip
 
 
 def zero_last_kernel(network):

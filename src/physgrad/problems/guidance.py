@@ -43,7 +43,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..nets import MLP
-from .closed_loop import ClosedLoopProblem, zero_last_kernel
+from .closed_loop import AbstractClosedLoop, zero_last_kernel
 
 
 def _pairs(n: int) -> tuple[np.ndarray, np.ndarray]:
@@ -52,9 +52,12 @@ def _pairs(n: int) -> tuple[np.ndarray, np.ndarray]:
     return i, j
 
 
-class Guidance(ClosedLoopProblem):
+class Guidance(AbstractClosedLoop):
     """Two drivers herd four evaders to the origin by repulsion (continuous loss + rc·c²)."""
 
+    n_train: int = eqx.field(static=True, default=256)
+    n_test: int = eqx.field(static=True, default=256)
+    data_seed: int = eqx.field(static=True, default=42)
     rc: float = eqx.field(static=True, default=0.1)
     drivers: int = eqx.field(static=True, default=2)
     evaders: int = eqx.field(static=True, default=4)

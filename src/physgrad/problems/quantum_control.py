@@ -35,7 +35,7 @@ import jax
 import jax.numpy as jnp
 
 from ..nets import Dense
-from .closed_loop import ClosedLoopProblem
+from .closed_loop import AbstractClosedLoop
 from .quantum_dipole import QuantumDipole
 
 
@@ -83,9 +83,12 @@ class QuantumController(eqx.Module):
         return self.out(h.ravel())[0]
 
 
-class QuantumControl(ClosedLoopProblem):
+class QuantumControl(AbstractClosedLoop):
     """Feedback control of the 1-D Schrödinger equation to eigenstate 3, 4 or 5 (summed infidelity)."""
 
+    n_train: int = eqx.field(static=True, default=256)
+    n_test: int = eqx.field(static=True, default=256)
+    data_seed: int = eqx.field(static=True, default=42)
     eigenstate: int = eqx.field(static=True, default=3)
     nx: int = eqx.field(static=True, default=32)
     dt: float = eqx.field(static=True, default=0.0625)

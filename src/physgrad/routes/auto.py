@@ -38,9 +38,10 @@ class Auto(AbstractRoute):
     :class:`SVD`; decided on the shape of the whole J (as on one device)."""
 
     def resolve(self, jacobian: JointJacobian) -> AbstractRoute:
-        exact = by_shape(jacobian.shape)
-        if isinstance(exact, Gram) and jacobian.rows <= jacobian.size and jacobian.structure.dense:
-            return Structured()
+        exact, structured = by_shape(jacobian.shape), Structured()
+        # Structured says itself which shapes it takes (a wide J); Auto adds the dense layers.
+        if isinstance(exact, Gram) and jacobian.structure.dense and structured.instead(jacobian) is None:
+            return structured
         return exact
 
     def choose(self, objective, params, batch) -> AbstractRoute:

@@ -275,25 +275,34 @@ class AbstractRoute(eqx.Module):
     ) -> tuple[Array, Array, dict[str, Array]]: ...
 
     def __call__(self, objective, params, batch, exponent, truncation: float):
-        return self.compute(JointJacobian.of(objective, params, batch), exponent, truncation)
+        jacobian = JointJacobian.of(objective, params, batch)
+        return self.resolve(jacobian).compute(jacobian, exponent, truncation)
+
+    def instead(self, jacobian: JointJacobian) -> AbstractRoute | None:
+        """None when this route takes this Jacobian's shape; else the route that runs in
+        its place (a route that cannot take a shape says so here, and only here)."""
+        return None
 
     def resolve(self, jacobian: JointJacobian) -> AbstractRoute:
-        """The route that runs on this Jacobian (an :class:`~physgrad.routes.Auto`
-        decides; a route may hand a shape it does not take to another)."""
-        return self
+        """The route that runs on this Jacobian: this one, or the one it names
+        :meth:`instead`; an :class:`~physgrad.routes.Auto` chooses by shape. Callers
+        compute with, and measure, the resolved route."""
+        other = self.instead(jacobian)
+        return self if other is None else other
 
     def check_batch_size(self, batch_size: int) -> None:
         """Raise ``ValueError`` if the route cannot take batches of this size."""
 
     def footprint(self, objective, params, batch, devices: int = 1) -> int:
-        """Bytes per device of the route's own large arrays for this (global) batch spread
-        over ``devices`` devices, from shapes alone (nothing is computed); 0 when the
-        route cannot tell."""
-        return self.footprint_of(JointJacobian.of(objective, params, batch), devices)
+        """Bytes per device of the large arrays of the route that runs (:meth:`resolve`)
+        for this (global) batch spread over ``devices`` devices, from shapes alone
+        (nothing is computed); 0 when the route cannot tell."""
+        jacobian = JointJacobian.of(objective, params, batch)
+        return self.resolve(jacobian).footprint_of(jacobian, devices)
 
+    @abc.abstractmethod
     def footprint_of(self, jacobian: JointJacobian, devices: int = 1) -> int:
-        """:meth:`footprint` of a built value."""
-        return 0
+        """:meth:`footprint` of a built value, for a shape this route takes."""
 
     @classmethod
     def name(cls) -> str:

@@ -67,12 +67,12 @@ class Structured(AbstractRoute):
     code = 2
     chunk_elements: int = eqx.field(static=True, default=CHUNK_ELEMENTS)
 
-    def resolve(self, jacobian):
-        return Gram() if jacobian.rows > jacobian.size else self
+    def instead(self, jacobian):
+        # A tall J: its Gram matrix J Jᵀ is wider than J itself, and the Gram route's JᵀJ
+        # is the smaller one.
+        return Gram() if jacobian.rows > jacobian.size else None
 
     def compute(self, jacobian: JointJacobian, exponent, truncation):
-        if jacobian.rows > jacobian.size:
-            return Gram().compute(jacobian, exponent, truncation)
         devices = data_axis_size()
         if devices == 1:
             plan = jacobian.structure.regrouped(jacobian.rows, self.chunk_elements)
@@ -82,8 +82,6 @@ class Structured(AbstractRoute):
         return direction, loss, self.stats(spectrum)
 
     def footprint_of(self, jacobian, devices=1):
-        if jacobian.rows > jacobian.size:
-            return Gram().footprint_of(jacobian, devices)
         plan = jacobian.structure.regrouped(jacobian.rows, self.chunk_elements)
         local_rows, local_b = -(-jacobian.rows // devices), -(-jacobian.batch_size // devices)
         per_byte = jacobian.itemsize + F64

@@ -1,0 +1,159 @@
+"""KHIG with running averages of its Kronecker factors, refreshed as K-FAC does.
+
+Sources: Martens & Grosse, *Optimizing Neural Networks with Kronecker-factored Approximate
+Curvature*, ICML 2015, §5 and §8 (exponentially decayed averages of the factors, their
+inverses recomputed every T₃ steps); the rule is :class:`physgrad.methods.KroneckerPower`
+(:mod:`physgrad.methods.kronecker_hig`, where the factors and the power are derived).
+
+Per dense layer and step t, with the factors ``G(batch_t)``, ``A(batch_t)`` of this batch,
+
+    G_t = β G_{t−1} + (1 − β) G(batch_t),   A_t likewise   (G_0, A_0: the first batch's),
+
+and the eigendecompositions of ``G_t`` and ``A_t`` recomputed every ``inverse_every`` steps
+(reused in between); the layer's gradient ∇W̄ is always this batch's, so
+
+    ΔW̄ = Q_G [ φ(γ αᵀ / b) ⊙ (Q_Gᵀ ∇W̄ Q_A) ] Q_Aᵀ,   φ(λ) = (λ + δ)^p,
+
+with (γ, Q_G), (α, Q_A) the last eigendecompositions. The running factors are the state of a
+control (:class:`RunningFactors`, :class:`physgrad.methods.AbstractControl`) that hands
+the rule its per-layer direction; :class:`AveragedKronecker` is the final method that fills
+:class:`physgrad.methods.AbstractOptaxMethod`'s fields with it.
+
+The state's layout
+------------------
+The factors of a dense layer are kept per parameter leaf, before the network is traced: a
+2-D leaf of shape (r, c) holds a left factor of (r + 1)² and a right factor of (c + 1)²
+(one more row and column for a bias folded into either side). Once the trace shows which
+leaves are dense layers, W @ x (W: d_out × d_in) keeps G in the top-left d_out² of the left
+factor and A in the top-left d_in'² of the right one; a @ W (W: d_in × d_out) the other way
+round. So the state's shapes follow from the parameters alone, as an optax state's do, and
+a 2-D leaf that turns out not to be a dense layer only holds zeros.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import optax
+from jaxtyping import Array
+
+from ..routes.base import DenseUse
+from .kronecker_hig import KroneckerPower, kronecker_factors, layer_gradient, power_direction
+from .method import AbstractControl, AbstractOptaxMethod
+
+
+class KroneckerAverages(NamedTuple):
+    """:class:`RunningFactors`' state. Per parameter leaf (None for leaves that are not
+    2-D): ``factors`` the running ``(left, right)`` factors, ``eigen`` their last
+    eigendecompositions ``(λ_left, Q_left, λ_right, Q_right)``; ``count`` the steps taken."""
+
+    factors: tuple
+    eigen: tuple
+    count: Array
+
+
+class RunningFactors(AbstractControl):
+    """The running averages of KHIG's factors as the control of a :class:`KroneckerPower`
+    rule: its state is :class:`KroneckerAverages`, and each dense layer's direction is the
+    power of the averaged factors (module docstring). ``curvature_ema = 0`` with
+    ``inverse_every = 1`` is the rule with fresh factors (HIG's way).
+
+    The running factors are stored in the parameters' dtype; their eigendecompositions run
+    in float64 as the fresh rule's. Float32 storage keeps eigenvalues down to ~1e-7 of a
+    factor's largest, below the default damping (1e-4 of the block's largest product).
+
+    Stats: ``refreshed`` (1 when this step recomputed the eigendecompositions).
+    """
+
+    curvature_ema: float = eqx.field(static=True, default=0.95)
+    inverse_every: int = eqx.field(static=True, default=5)
+
+    def __check_init__(self):
+        if not 0.0 <= self.curvature_ema < 1.0:
+            raise ValueError(f"curvature_ema must be in [0, 1), got {self.curvature_ema}")
+        if self.inverse_every < 1:
+            raise ValueError(f"inverse_every must be >= 1, got {self.inverse_every}")
+
+    def init(self, params):
+        factors, eigen = [], []
+        for leaf in jax.tree.leaves(params):
+            if leaf.ndim != 2 or jnp.iscomplexobj(leaf):
+                factors.append(None)
+                eigen.append(None)
+                continue
+            sides = [n + 1 for n in leaf.shape]
+            factors.append(tuple(jnp.zeros((n, n), leaf.dtype) for n in sides))
+            eigen.append(tuple(x for n in sides for x in (jnp.zeros((n,), leaf.dtype), jnp.eye(n, dtype=leaf.dtype))))
+        return KroneckerAverages(tuple(factors), tuple(eigen), jnp.zeros((), jnp.int32))
+
+    def direct(self, rule, objective, params, batch, state, acceptance):
+        if not isinstance(rule, KroneckerPower):
+            raise ValueError(f"running Kronecker factors need a KroneckerPower rule, got {type(rule).__name__}")
+        leaves = jax.tree.leaves(params)
+        factors, eigen = list(state.factors), list(state.eigen)
+        beta = jnp.where(state.count == 0, 0.0, self.curvature_ema)  # the first batch starts the average
+        refresh = state.count % self.inverse_every == 0
+
+        # Called by the rule once per dense layer while it traces; the new averages are
+        # collected here and become the state after the step.
+        def dense(use: DenseUse, D, a, g):
+            bias = use.bias is not None
+            A, G = kronecker_factors(D, a, bias)
+            if factors[use.leaf] is None:
+                raise ValueError(f"khig: dense layer leaf {use.leaf} is not a 2-D parameter")
+            dtype = leaves[use.leaf].dtype
+            sides = {"G": 1 if use.transposed else 0, "A": 0 if use.transposed else 1}
+            slots, spectra = list(factors[use.leaf]), list(eigen[use.leaf])
+            out = {}
+            for name, fresh in (("G", G), ("A", A)):
+                side, n = sides[name], fresh.shape[0]
+                average = beta * slots[side][:n, :n].astype(fresh.dtype) + (1 - beta) * fresh
+                slots[side] = slots[side].at[:n, :n].set(average.astype(dtype))
+                old = (spectra[2 * side][:n].astype(fresh.dtype), spectra[2 * side + 1][:n, :n].astype(fresh.dtype))
+                lam, q = jax.lax.cond(refresh, lambda m=average: tuple(jnp.linalg.eigh(m)), lambda o=old: o)
+                spectra[2 * side] = spectra[2 * side].at[:n].set(lam.astype(dtype))
+                spectra[2 * side + 1] = spectra[2 * side + 1].at[:n, :n].set(q.astype(dtype))
+                out[name] = (lam, q)
+            factors[use.leaf], eigen[use.leaf] = tuple(slots), tuple(spectra)
+            (gamma, q_g), (alpha, q_a) = out["G"], out["A"]
+            return power_direction(layer_gradient(D, a, g, bias), gamma, q_g, alpha, q_a, a.shape[0], rule.power,
+                                   rule.truncation, rule.damping)  # fmt: skip
+
+        direction, stats = rule.directions(objective, params, batch, dense)
+        new = KroneckerAverages(tuple(factors), tuple(eigen), state.count + 1)
+        return direction, {**stats, "refreshed": refresh.astype(jnp.int32)}, new
+
+
+class AveragedKronecker(AbstractOptaxMethod):
+    """Kronecker-factored HIG with running averages of the factors, refreshed as K-FAC does
+    (module docstring): a final class that fills :class:`AbstractOptaxMethod`'s fields with
+    the rule, the optimizer and the :class:`RunningFactors` control. The leftover block
+    (parameters outside the dense layers) stays exact and fresh. The state is
+    :class:`physgrad.methods.MethodState` ``(optimizer, None, KroneckerAverages)``.
+
+    Fields:
+        rule: the :class:`KroneckerPower` whose power, truncation and damping apply.
+        optimizer: applies the direction (``optax.sgd(η)``: HIG's step).
+        curvature_ema: β, the weight of the past factors (K-FAC's ``curvature_ema``).
+        inverse_every: steps between eigendecompositions (K-FAC's ``inverse_update_period``).
+    """
+
+    rule: KroneckerPower
+    optimizer: optax.GradientTransformation = eqx.field(static=True, default=optax.sgd(1.0))
+    curvature_ema: float = eqx.field(static=True, default=0.95)
+    inverse_every: int = eqx.field(static=True, default=5)
+    acceptance: None = eqx.field(default=None, init=False)
+    extras: tuple[str, ...] = eqx.field(static=True, default=("value",), init=False)
+
+    @property
+    def control(self) -> RunningFactors:
+        return RunningFactors(self.curvature_ema, self.inverse_every)
+
+    def __check_init__(self):
+        _ = self.control  # RunningFactors checks β and the period
+
+
+__all__ = ["AveragedKronecker", "KroneckerAverages", "RunningFactors"]

@@ -1,0 +1,118 @@
+"""The library's classes keep optimistix's shape: an abstract base implements a concrete
+method once, and at most one subclass overrides it.
+
+An abstract base (a class with abstract methods or ``AbstractVar`` fields, or named
+``Abstract…``) declares what its final classes must fill; a concrete method on it is shared
+code. Where several subclasses override the same concrete method the base's version is a
+default in disguise, and the variation belongs in an abstract method (each final class
+implements it) or in a field (an object doing the varying part). Counted over every class
+defined in ``src/physgrad``: for each abstract base and each concrete method (function,
+property, class or static method; ``__call__`` included, the other dunders left out:
+Equinox writes ``__init__`` and runs every ``__check_init__`` of the hierarchy), the
+subclasses whose own body defines it over the base's (an intermediate abstract base that
+re-declares the method abstract counts once, and its final classes implement its version).
+"""
+
+from __future__ import annotations
+
+import abc
+import importlib
+import inspect
+import pkgutil
+
+import physgrad
+
+
+def _classes() -> dict[str, type]:
+    """Every class defined in a module of ``physgrad`` (``__main__`` left out: it runs the CLI)."""
+    found = {}
+    for info in pkgutil.walk_packages(physgrad.__path__, "physgrad."):
+        if info.name.endswith("__main__"):
+            continue
+        module = importlib.import_module(info.name)
+        for value in vars(module).values():
+            if inspect.isclass(value) and value.__module__ == module.__name__:
+                found[f"{value.__module__}.{value.__qualname__}"] = value
+    return found
+
+
+def _is_abstract(cls: type) -> bool:
+    return (
+        inspect.isabstract(cls)
+        or cls.__name__.startswith("Abstract")
+        or bool(getattr(cls, "__abstractvars__", None))
+        or bool(getattr(cls, "__abstractclassvars__", None))
+    )
+
+
+def _concrete_methods(cls: type) -> list[str]:
+    names = []
+    for name, value in vars(cls).items():
+        if name.startswith("__") and name != "__call__":
+            continue
+        if isinstance(value, staticmethod | classmethod):
+            value = value.__func__
+        function = value.fget if isinstance(value, property) else value
+        if inspect.isfunction(function) and not getattr(function, "__isabstractmethod__", False):
+            names.append(name)
+    return names
+
+
+def _overrides(cls: type, base: type, method: str) -> bool:
+    """Whether ``cls`` defines ``method`` over ``base``'s own: the next definition up its
+    MRO is ``base``'s (an intermediate base that re-declares it abstract takes the
+    overrides below it)."""
+    if cls is base or not issubclass(cls, base) or method not in vars(cls):
+        return False
+    return next(c for c in cls.__mro__[1:] if method in vars(c)) is base
+
+
+def overridden_defaults(classes: dict[str, type]) -> list[str]:
+    """``base.method: overridden by A, B, …`` for each concrete method of an abstract base
+    that more than one subclass overrides."""
+    offenders = []
+    for name, base in sorted(classes.items()):
+        if not _is_abstract(base):
+            continue
+        for method in _concrete_methods(base):
+            subclasses = sorted(other.__qualname__ for other in classes.values() if _overrides(other, base, method))
+            if len(subclasses) > 1:
+                offenders.append(f"{name}.{method}: overridden by {', '.join(subclasses)}")
+    return offenders
+
+
+def test_the_walk_sees_the_library():
+    classes = _classes()
+    assert "physgrad.methods.method.AbstractOptaxMethod" in classes
+    assert "physgrad.problems.oscillators.AbstractOscillators" in classes
+
+
+def test_the_count_finds_a_default_overridden_twice():
+    class AbstractBase:
+        def shared(self): ...
+
+    class A(AbstractBase):
+        def shared(self): ...
+
+    class B(AbstractBase):
+        def shared(self): ...
+
+    class AbstractMiddle(AbstractBase):
+        @abc.abstractmethod
+        def shared(self): ...
+
+    class C(AbstractMiddle):
+        def shared(self): ...
+
+    class D(AbstractMiddle):
+        def shared(self): ...
+
+    assert overridden_defaults({"AbstractBase": AbstractBase, "A": A, "B": B}) == [
+        "AbstractBase.shared: overridden by " + ", ".join(sorted([A.__qualname__, B.__qualname__]))
+    ]
+    assert overridden_defaults({"AbstractBase": AbstractBase, "AbstractMiddle": AbstractMiddle, "C": C, "D": D}) == []
+
+
+def test_no_concrete_method_of_an_abstract_base_is_overridden_by_more_than_one_subclass():
+    offenders = overridden_defaults(_classes())
+    assert not offenders, "concrete methods of abstract bases overridden more than once:\n" + "\n".join(offenders)
