@@ -33,13 +33,14 @@ from ..problems.direct import DirectOptimisation
 from ..programs import ProgramCache
 from ..progress import AbstractProgressMeter
 from .config import ConfigError, RunConfig
+from .objects import make_problem
 from .registry import METHODS, PROBLEMS
 
 
 def problem_of(config: RunConfig, overrides: dict[str, Any] | None = None):
     """The configured problem instance (wrapped for direct optimisation with ``no_network``)."""
     try:
-        problem = PROBLEMS[config.problem](**{**config.problem_settings, **(overrides or {})})
+        problem = make_problem(PROBLEMS[config.problem], {**config.problem_settings, **(overrides or {})})
     except ValueError as e:
         raise ConfigError(f"{config.problem}: {e}") from None
     return DirectOptimisation(problem) if config.no_network else problem
