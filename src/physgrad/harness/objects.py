@@ -13,6 +13,8 @@ maps one to the other, so a run directory written before the objects existed kee
   problem's ``network_scale``;
 - problem settings that hold an activation function (the oscillators' ``activation``) →
   ``jax.nn.relu``, ``jax.nn.tanh``, ... (:data:`ACTIVATIONS`);
+- ``--devices N|all`` → ``devices=N`` or ``devices=None`` (every device), as
+  :func:`physgrad.fit` takes it (:func:`devices`);
 - SIP's ``krylov=cg|cg_negative|gmres|bicgstab|normal_cg`` → a lineax solver object and the
   operator tags it assumes (:class:`~physgrad.inverse.LinearSolve`).
 """
@@ -24,6 +26,7 @@ from typing import Any
 import jax
 import lineax as lx
 
+from ..errors import ConfigError
 from ..nets import identity
 from ..problems.base import AbstractProblem
 from ..steppers import AbstractComposition, Bypass, Parallel, Prediction, Residual, Sequential
@@ -51,6 +54,20 @@ def activation(name: str):
     if name not in ACTIVATIONS:
         raise ValueError(f"unknown activation {name!r}; valid choices: {', '.join(ACTIVATIONS)}")
     return ACTIVATIONS[name]
+
+
+def devices(value: int | str | None) -> int | None:
+    """``fit``'s ``devices=`` from the command line's ``--devices``: a number, or ``"all"``
+    (also ``"auto"``) for every device (None). Anything else passes through to the library,
+    which names what it takes."""
+    if isinstance(value, str):
+        text = value.strip()
+        if text in ("all", "auto"):
+            return None
+        if text.isdigit():
+            return int(text)
+        raise ConfigError(f"devices must be a number or 'all', got {value!r}")
+    return value
 
 
 # krylov name -> (lineax solver, operator tags); LinearSolve sets the tolerances and the limit.

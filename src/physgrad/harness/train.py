@@ -33,6 +33,7 @@ from ..problems.direct import DirectOptimisation
 from ..programs import ProgramCache
 from ..progress import AbstractProgressMeter
 from .config import ConfigError, RunConfig
+from .objects import devices as edge_devices
 from .objects import make_problem
 from .registry import METHODS, PROBLEMS
 
@@ -111,7 +112,7 @@ def train(
         raise ConfigError(f"prdp needs a problem with an iterative solver; valid choices: {', '.join(valid)}")
     return fit(
         problem_of(config), phases_of(config), budget=config.budget, out=run_dir, seed=config.seed,
-        settings=settings_of(config), resume=resume, progress=progress, devices=devices,
+        settings=settings_of(config), resume=resume, progress=progress, devices=edge_devices(devices),
         record=config.to_dict(), same_run=lambda old: _same_run(old, config), name=config.method,
     ).summary  # fmt: skip
 
