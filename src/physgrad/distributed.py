@@ -24,7 +24,7 @@ import jax
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-from .errors import ConfigError
+from .errors import ConfigError, CoordinatorInvalid, DevicesInvalid, DevicesRefused, ProcessesInvalid
 
 AXIS = "data"
 
@@ -35,10 +35,10 @@ def initialize(coordinator: str, num_processes: int, process_id: int) -> None:
     ``coordinator`` is ``HOST:PORT`` of process 0, which listens there. On CPU the
     cross-process collectives use gloo (JAX's default)."""
     if num_processes < 1 or not 0 <= process_id < num_processes:
-        raise ConfigError(f"need 0 <= process_id < num_processes; got {process_id} and {num_processes}")
+        raise ProcessesInvalid(process_id, num_processes)
     host, _, port = coordinator.rpartition(":")
     if not host or not port.isdigit():
-        raise ConfigError(f"coordinator must be HOST:PORT, got {coordinator!r}")
+        raise CoordinatorInvalid(coordinator)
     jax.distributed.initialize(coordinator, num_processes=num_processes, process_id=process_id)
 
 
@@ -58,17 +58,15 @@ def make_mesh(devices: int | Sequence[jax.Device] | None = 1) -> Mesh | None:  #
         n = int(devices)
         if not 1 <= n <= available:
             seen = f"this run sees {available} device(s) ({jax.default_backend()})"
-            raise ConfigError(f"devices={n}: {seen}")
+            raise DevicesRefused(n, after=f": {seen}")
         chosen = jax.devices()[:n]
     elif isinstance(devices, Sequence) and devices and all(isinstance(d, jax.Device) for d in devices):
         chosen = list(devices)
     else:
-        raise ConfigError(
-            f"devices must be a number of devices, a sequence of jax devices or None (every device), got {devices!r}"
-        )
+        raise DevicesInvalid(devices, "a number of devices, a sequence of jax devices or None (every device)")
     n = len(chosen)
     if jax.process_count() > 1 and n != available:
-        raise ConfigError(f"a multi-process run uses every device ({available}); got devices={n}")
+        raise DevicesRefused(n, before=f"a multi-process run uses every device ({available}); got ")
     if n == 1:
         return None
     axis_type = (jax.sharding.AxisType.Auto,)
@@ -86,7 +84,7 @@ def _deprecated_devices(text: str) -> int | None:
     try:
         return int(text)
     except ValueError:
-        raise ConfigError(f"devices must be a number or 'all', got {text!r}") from None
+        raise DevicesInvalid(text, "a number or 'all'") from None
 
 
 def check_batch(batch_size: int, mesh: Mesh | None) -> None:

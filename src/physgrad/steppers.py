@@ -94,8 +94,8 @@ def _no_vjp_fwd(perturbed, u, solver, cond):
 @_no_vjp.def_bwd
 def _no_vjp_bwd(residuals, g, perturbed, u, solver, cond):
     raise NotDifferentiableError(
-        f"{type(solver).__name__} is not differentiable: train with a method that never "
-        "differentiates the solver (one, nog)"
+        f"{type(solver).__name__} is not differentiable: train with a gradient-flow policy that stops the "
+        "solver's input (physgrad.rollout.S(), or teacher_forcing=True)"
     )
 
 

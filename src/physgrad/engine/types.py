@@ -15,7 +15,7 @@ from typing import Any, NamedTuple
 import equinox as eqx
 
 from .. import checks
-from ..errors import ConfigError
+from ..errors import BudgetOutOfRange, ConfigError, NoBudget
 from ..methods import AbstractMethod, Objective
 from ..problems import AbstractProblem
 
@@ -36,11 +36,11 @@ class Budget:
     def __post_init__(self):
         given = [k for k in ("steps", "epochs", "seconds") if getattr(self, k) is not None]
         if len(given) != 1:
-            raise ConfigError("give exactly one budget: Budget(steps=N), Budget(epochs=E) or Budget(seconds=S)")
+            raise NoBudget()
         kind, amount = given[0], getattr(self, given[0])
         check = checks.POSITIVE if kind == "seconds" else checks.POSITIVE_INT
         if not check.valid(amount):  # a NaN or infinite budget would never be met
-            raise ConfigError(f"Budget({kind}={amount!r}): {kind} must be {check.text}")
+            raise BudgetOutOfRange(kind, amount, check.text)
 
     @property
     def kind(self) -> str:

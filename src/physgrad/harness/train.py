@@ -29,6 +29,7 @@ from ..engine import (
     read_summary,
 )
 from ..engine.record import differences
+from ..errors import RunDirectoryRefused
 from ..problems.direct import DirectOptimisation
 from ..programs import ProgramCache
 from ..progress import AbstractProgressMeter
@@ -87,9 +88,9 @@ def _same_run(recorded: dict[str, Any], config: RunConfig) -> list[str]:
     try:
         old = RunConfig.from_dict(recorded)
     except (KeyError, TypeError, ValueError, AttributeError):
-        raise ConfigError("the run directory's config.json was not written by the command line (a run of "
-                          "physgrad.fit from Python?); resume it with physgrad.fit(..., resume=True) as it was "
-                          "started, or choose another run directory") from None  # fmt: skip
+        raise RunDirectoryRefused("the run directory's config.json was not written by the command line (a run of "
+                                  "physgrad.fit from Python?); resume it with physgrad.fit(..., resume=True) as it "
+                                  "was started, or ") from None  # fmt: skip
     return differences(old.identity(), config.identity())
 
 
