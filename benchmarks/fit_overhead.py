@@ -56,7 +56,7 @@ class Cubic(physgrad.AbstractProblem):
         return {"train": jax.tree.map(lambda a: a[: self.n], data), "test": jax.tree.map(lambda a: a[self.n :], data)}
 
     def make_network(self, key):
-        return physgrad.MLP((2, self.width, self.width, 2), "tanh", key=key)
+        return physgrad.MLP((2, self.width, self.width, 2), jax.nn.tanh, key=key)
 
     def network_output(self, network, sample):
         return network(sample["y"])

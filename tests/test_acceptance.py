@@ -226,7 +226,7 @@ def test_a_user_composes_a_method_with_an_optax_chain_and_acceptance_in_their_ow
 
 
 def test_a_method_with_acceptance_steps_a_whole_equinox_module():
-    model = physgrad.MLP((3, 4, 1), "tanh", key=jax.random.key(0))
+    model = physgrad.MLP((3, 4, 1), jax.nn.tanh, key=jax.random.key(0))
     objective, _, batch = _regression()
     objective = objective._replace(predict=lambda m, s: m(s["x"]))
     method = Method(Gradient(), optax.sgd(1e-2), acceptance=All(FiniteGradient()))

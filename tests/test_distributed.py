@@ -253,6 +253,16 @@ def test_devices_setting_errors_are_one_line():
         make_mesh("many")
 
 
+def test_devices_are_a_number_a_sequence_or_none_and_strings_are_deprecated():
+    everything = make_mesh(None)
+    assert (1 if everything is None else everything.devices.size) == jax.device_count()
+    assert make_mesh(jax.devices()[:1]) is None and make_mesh(1) is None
+    with pytest.warns(DeprecationWarning, match="devices='1'"):
+        assert make_mesh("1") is None
+    with pytest.raises(ConfigError, match="a sequence of jax devices"):
+        make_mesh([])
+
+
 @needs_devices
 @pytest.mark.slow
 def test_training_on_4_devices_matches_one_device(tmp_path):

@@ -35,7 +35,7 @@ class Square(physgrad.AbstractProblem):
         return {"train": jax.tree.map(lambda a: a[: self.n], data), "test": jax.tree.map(lambda a: a[self.n :], data)}
 
     def make_network(self, key):
-        return physgrad.MLP((2, 8, 2), "tanh", key=key)
+        return physgrad.MLP((2, 8, 2), jax.nn.tanh, key=key)
 
     def network_output(self, network, sample):
         return network(sample["y"])

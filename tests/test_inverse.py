@@ -2,10 +2,12 @@
 
 import jax
 import jax.numpy as jnp
+import lineax as lx
 import numpy as np
 import pytest
 import scipy.optimize
 
+from physgrad.harness import objects
 from physgrad.harness.registry import make_solver
 from physgrad.inverse import LBFGS, Analytic, GaussNewton, LinearSolve, SaddleFreeNewton
 
@@ -141,12 +143,16 @@ def test_lbfgs_accept_last_keeps_an_unconverged_iterate_that_helped():
     assert misfit(last.x) < misfit(X)
 
 
+# CG on a symmetric positive (semi)definite operator
+SPD_CG = {"solver": lx.CG(rtol=0.0, atol=0.0, max_steps=1000), "tags": (lx.symmetric_tag, lx.positive_semidefinite_tag)}
+
+
 @pytest.mark.parametrize("krylov", ["gmres", "bicgstab", "normal_cg"])
 def test_linear_solve_equals_numpy_solve_for_a_general_matrix(krylov):
     M = RNG.normal(size=(6, 6)) + 6 * np.eye(6)
     sim = lambda x, s: jnp.asarray(M) @ x + 1.0  # noqa: E731  affine
     x, yt = RNG.normal(size=6), RNG.normal(size=6)
-    result = LinearSolve(krylov, rtol=1e-12, atol=1e-14)(
+    result = LinearSolve(**objects.krylov(krylov), rtol=1e-12, atol=1e-14)(
         sim, jnp.asarray(x), jnp.asarray(M @ x + 1.0), jnp.asarray(yt), {}
     )
     assert bool(result.converged)
@@ -159,7 +165,9 @@ def test_linear_solve_cg_on_definite_operators(krylov, sign):
     M = sign * (G @ G.T + np.eye(6))
     sim = lambda x, s: jnp.asarray(M) @ x  # noqa: E731
     x, yt = RNG.normal(size=6), RNG.normal(size=6)
-    result = LinearSolve(krylov, rtol=1e-12, atol=1e-14)(sim, jnp.asarray(x), jnp.asarray(M @ x), jnp.asarray(yt), {})
+    result = LinearSolve(**objects.krylov(krylov), rtol=1e-12, atol=1e-14)(
+        sim, jnp.asarray(x), jnp.asarray(M @ x), jnp.asarray(yt), {}
+    )
     assert bool(result.converged)
     np.testing.assert_allclose(result.x, np.linalg.solve(M, yt), rtol=1e-8, atol=1e-10)
 
@@ -167,8 +175,18 @@ def test_linear_solve_cg_on_definite_operators(krylov, sign):
 def test_linear_solve_reports_non_convergence():
     M = np.diag(np.logspace(0, 6, 20))
     sim = lambda x, s: jnp.asarray(M) @ x  # noqa: E731
-    result = LinearSolve("cg", rtol=1e-12, atol=0.0, max_steps=2)(sim, jnp.zeros(20), jnp.zeros(20), jnp.ones(20), {})
+    result = LinearSolve(**SPD_CG, rtol=1e-12, atol=0.0, max_steps=2)(
+        sim, jnp.zeros(20), jnp.zeros(20), jnp.ones(20), {}
+    )
     assert not bool(result.converged)
+
+
+def test_linear_solve_krylov_names_are_deprecated_spellings_of_solver_objects():
+    with pytest.warns(DeprecationWarning, match="LinearSolve"):
+        old = LinearSolve("cg", rtol=1e-3)
+    assert old == LinearSolve(**objects.krylov("cg"), rtol=1e-3)
+    with pytest.warns(DeprecationWarning):
+        assert LinearSolve(krylov="gmres") == LinearSolve()
 
 
 def test_make_solver_names_and_errors():
@@ -193,7 +211,7 @@ def test_linear_solve_with_a_float64_simulator_on_float32_predictions():
     M = RNG.normal(size=(5, 5)) + 5 * np.eye(5)
     sim = lambda x, s: jnp.asarray(M) @ x.astype(jnp.float64)  # noqa: E731  (float64 physics)
     x, yt = jnp.zeros(5, jnp.float32), RNG.normal(size=5)
-    result = LinearSolve("gmres", rtol=1e-6, atol=1e-8)(sim, x, sim(x, None), jnp.asarray(yt), None)
+    result = LinearSolve(rtol=1e-6, atol=1e-8)(sim, x, sim(x, None), jnp.asarray(yt), None)
     assert result.x.dtype == jnp.float32 and bool(result.converged)
     np.testing.assert_allclose(result.x, np.linalg.solve(M, yt), rtol=1e-4, atol=1e-5)
 
@@ -212,14 +230,14 @@ def test_linear_solve_cg_default_tolerance_converges_in_float32():
     sim = lambda x, s: matrix @ x  # noqa: E731
     rng = np.random.default_rng(1)
     x, y_target = rng.normal(size=(64, 32)), rng.normal(size=(64, 32))
-    solve = jax.jit(jax.vmap(lambda x, yt: LinearSolve("cg")(sim, x, sim(x, None), yt, None)))
+    solve = jax.jit(jax.vmap(lambda x, yt: LinearSolve(**SPD_CG)(sim, x, sim(x, None), yt, None)))
     result = solve(jnp.asarray(x, jnp.float32), jnp.asarray(y_target, jnp.float32))
     assert result.x.dtype == jnp.float32 and bool(jnp.all(result.converged))
     want = np.linalg.solve(M, y_target.T).T
     # error ≲ condition × tolerance (ε^{3/4} ≈ 6e-6)
     np.testing.assert_allclose(result.x, want, atol=2e-3 * np.abs(want).max())
-    assert LinearSolve("cg").tolerances(jnp.float32) == (np.finfo(np.float32).eps ** 0.75,) * 2
-    assert LinearSolve("cg", rtol=1e-3).tolerances(jnp.float64) == (1e-3, np.finfo(np.float64).eps ** 0.75)
+    assert LinearSolve(**SPD_CG).tolerances(jnp.float32) == (np.finfo(np.float32).eps ** 0.75,) * 2
+    assert LinearSolve(**SPD_CG, rtol=1e-3).tolerances(jnp.float64) == (1e-3, np.finfo(np.float64).eps ** 0.75)
 
 
 def test_linear_solve_tolerance_is_relative_to_the_residual_scale():
@@ -228,7 +246,7 @@ def test_linear_solve_tolerance_is_relative_to_the_residual_scale():
     M = spd(50.0, n=8)
     sim = lambda x, s: jnp.asarray(M) @ x  # noqa: E731
     r = np.random.default_rng(2).normal(size=8)
-    solve = jax.jit(lambda yt: LinearSolve("cg")(sim, jnp.zeros(8), jnp.zeros(8), yt, None))
+    solve = jax.jit(lambda yt: LinearSolve(**SPD_CG)(sim, jnp.zeros(8), jnp.zeros(8), yt, None))
     steps = []
     for scale in (1e-6, 1.0, 1e6):
         result = solve(jnp.asarray(scale * r))

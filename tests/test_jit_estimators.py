@@ -85,7 +85,7 @@ def _estimators():
     cases = {name: (estimate, params, batch) for name, estimate in open_loop.items()}
     params, network_output, simulate, target, batch = _sip()
     cases["sip_linear_solve"] = (
-        physgrad.sip(network_output, simulate, target, solver=inverse.LinearSolve("gmres")),
+        physgrad.sip(network_output, simulate, target, solver=inverse.LinearSolve()),
         params,
         batch,
     )

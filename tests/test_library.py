@@ -57,7 +57,7 @@ def user_loop(estimate, params, batches):
 
 # --- a small network through nonlinear physics: y = (z₀, z₁², sin z₂) -----------------------
 def network(key):
-    return physgrad.MLP((2, 6, 3), "tanh", key=key)
+    return physgrad.MLP((2, 6, 3), jax.nn.tanh, key=key)
 
 
 def physics(z):
@@ -107,6 +107,14 @@ def test_jacobian_rules_in_a_user_loop_with_clipping_and_a_schedule(name, expone
         np.testing.assert_allclose(np.asarray(ravel_pytree(path[t])[0]), theta, rtol=2e-4, atol=2e-5)
 
 
+def test_mlp_takes_its_activation_as_a_function_and_names_are_deprecated():
+    with pytest.warns(DeprecationWarning, match="MLP"):
+        named = physgrad.MLP((2, 6, 3), "tanh", key=jax.random.key(0))
+    assert named == network(jax.random.key(0))
+    x = jnp.ones(2)
+    np.testing.assert_allclose(named(x), network(jax.random.key(0))(x))
+
+
 def test_routes_are_interchangeable_objects():
     params, predict, loss, batches = pieces()
     directions = [
@@ -128,7 +136,7 @@ def test_sip_in_a_user_loop_with_clipping_and_a_schedule():
     """Network x = f(input); physics y = A x (well-conditioned 3×3); SIP with Gauss–Newton's
     local inverse gives x̃ = x + A⁻¹(y* − y): the proxy gradient by hand is Jᵀ(x − x̃)/b."""
     a = np.array([[2.0, 0.3, 0.0], [0.1, 1.0, 0.2], [0.0, 0.4, 3.0]], np.float32)
-    params, static = eqx.partition(physgrad.MLP((2, 5, 3), "tanh", key=jax.random.key(3)), eqx.is_inexact_array)
+    params, static = eqx.partition(physgrad.MLP((2, 5, 3), jax.nn.tanh, key=jax.random.key(3)), eqx.is_inexact_array)
 
     def network_output(p, sample):
         return eqx.combine(p, static)(sample["x"])
@@ -229,7 +237,7 @@ class Cubic(AbstractProblem):
         return {"train": jax.tree.map(lambda a: a[: self.n], data), "test": jax.tree.map(lambda a: a[self.n :], data)}
 
     def make_network(self, key):
-        return physgrad.MLP((2, 16, 2), "tanh", key=key)
+        return physgrad.MLP((2, 16, 2), jax.nn.tanh, key=key)
 
     def network_output(self, network, sample):
         return network(sample["y"])

@@ -57,7 +57,7 @@ def test_zero_damping_is_gauss_newton_and_large_damping_the_scaled_gradient(rout
 
 def _problem(key=0):
     """A small tanh network through a nonlinear simulator with a squared-error loss."""
-    net = jax.tree.map(lambda a: a.astype(jnp.float64), MLP((3, 8, 2), "tanh", key=jax.random.key(key)))
+    net = jax.tree.map(lambda a: a.astype(jnp.float64), MLP((3, 8, 2), jax.nn.tanh, key=jax.random.key(key)))
     params = net
 
     def predict(p, s):

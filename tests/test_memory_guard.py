@@ -165,7 +165,7 @@ def test_lighter_routes_and_more_devices_are_suggested(monkeypatch):
         memory.check_step_fits(setup.method, setup.objective, setup.params, batch, devices=[FakeGPU(free)], label="hig")
     message = str(refused.value)
     assert "devices=4" in message and "the device has" in message and f"~{memory._size(whole)}" in message
-    assert "--devices 4" in command_line_words(str(refused.value))  # the command line's words
+    assert "--devices 4" in command_line_words(refused.value)  # the command line's words
     assert "route=blockgram blocks=" in message or "route=lanczos" in message
     # the largest batch that fits on one device, checked
     b = suggested_batch(message)

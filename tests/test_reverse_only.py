@@ -1,10 +1,10 @@
 """Reverse-mode-only simulators (a ``jax.custom_vjp``, e.g. PhiFlow's solves) in the
 Jacobian- and Hessian-based pieces, with plain JAX stand-ins (no PhiFlow needed).
 
-- ``GaussNewton(jacobian="auto")`` detects at trace time that the simulator has no forward
+- ``GaussNewton(jacobian=AutoMode())`` detects at trace time that the simulator has no forward
   mode (a mark, or a JVP probe under ``jax.eval_shape``), builds J by ``jacrev`` and equals
   NumPy's pinv step of the same map written without custom_vjp;
-- the forward-mode pieces (``LinearSolve``; ``GaussNewton(jacobian="forward")``) raise one
+- the forward-mode pieces (``LinearSolve``; ``GaussNewton(jacobian=ForwardMode())``) raise one
   line naming the alternative; the Hessian pieces (``SaddleFreeNewton``, ``newton``) fall
   back to reverse over reverse where forward over reverse fails, and raise one line when
   both fail.
@@ -115,13 +115,13 @@ def test_the_probe_tells_reverse_only_functions_apart_at_trace_time():
         jacobian.jacobian_mode(plain, x, 4, "sideways")
 
 
-@pytest.mark.parametrize("mode", ["auto", "reverse"])
+@pytest.mark.parametrize("mode", [jacobian.AutoMode(), jacobian.ReverseMode()])
 def test_gauss_newton_on_a_reverse_only_simulator_equals_numpy_pinv(mode):
     result = solve(GaussNewton(1e-10, jacobian=mode), reverse_only)
     expected = X + np.linalg.pinv(np_jacobian(X), rcond=1e-10) @ (Y_TARGET - np_plain(X))
     np.testing.assert_allclose(result.x, expected, rtol=1e-10, atol=1e-12)
     # and the forward-mode answer on the ordinary function is the same step
-    forward = solve(GaussNewton(1e-10, jacobian="forward"), plain)
+    forward = solve(GaussNewton(1e-10, jacobian=jacobian.ForwardMode()), plain)
     np.testing.assert_allclose(result.x, forward.x, rtol=1e-12, atol=1e-13)
     assert bool(result.converged)
 
@@ -137,14 +137,20 @@ def test_gauss_newton_under_sip_style_jit_and_vmap_picks_reverse_mode():
         np.testing.assert_allclose(got, want, rtol=1e-10, atol=1e-12)
 
 
+def test_jacobian_mode_names_are_deprecated_spellings_of_the_mode_objects():
+    with pytest.warns(DeprecationWarning, match="ReverseMode"):
+        assert GaussNewton(jacobian="reverse") == GaussNewton(jacobian=jacobian.ReverseMode())
+    assert GaussNewton().jacobian == jacobian.AutoMode()
+
+
 def test_forward_mode_pieces_say_so_in_one_line():
     with pytest.raises(
         ValueError, match=r"^GaussNewton\(jacobian='forward'\) needs forward-mode .*jacobian='reverse'"
     ) as info:
-        solve(GaussNewton(jacobian="forward"), reverse_only)
+        solve(GaussNewton(jacobian=jacobian.ForwardMode()), reverse_only)
     assert "\n" not in str(info.value)
     with pytest.raises(ValueError, match=r"^LinearSolve needs forward-mode .*GaussNewton\(\).*LBFGS\(\)") as info:
-        solve(LinearSolve("gmres"), reverse_only)
+        solve(LinearSolve(), reverse_only)
     assert "\n" not in str(info.value)
     with pytest.raises(ValueError, match="unknown jacobian"):
         GaussNewton(jacobian="both")

@@ -15,7 +15,7 @@ from physgrad import routes
 def _case(sizes, batch_size):
     """A float32 MLP (``sizes``: in, hidden..., out) through a nonlinear map; a counter of
     ``predict``'s calls; a jittable step of HIG with plain SGD."""
-    net = physgrad.MLP(sizes, "tanh", key=jax.random.key(0))
+    net = physgrad.MLP(sizes, jax.nn.tanh, key=jax.random.key(0))
     params, static = eqx.partition(net, eqx.is_inexact_array)
     calls = []
 

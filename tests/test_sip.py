@@ -6,6 +6,7 @@ from typing import ClassVar
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import lineax as lx
 import numpy as np
 import pytest
 
@@ -258,12 +259,18 @@ def test_newton_method_equals_numpy_newton_on_the_toy():
     np.testing.assert_allclose(new.x, x - np.array([2 * x[0], 4 * x[1] ** 3]) / np.array([2.0, 12 * x[1] ** 2]))
 
 
+# CG on a symmetric positive (semi)definite operator
+SPD_CG = {"solver": lx.CG(rtol=0.0, atol=0.0, max_steps=1000), "tags": (lx.symmetric_tag, lx.positive_semidefinite_tag)}
+
+
 # --- LinearSolve inside the user's own jit, x64 off (issue 33) ----------------------------
 UNDER_JIT = """
 import json, warnings
 import jax, jax.numpy as jnp, numpy as np
 import physgrad
+import lineax as lx
 from physgrad.inverse import LinearSolve
+cg, psd = lx.CG(rtol=0.0, atol=0.0, max_steps=1000), (lx.symmetric_tag, lx.positive_semidefinite_tag)
 
 n, b = 32, 8
 rng = np.random.default_rng(0)
@@ -292,7 +299,7 @@ with warnings.catch_warnings(record=True) as caught:
         x = y_star @ np.asarray(params["w"], np.float64).T
         want = (x - inverses[name](y_star)).T @ y_star / b
         for precision in ("float32", "float64"):
-            estimate = physgrad.sip(network, simulate, lambda s: s["y"], solver=LinearSolve("cg"), precision=precision)
+            estimate = physgrad.sip(network, simulate, lambda s: s["y"], solver=LinearSolve(cg, tags=psd), precision=precision)
             direction, stats = jax.jit(estimate)(params, batch)
             d = np.asarray(direction["w"], np.float64)
             out[f"{name}_{precision}"] = {"dtype": str(direction["w"].dtype), "failures": int(stats["inverse_failures"]),
@@ -330,7 +337,7 @@ def test_most_solves_failing_warns_once_and_is_counted():
 
     matrix = jnp.asarray(np.diag(np.logspace(0, 6, 8)), jnp.float32)
     estimate = physgrad.sip(lambda p, s: p @ s, lambda x, s: matrix @ x, lambda s: 2 * s,
-                            solver=LinearSolve("cg", max_steps=2))  # fmt: skip
+                            solver=LinearSolve(**SPD_CG, max_steps=2))  # fmt: skip
     step = jax.jit(estimate)
     params, batch = jnp.eye(8, dtype=jnp.float32), jnp.ones((4, 8), jnp.float32)
     with warnings.catch_warnings(record=True) as caught:
@@ -343,7 +350,7 @@ def test_most_solves_failing_warns_once_and_is_counted():
     assert [w.category for w in caught] == [InverseFailureWarning]
     assert "inverse_failures" in str(caught[0].message)
     quiet = physgrad.sip(lambda p, s: p @ s, lambda x, s: matrix @ x, lambda s: 2 * s,
-                         solver=LinearSolve("cg", max_steps=2), warn_failures=None)  # fmt: skip
+                         solver=LinearSolve(**SPD_CG, max_steps=2), warn_failures=None)  # fmt: skip
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         jax.block_until_ready(jax.jit(quiet)(params, batch))

@@ -64,7 +64,7 @@ class ConvDense(eqx.Module):
     def __init__(self, key):
         k1, k2 = jax.random.split(key)
         self.conv = eqx.nn.Conv1d(1, 2, 3, padding="SAME", key=k1)
-        self.mlp = MLP((16, 12, 3), "tanh", key=k2)
+        self.mlp = MLP((16, 12, 3), jax.nn.tanh, key=k2)
 
     def __call__(self, x):
         return self.mlp(jnp.tanh(self.conv(x[None])).ravel())
@@ -99,8 +99,8 @@ def _between(s, k):
 
 
 NETWORKS = {
-    "mlp_tanh": lambda: MLP((3, 8, 6, 2), "tanh", key=jax.random.key(0)),
-    "mlp_relu": lambda: MLP((3, 10, 7, 2), "relu", key=jax.random.key(2)),
+    "mlp_tanh": lambda: MLP((3, 8, 6, 2), jax.nn.tanh, key=jax.random.key(0)),
+    "mlp_relu": lambda: MLP((3, 10, 7, 2), jax.nn.relu, key=jax.random.key(2)),
     "no_bias": lambda: NoBiasMLP((3, 9, 2), jax.random.key(3)),
     "x_at_w": lambda: RightMultiply(jax.random.key(4)),
 }
@@ -124,7 +124,7 @@ def test_structured_gram_equals_the_explicit_gram(name):
 
 def test_dense_layers_are_found_in_the_program_and_the_rest_is_explicit():
     sample = {"x": jnp.zeros(3, jnp.float32), "t": jnp.zeros(2, jnp.float32)}
-    objective, params = _objective(MLP((3, 8, 6, 2), "tanh", key=jax.random.key(0)))
+    objective, params = _objective(MLP((3, 8, 6, 2), jax.nn.tanh, key=jax.random.key(0)))
     plan = find_structure(objective.predict, params, sample, rows=12)
     assert [(u.d_in, u.d_out, u.transposed) for u in plan.dense] == [(3, 8, False), (8, 6, False), (6, 2, False)]
     assert all(u.bias is not None for u in plan.dense) and plan.explicit_parameters == 0  # biases folded in
@@ -133,7 +133,7 @@ def test_dense_layers_are_found_in_the_program_and_the_rest_is_explicit():
     assert [(u.d_in, u.d_out, u.transposed) for u in plan.dense] == [(3, 5, True)]
     assert plan.explicit_parameters == 25  # the weight used twice
     # a network applied point-wise inside predict (vmap): one weight, several inputs each
-    net = MLP((1, 4, 1), "tanh", key=jax.random.key(5))
+    net = MLP((1, 4, 1), jax.nn.tanh, key=jax.random.key(5))
     params, static = eqx.partition(net, eqx.is_inexact_array)
     pointwise = lambda p, s: jax.vmap(eqx.combine(p, static))(s["x"][:, None]).ravel()  # noqa: E731
     plan = find_structure(pointwise, params, {"x": jnp.zeros(3)}, rows=3)
@@ -203,7 +203,8 @@ def test_mixed_conv_dense_network_equals_the_gram_route(chunk):
 def test_complex_outputs_equal_the_gram_route():
     """A real network, complex physics (as the quantum dipole): J has (Re, Im) rows."""
     net = jax.tree.map(
-        lambda a: a.astype(jnp.float64) if eqx.is_inexact_array(a) else a, MLP((3, 8, 2), "tanh", key=jax.random.key(7))
+        lambda a: a.astype(jnp.float64) if eqx.is_inexact_array(a) else a,
+        MLP((3, 8, 2), jax.nn.tanh, key=jax.random.key(7)),
     )
     objective, params = _objective(
         net, physics=lambda u: jnp.exp(1j * u) * (1 + u), loss=lambda y, s: jnp.sum(jnp.abs(y - s["t"]) ** 2)
@@ -216,7 +217,7 @@ def test_complex_outputs_equal_the_gram_route():
 
 
 def test_tall_jacobian_goes_to_the_gram_route():
-    objective, params = _objective(MLP((3, 2, 2), "tanh", key=jax.random.key(8), dtype=jnp.float64))
+    objective, params = _objective(MLP((3, 2, 2), jax.nn.tanh, key=jax.random.key(8), dtype=jnp.float64))
     batch = _batch(3, 2, b=20)  # 40 rows, 14 parameters
     want, _ = _numpy_reference(objective, params, batch, -0.5, 1e-6)
     got = routes.Structured()(objective, params, batch, -0.5, 1e-6)[0]
@@ -224,7 +225,7 @@ def test_tall_jacobian_goes_to_the_gram_route():
 
 
 def test_auto_picks_structured_for_dense_networks_and_gram_otherwise():
-    objective, params = _objective(MLP((3, 8, 6, 2), "tanh", key=jax.random.key(0)))
+    objective, params = _objective(MLP((3, 8, 6, 2), jax.nn.tanh, key=jax.random.key(0)))
     assert isinstance(routes.Auto().choose(objective, params, _batch(3, 2)), routes.Structured)
     conv = eqx.nn.Conv1d(1, 1, 3, padding="SAME", key=jax.random.key(1))
     objective, params = _objective(conv, physics=lambda y: jnp.sin(y[0]))
@@ -234,7 +235,7 @@ def test_auto_picks_structured_for_dense_networks_and_gram_otherwise():
 
 
 def test_structured_footprint_is_far_below_the_gram_routes():
-    objective, params = _objective(MLP((64, 256, 256, 64), "tanh", key=jax.random.key(0)))
+    objective, params = _objective(MLP((64, 256, 256, 64), jax.nn.tanh, key=jax.random.key(0)))
     batch = _batch(64, 64, b=16)
     rows, size = 16 * 64, sum(x.size for x in jax.tree.leaves(params))
     gram = routes.Gram().footprint(objective, params, batch)
@@ -249,7 +250,7 @@ def test_structured_route_sharded_over_4_devices_equals_one_device(case):
         objective, params, batch = _mixed()
         batch = jax.tree.map(lambda a: jnp.concatenate([a, a[:3] * 0.5]), batch)  # 8 samples
     else:
-        net = jax.tree.map(lambda a: a.astype(jnp.float64), MLP((3, 8, 2), "tanh", key=jax.random.key(7)))
+        net = jax.tree.map(lambda a: a.astype(jnp.float64), MLP((3, 8, 2), jax.nn.tanh, key=jax.random.key(7)))
         objective, params = _objective(
             net, physics=lambda u: jnp.exp(1j * u) * (1 + u), loss=lambda y, s: jnp.sum(jnp.abs(y - s["t"]) ** 2)
         )

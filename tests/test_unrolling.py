@@ -18,6 +18,7 @@ from physgrad import prdp
 from physgrad.engine import Placement, Steps, TrainSettings, grouped_order
 from physgrad.harness.cli import main
 from physgrad.harness.config import Budget, ConfigError, make_config
+from physgrad.harness.objects import make_problem
 from physgrad.harness.registry import METHODS, PROBLEMS
 from physgrad.harness.train import build, make_step, settings_of, train
 from physgrad.problems import Advection1d, Kolmogorov, KuramotoSivashinsky
@@ -25,7 +26,16 @@ from physgrad.problems.advection_1d import ImplicitUpwind, fou_distance
 from physgrad.problems.ks import ks_stepper
 from physgrad.problems.time_stepper import windows
 from physgrad.rollout import value_and_grad
-from physgrad.steppers import NonDifferentiable, NotDifferentiableError, Solver, stepper_step
+from physgrad.steppers import (
+    Bypass,
+    NonDifferentiable,
+    NotDifferentiableError,
+    Parallel,
+    Prediction,
+    Residual,
+    Sequential,
+    Solver,
+)
 
 
 @pytest.fixture(autouse=True)
@@ -186,7 +196,7 @@ def numpy_etd1_frame(u, size, dt=0.5, substeps=2):
 
 def test_ks_correction_is_etd1_plus_the_substep_times_the_network():
     """u⁺ = ETD1(u) + Δt·f_θ(u, f) with the substep Δt = 0.5 (the authors' ``diff_ks.dt * net``)."""
-    problem = KuramotoSivashinsky(setup="correction")
+    problem = KuramotoSivashinsky(composition=Parallel(scale=0.5))
     net = problem.make_network(jax.random.key(1))
     x = np.arange(48) / 48 * 2 * np.pi
     u = (np.cos(x) + 0.3 * np.sin(3 * x))[None]
@@ -222,18 +232,18 @@ class Affine(Solver):
 
 
 @pytest.mark.parametrize(
-    "setup_name, composition, expected",
+    "composition, expected",
     [
-        ("prediction", "full", lambda u, c: u**2 + c),
-        ("prediction", "residual", lambda u, c: u + u**2 + c),
-        ("correction", "parallel", lambda u, c: 2 * u + 1 + 0.5 * (u**2 + c)),
-        ("correction", "sequential", lambda u, c: (2 * u + 1) ** 2 + c),
-        ("correction", "bypass", lambda u, c: 2 * u + 1 + 0.5 * ((2 * u + 1) ** 2 + c)),
+        (Prediction(), lambda u, c: u**2 + c),
+        (Residual(), lambda u, c: u + u**2 + c),
+        (Parallel(scale=0.5), lambda u, c: 2 * u + 1 + 0.5 * (u**2 + c)),
+        (Sequential(), lambda u, c: (2 * u + 1) ** 2 + c),
+        (Bypass(scale=0.5), lambda u, c: 2 * u + 1 + 0.5 * ((2 * u + 1) ** 2 + c)),
     ],
 )
-def test_compositions_match_their_formulas(setup_name, composition, expected):
+def test_compositions_match_their_formulas(composition, expected):
     u = jnp.linspace(-1.0, 2.0, 7)[None]
-    out, ok = stepper_step(setup_name, composition, Affine(), lambda v, c: v**2 + c, u, u, 0.3, scale=0.5)
+    out, ok = composition(Affine(), lambda v, c: v**2 + c, u, u, 0.3)
     np.testing.assert_allclose(out, expected(u, 0.3), rtol=1e-6)
     assert bool(ok)
 
@@ -359,7 +369,7 @@ def stand_in_setup(config, train):
     network and solvers that ``build`` makes."""
     from types import SimpleNamespace
 
-    problem = PROBLEMS[config.problem](**config.problem_settings)
+    problem = make_problem(PROBLEMS[config.problem], config.problem_settings)
     return SimpleNamespace(
         problem=problem, data={"train": train}, stages=[SimpleNamespace(batch_size=p.batch_size) for p in config.phases]
     )
@@ -397,7 +407,9 @@ def advection():
     config = adv_config("nog", batch_size=8)
     with pytest.MonkeyPatch.context() as patch:
         patch.setattr(Advection1d, "trajectories", trajectories)
-        return config, PROBLEMS["advection_1d"](**config.problem_settings).make_data(jax.random.key(0))["train"]
+        return config, make_problem(PROBLEMS["advection_1d"], config.problem_settings).make_data(jax.random.key(0))[
+            "train"
+        ]
 
 
 def test_a_time_stepper_batch_is_not_consecutive_windows_of_one_trajectory(advection):
@@ -447,7 +459,7 @@ def test_ks_batches_hold_one_domain_size_each_with_the_sizes_interleaved_at_rand
 
     monkeypatch.setattr(KuramotoSivashinsky, "trajectories", trajectories)
     config = make_config("ks", "nog", budget=Budget(steps=1), settings=SMALL_KS)
-    train = PROBLEMS["ks"](**config.problem_settings).make_data(jax.random.key(0))["train"]
+    train = make_problem(PROBLEMS["ks"], config.problem_settings).make_data(jax.random.key(0))["train"]
     setup = stand_in_setup(config, train)
     size = np.asarray(train["index"])  # the domain size of every window
     assert np.bincount(size).tolist() == [48] * 6
@@ -683,7 +695,9 @@ def test_cache_key_follows_the_settings_that_shape_the_splits(tmp_path, monkeypa
     short = Advection1d(**SMALL_ADV, eval_horizon=5).trajectories("val")
     longer = Advection1d(**SMALL_ADV, eval_horizon=8).trajectories("val")
     assert short["u"].shape[1] == 6 and longer["u"].shape[1] == 9
-    Advection1d(**{**SMALL_ADV, "iterations": 3}, setup="prediction", eval_horizon=5).trajectories("val")  # cached
+    Advection1d(**{**SMALL_ADV, "iterations": 3}, composition=Prediction(), eval_horizon=5).trajectories(
+        "val"
+    )  # cached
     assert len(list(tmp_path.glob("advection_1d-val-*.npz"))) == 2
 
 

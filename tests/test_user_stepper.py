@@ -18,7 +18,7 @@ import pytest
 import physgrad
 from physgrad.problems import TimeStepperProblem
 from physgrad.rollout import R, S
-from physgrad.steppers import Repeated, Solver, single_precision
+from physgrad.steppers import Bypass, Parallel, Repeated, Residual, Solver, single_precision
 
 
 def _conv_net(key, width=8):
@@ -68,6 +68,15 @@ def test_zero_init_zeroes_only_the_last_layer_of_a_users_sequential_network():
     object.__setattr__(mlp_problem, "make_network", lambda key: eqx_mlp)
     zeroed = mlp_problem.initial_network(jax.random.key(0), {})
     assert not np.any(zeroed.layers[-1].weight) and np.array_equal(zeroed.layers[0].weight, eqx_mlp.layers[0].weight)
+
+
+def test_setup_and_composition_strings_are_deprecated_spellings_of_composition_objects():
+    with pytest.warns(DeprecationWarning, match="composition object"):
+        residual = _SequentialDecay(setup="prediction", composition="residual")
+    assert residual.composition == Residual() and residual.setup is None
+    with pytest.warns(DeprecationWarning):
+        assert _SequentialDecay(composition="bypass").composition == Bypass(1.0)
+    assert _SequentialDecay().composition == Parallel(1.0)
 
 
 ex = pytest.importorskip("exponax", reason="the user's solver is an exponax stepper (physgrad[pde])")

@@ -17,7 +17,7 @@ from __future__ import annotations
 import contextlib
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from . import cpu as _cpu
 from .engine import run as _run
@@ -27,6 +27,9 @@ from .engine.types import Budget, Phase, TrainSettings
 from .methods import AbstractMethod
 from .problems import AbstractProblem
 from .progress import AbstractProgressMeter
+
+if TYPE_CHECKING:
+    import jax
 
 
 def fit(
@@ -40,7 +43,7 @@ def fit(
     settings: TrainSettings = _run.DEFAULT_SETTINGS,
     resume: bool = False,
     progress: AbstractProgressMeter | None = None,
-    devices: int | str | None = 1,
+    devices: int | Sequence[jax.Device] | None = 1,
     record: dict[str, Any] | None = None,
     same_run: Callable[[dict[str, Any]], Any] | None = None,
     label: str = "",

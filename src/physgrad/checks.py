@@ -24,7 +24,7 @@ import os
 from pathlib import Path
 from typing import Any
 
-from .errors import ConfigError
+from .errors import ConfigError, PathRefused
 
 
 class Check:
@@ -245,16 +245,18 @@ def check_directory(path: str | Path, what: str = "out") -> Path:
         raise ConfigError(f"{what} has a name of {len(os.fsencode(long[0]))} bytes, over the 255 a file system "
                           f"allows; choose a shorter {what}")  # fmt: skip
     if path.exists() and not path.is_dir():
-        raise ConfigError(f"{what} {str(path)!r} is a file, not a directory; choose another {what}")
+        raise PathRefused(
+            what, "{argument} {path!r} is a file, not a directory; choose another {argument}", path=str(path)
+        )
     parent = path
     while not parent.exists():
         if parent.parent == parent:
             break
         parent = parent.parent
     if parent.exists() and not parent.is_dir():
-        raise ConfigError(f"{what} {str(path)!r} cannot be created: {str(parent)!r} is a file; choose another {what}")
+        raise PathRefused(what, "{argument} {path!r} cannot be created: {parent!r} is a file; choose another {argument}",
+                          path=str(path), parent=str(parent))  # fmt: skip
     if parent.exists() and not os.access(parent, os.W_OK | os.X_OK):
-        raise ConfigError(
-            f"{what} {str(path)!r} cannot be written: {str(parent)!r} is not writable; choose another {what}"
-        )
+        raise PathRefused(what, "{argument} {path!r} cannot be written: {parent!r} is not writable; choose another "
+                          "{argument}", path=str(path), parent=str(parent))  # fmt: skip
     return path

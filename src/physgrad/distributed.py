@@ -17,12 +17,14 @@ from __future__ import annotations
 
 import contextlib
 import math
+import warnings
+from collections.abc import Sequence
 
 import jax
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-from .errors import ConfigError
+from .errors import ConfigError, CoordinatorInvalid, DevicesInvalid, DevicesRefused, ProcessesInvalid
 
 AXIS = "data"
 
@@ -33,33 +35,56 @@ def initialize(coordinator: str, num_processes: int, process_id: int) -> None:
     ``coordinator`` is ``HOST:PORT`` of process 0, which listens there. On CPU the
     cross-process collectives use gloo (JAX's default)."""
     if num_processes < 1 or not 0 <= process_id < num_processes:
-        raise ConfigError(f"need 0 <= process_id < num_processes; got {process_id} and {num_processes}")
+        raise ProcessesInvalid(process_id, num_processes)
     host, _, port = coordinator.rpartition(":")
     if not host or not port.isdigit():
-        raise ConfigError(f"coordinator must be HOST:PORT, got {coordinator!r}")
+        raise CoordinatorInvalid(coordinator)
     jax.distributed.initialize(coordinator, num_processes=num_processes, process_id=process_id)
 
 
-def make_mesh(devices: int | str | None = 1) -> Mesh | None:
-    """A one-axis ``"data"`` mesh over the first ``devices`` devices (``"all"``, ``"auto"``
-    or None: every device of every process); None for a single device (nothing to shard)."""
+def make_mesh(devices: int | Sequence[jax.Device] | None = 1) -> Mesh | None:  # pyright: ignore[reportInvalidTypeForm]
+    """A one-axis ``"data"`` mesh: over the first ``devices`` devices (a number), over the given
+    devices (a sequence, e.g. ``jax.devices()[2:6]``), or over every device of every process
+    (None); None for a single device (nothing to shard).
+
+    The strings ``"all"``/``"auto"`` and numbers as text (the command line's ``--devices``)
+    still work for one release, with a ``DeprecationWarning``."""
     available = jax.device_count()
-    if devices in (None, "all", "auto"):
-        n = available
-    else:
-        try:
-            n = int(devices)
-        except ValueError:
-            raise ConfigError(f"devices must be a number or 'all', got {devices!r}") from None
+    if isinstance(devices, str):
+        devices = _deprecated_devices(devices)
+    if devices is None:
+        chosen = jax.devices()
+    elif isinstance(devices, int | np.integer):
+        n = int(devices)
         if not 1 <= n <= available:
             seen = f"this run sees {available} device(s) ({jax.default_backend()})"
-            raise ConfigError(f"devices={n}: {seen}")
+            raise DevicesRefused(n, after=f": {seen}")
+        chosen = jax.devices()[:n]
+    elif isinstance(devices, Sequence) and devices and all(isinstance(d, jax.Device) for d in devices):
+        chosen = list(devices)
+    else:
+        raise DevicesInvalid(devices, "a number of devices, a sequence of jax devices or None (every device)")
+    n = len(chosen)
     if jax.process_count() > 1 and n != available:
-        raise ConfigError(f"a multi-process run uses every device ({available}); got devices={n}")
+        raise DevicesRefused(n, before=f"a multi-process run uses every device ({available}); got ")
     if n == 1:
         return None
     axis_type = (jax.sharding.AxisType.Auto,)
-    return jax.make_mesh((n,), (AXIS,), axis_types=axis_type, devices=jax.devices()[:n])
+    return jax.make_mesh((n,), (AXIS,), axis_types=axis_type, devices=chosen)
+
+
+def _deprecated_devices(text: str) -> int | None:
+    warnings.warn(
+        f"devices={text!r} is deprecated; pass a number, a sequence of jax devices, or None for every device",
+        DeprecationWarning,
+        stacklevel=3,
+    )
+    if text in ("all", "auto"):
+        return None
+    try:
+        return int(text)
+    except ValueError:
+        raise DevicesInvalid(text, "a number or 'all'") from None
 
 
 def check_batch(batch_size: int, mesh: Mesh | None) -> None:

@@ -1,12 +1,87 @@
-"""The one error type of bad user input (its own module: every other module may raise it)."""
+"""The error types of bad user input (their own module: every other module may raise them).
+
+:class:`ConfigError` is a one-line message. Where the message names an argument of the
+library (``resume=True``, ``out``, ``devices=4``, ``Budget(steps=N)``), the error is one of
+the small subclasses below, which carry those arguments as fields and write the library's
+line from them; the command line writes its own line (``--resume``, ``--out``,
+``--devices 4``, ``--steps N``) from the same fields, by type
+(:func:`physgrad.harness.words.command_line_words`). So no core message is parsed, and no
+module of the core names a flag.
+"""
+
+from __future__ import annotations
+
+from typing import Any
 
 
 class ConfigError(ValueError):
-    """A wrong problem, method, setting or budget; the message is one line with the choices.
+    """A wrong problem, method, setting or budget; the message is one line with the choices."""
 
-    The message speaks the library's words (``resume=True``, ``out``, ``devices=4``); the
-    command line prints it in its own (``--resume``, ``--out``, ``--devices 4``:
-    :func:`physgrad.harness.words.command_line_words`)."""
+
+class RunDirectoryExists(ConfigError):
+    """A run directory already holds a run, and the call did not ask to resume it."""
+
+    def __init__(self, run_dir: Any):
+        self.run_dir = run_dir
+        super().__init__(f"run directory {run_dir} exists; resume it (resume=True) or choose another run directory")
+
+
+class RunDirectoryRefused(ConfigError):
+    """A run directory cannot take this run; ``reason`` (ending in its own punctuation)
+    says why, and the remedy is another run directory."""
+
+    def __init__(self, reason: str):
+        self.reason = reason
+        super().__init__(f"{reason}choose another run directory")
+
+
+class NoBudget(ConfigError):
+    """A budget that names none, or more than one, of steps, epochs and seconds."""
+
+    def __init__(self):
+        super().__init__("give exactly one budget: Budget(steps=N), Budget(epochs=E) or Budget(seconds=S)")
+
+
+class BudgetOutOfRange(ConfigError):
+    """A budget's amount outside its range: ``kind`` (steps, epochs or seconds), the
+    ``amount`` given and the ``requirement`` it fails (e.g. "an integer >= 1")."""
+
+    def __init__(self, kind: str, amount: Any, requirement: str):
+        self.kind, self.amount, self.requirement = kind, amount, requirement
+        super().__init__(f"Budget({kind}={amount!r}): {kind} must be {requirement}")
+
+
+class ProcessesInvalid(ConfigError):
+    """A multi-process run's ``process_id`` outside ``[0, num_processes)``."""
+
+    def __init__(self, process_id: int, num_processes: int):
+        self.process_id, self.num_processes = process_id, num_processes
+        super().__init__(f"need 0 <= process_id < num_processes; got {process_id} and {num_processes}")
+
+
+class CoordinatorInvalid(ConfigError):
+    """A multi-process run's coordinator address that is not ``HOST:PORT``."""
+
+    def __init__(self, coordinator: Any):
+        self.coordinator = coordinator
+        super().__init__(f"coordinator must be HOST:PORT, got {coordinator!r}")
+
+
+class DevicesInvalid(ConfigError):
+    """A ``devices`` value of the wrong kind; ``accepted`` says which kinds are taken."""
+
+    def __init__(self, devices: Any, accepted: str):
+        self.devices, self.accepted = devices, accepted
+        super().__init__(f"devices must be {accepted}, got {devices!r}")
+
+
+class DevicesRefused(ConfigError):
+    """A device count this run cannot use: ``before`` and ``after`` the count, which the
+    library writes ``devices=N``."""
+
+    def __init__(self, devices: int, before: str = "", after: str = ""):
+        self.devices, self.before, self.after = devices, before, after
+        super().__init__(f"{before}devices={devices}{after}")
 
 
 class DoesNotFit(ConfigError):
@@ -16,4 +91,20 @@ class DoesNotFit(ConfigError):
     A :class:`ConfigError` (the remedy is a setting), but one that depends on the method and
     the machine rather than on a wrong name or value: a study that records failures
     (``physgrad.harness.study.compare(record_failures=True)``, the bench) records it as that run's
-    failure and goes on with the others."""
+    failure and goes on with the others.
+
+    ``DoesNotFit(message)``, or with a device count that would fit: ``before``, the count
+    (``devices=N`` in the library's words), ``after``."""
+
+    def __init__(self, before: str, devices: int | None = None, after: str = ""):
+        self.before, self.devices, self.after = before, devices, after
+        super().__init__(before if devices is None else f"{before}devices={devices}{after}")
+
+
+class PathRefused(ConfigError):
+    """A path argument (``argument``, e.g. ``out``) that cannot be used: the message is
+    ``template`` with ``{argument}`` where it names the argument."""
+
+    def __init__(self, argument: str, template: str, **values: Any):
+        self.argument, self.template, self.values = argument, template, values
+        super().__init__(template.format(argument=argument, **values))

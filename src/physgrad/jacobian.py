@@ -1,13 +1,18 @@
 """Per-sample Jacobians of the simulator output, stacked sample-major; and the helpers
 that let Jacobian- and Hessian-based pieces handle reverse-mode-only simulators
 (:func:`is_reverse_only`, :func:`supports_forward_mode`, :func:`dense_jacobian`,
-:func:`dense_hessian`)."""
+:func:`dense_hessian`); the Jacobian mode objects :class:`ForwardMode`, :class:`ReverseMode`
+and :class:`AutoMode` (how a dense Jacobian is built)."""
 
 from __future__ import annotations
 
+import abc
 import functools
+import warnings
 from collections.abc import Callable
+from typing import ClassVar
 
+import equinox as eqx
 import jax
 import jax.extend.core as jax_core
 import jax.numpy as jnp
@@ -54,7 +59,7 @@ def stacked_jacobian(predict: Callable[[PyTree, PyTree], Array], params: PyTree,
 # need forward mode say so in one line instead of JAX's internal error.
 
 REVERSE_ONLY_ATTRIBUTE = "reverse_only"
-MODES = ("auto", "forward", "reverse")
+MODES = ("auto", "forward", "reverse")  # the deprecated string spellings of the mode objects
 
 
 def mark_reverse_only(fn: Callable) -> Callable:
@@ -152,32 +157,103 @@ def require_forward_mode(fn: Callable, *primals, what: str, alternative: str, so
         raise forward_mode_error(what, alternative) from None
 
 
-def jacobian_mode(fn: Callable, x: Array, output_size: int, mode: str = "auto", *, source=None) -> str:
-    """``"forward"`` or ``"reverse"`` for the dense Jacobian of ``fn`` at the flat ``x``.
+class AbstractJacobianMode(eqx.Module):
+    """How the dense Jacobian ∂fn/∂x (output_size × x.size) of a flat-vector map is built:
+    by ``x.size`` JVPs (forward mode) or ``output_size`` VJPs (reverse mode)."""
 
-    ``auto``: reverse when ``fn`` has no forward mode (:func:`supports_forward_mode`) or
-    when ``output_size < x.size`` (fewer VJPs than JVPs), else forward."""
-    if mode not in MODES:
-        raise ValueError(f"unknown jacobian mode {mode!r}; valid choices: {', '.join(MODES)}")
-    if mode != "auto":
+    name: ClassVar[str]
+
+    @abc.abstractmethod
+    def resolve(self, fn: Callable, x: Array, output_size: int, *, source=None) -> ForwardMode | ReverseMode:
+        """The concrete mode used for ``fn`` at ``x`` (trace time)."""
+
+    @abc.abstractmethod
+    def jacobian(self, fn: Callable, x: Array, output_size: int, *, source=None, what: str) -> Array:
+        """``∂fn/∂x``; ``what`` names the caller in a one-line error."""
+
+
+class ForwardMode(AbstractJacobianMode):
+    """Forward mode (``jax.jacfwd``); on a reverse-only ``fn`` a one-line ``ValueError``."""
+
+    name: ClassVar[str] = "forward"
+
+    def resolve(self, fn, x, output_size, *, source=None):
+        return self
+
+    def jacobian(self, fn, x, output_size, *, source=None, what):
+        require_forward_mode(fn, x, what=what, alternative="use jacobian='reverse' or 'auto'", source=source)
+        return jax.jacfwd(fn)(x)
+
+
+class ReverseMode(AbstractJacobianMode):
+    """Reverse mode (``jax.jacrev``): any differentiable ``fn``, PhiFlow's solves included."""
+
+    name: ClassVar[str] = "reverse"
+
+    def resolve(self, fn, x, output_size, *, source=None):
+        return self
+
+    def jacobian(self, fn, x, output_size, *, source=None, what):
+        return jax.jacrev(fn)(x)
+
+
+class AutoMode(AbstractJacobianMode):
+    """Reverse mode when ``fn`` has no forward mode (:func:`supports_forward_mode`, probed at
+    trace time) or when ``output_size < x.size`` (fewer VJPs than JVPs), else forward."""
+
+    name: ClassVar[str] = "auto"
+
+    def resolve(self, fn, x, output_size, *, source=None):
+        if output_size < x.size or not supports_forward_mode(fn, x, source=source):
+            return ReverseMode()
+        return ForwardMode()
+
+    def jacobian(self, fn, x, output_size, *, source=None, what):
+        # the probe above has run: a forward choice needs no second check
+        chosen = self.resolve(fn, x, output_size, source=source)
+        return (jax.jacrev if isinstance(chosen, ReverseMode) else jax.jacfwd)(fn)(x)
+
+
+_AUTO = AutoMode()
+_MODE_NAMES = {"auto": AutoMode, "forward": ForwardMode, "reverse": ReverseMode}
+
+
+def as_jacobian_mode(mode: AbstractJacobianMode | str) -> AbstractJacobianMode:
+    """``mode``, or the object of a deprecated mode name (``"auto"|"forward"|"reverse"``,
+    with a ``DeprecationWarning``)."""
+    if isinstance(mode, AbstractJacobianMode):
         return mode
-    if output_size < x.size or not supports_forward_mode(fn, x, source=source):
-        return "reverse"
-    return "forward"
+    if mode not in _MODE_NAMES:
+        raise ValueError(f"unknown jacobian mode {mode!r}; valid choices: {', '.join(MODES)}")
+    warnings.warn(
+        f"jacobian={mode!r} is deprecated; pass physgrad.jacobian.{_MODE_NAMES[mode].__name__}()",
+        DeprecationWarning,
+        stacklevel=3,
+    )
+    return _MODE_NAMES[mode]()
+
+
+def jacobian_mode(
+    fn: Callable, x: Array, output_size: int, mode: AbstractJacobianMode | str = _AUTO, *, source=None
+) -> str:
+    """``"forward"`` or ``"reverse"``: the mode ``mode`` uses for the dense Jacobian of ``fn``
+    at the flat ``x`` (:class:`AutoMode`'s rule by default)."""
+    return as_jacobian_mode(mode).resolve(fn, x, output_size, source=source).name
 
 
 def dense_jacobian(
-    fn: Callable, x: Array, output_size: int, mode: str = "auto", *, source=None, what: str = "jacobian='forward'"
+    fn: Callable,
+    x: Array,
+    output_size: int,
+    mode: AbstractJacobianMode | str = _AUTO,
+    *,
+    source=None,
+    what: str = "jacobian='forward'",
 ):
-    """``∂fn/∂x`` (output_size × x.size) of a flat-vector map by :func:`jacobian_mode`.
+    """``∂fn/∂x`` (output_size × x.size) of a flat-vector map, built by ``mode``.
 
-    An explicit ``"forward"`` on a reverse-only ``fn`` raises a one-line ``ValueError``."""
-    chosen = jacobian_mode(fn, x, output_size, mode, source=source)
-    if chosen == "forward":
-        if mode == "forward":  # an explicit choice is checked here; "auto" has probed already
-            require_forward_mode(fn, x, what=what, alternative="use jacobian='reverse' or 'auto'", source=source)
-        return jax.jacfwd(fn)(x)
-    return jax.jacrev(fn)(x)
+    An explicit :class:`ForwardMode` on a reverse-only ``fn`` raises a one-line ``ValueError``."""
+    return as_jacobian_mode(mode).jacobian(fn, x, output_size, source=source, what=what)
 
 
 def dense_hessian(fn: Callable, x: Array, *, what: str, alternative: str, source=None) -> Array:

@@ -213,25 +213,28 @@ def check_step_fits(
         if _accepts(variant, b, n) and fits(variant.footprint(objective, params, batch, n) + rest):
             suggestions.append(_difference(method, variant))
             break
+    devices = None  # a device count that would fit, written by the error in its reader's words
     if mine[0].platform != "cpu":  # more accelerators add memory; more CPU devices do not
         for more in range(n + 1, jax.device_count() + 1):
             if b % more == 0 and fits(max(method.footprint(objective, params, batch, more), (step or 0) * n / more)):
-                suggestions.append(f"devices={more}")
+                devices = more
                 break
     note = method.footprint_note(objective, params, batch)
     if step is not None and step > footprint:
         note = "compiled step" + (f"; {note}" if note else "")
-    fit = (
-        f"would fit: {' or '.join(suggestions)}"
-        if suggestions
-        else "found no batch size, variant or device count that fits"
-    )
+    if suggestions or devices is not None:
+        fit = f"would fit: {' or '.join(suggestions)}" + (" or " if suggestions and devices is not None else "")
+    else:
+        fit = "found no batch size, variant or device count that fits"
     held = f", {_size(resident * shared)} of it for the data and parameters" if resident else ""
     message = (
         f"{label or 'the'} step needs ~{_size(need * shared)}" + (f" ({note})" if note else "")
-        + f" but {where} has {_size(min(free))} available{held}; {fit} (memory_guard=false skips this check)"
+        + f" but {where} has {_size(min(free))} available{held}; {fit}"
     )  # fmt: skip
-    raise DoesNotFit(message)  # the library's words (devices=N, as fit takes it)
+    guard = " (memory_guard=false skips this check)"
+    if devices is None:
+        raise DoesNotFit(message + guard)
+    raise DoesNotFit(message, devices, guard)
 
 
 def tree_bytes(tree: Any) -> int:

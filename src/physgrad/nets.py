@@ -8,19 +8,28 @@ The HIG paper's networks are Keras ``Dense`` stacks: glorot-uniform kernels,
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+import warnings
+from collections.abc import Callable, Sequence
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float, PRNGKeyArray
 
-ACTIVATIONS = {
+
+def identity(x: Array) -> Array:
+    """The identity activation (a linear network)."""
+    return x
+
+
+# The deprecated string spellings of MLP's activation (one release); the command line's own
+# names are physgrad.harness.objects.ACTIVATIONS.
+_ACTIVATION_NAMES = {
     "relu": jax.nn.relu,
-    "tanh": jnp.tanh,
+    "tanh": jax.nn.tanh,
     "sigmoid": jax.nn.sigmoid,
     "gelu": jax.nn.gelu,
-    "identity": lambda x: x,
+    "identity": identity,
 }
 
 
@@ -47,16 +56,29 @@ class Dense(eqx.Module):
 class MLP(eqx.Module):
     """Fully connected network ``sizes[0] → … → sizes[-1]``, activation on hidden layers only.
 
-    Example: ``MLP((4, 20, 20, 20, 96), "relu", key=k)`` is the HIG oscillator network
+    Example: ``MLP((4, 20, 20, 20, 96), jax.nn.relu, key=k)`` is the HIG oscillator network
     (2,956 parameters). Input and output are unbatched vectors; vmap over samples.
+    ``activation`` is any elementwise function (``jax.nn.tanh``, ``jax.nn.relu``, ...); a name
+    (``"tanh"``) still works for one release, with a ``DeprecationWarning``.
     """
 
     layers: tuple[Dense, ...]
-    activation: str = eqx.field(static=True)
+    activation: Callable[[Array], Array] = eqx.field(static=True)
 
-    def __init__(self, sizes: Sequence[int], activation: str, *, key: PRNGKeyArray, dtype=jnp.float32):
-        if activation not in ACTIVATIONS:
-            raise ValueError(f"unknown activation {activation!r}; valid choices: {', '.join(ACTIVATIONS)}")
+    def __init__(
+        self, sizes: Sequence[int], activation: Callable[[Array], Array] | str, *, key: PRNGKeyArray, dtype=jnp.float32
+    ):
+        if isinstance(activation, str):
+            warnings.warn(
+                f"MLP(..., {activation!r}) is deprecated; pass the function, e.g. activation=jax.nn.tanh",
+                DeprecationWarning,
+                stacklevel=2,
+            )
+            if activation not in _ACTIVATION_NAMES:
+                raise ValueError(f"unknown activation {activation!r}; valid choices: {', '.join(_ACTIVATION_NAMES)}")
+            activation = _ACTIVATION_NAMES[activation]
+        if not callable(activation):
+            raise TypeError(f"activation must be a function (e.g. jax.nn.tanh), got {activation!r}")
         keys = jax.random.split(key, len(sizes) - 1)
         self.layers = tuple(
             Dense(n_in, n_out, key=k, dtype=dtype) for n_in, n_out, k in zip(sizes[:-1], sizes[1:], keys)
@@ -64,9 +86,8 @@ class MLP(eqx.Module):
         self.activation = activation
 
     def __call__(self, x: Float[Array, " in"]) -> Float[Array, " out"]:
-        act = ACTIVATIONS[self.activation]
         for layer in self.layers[:-1]:
-            x = act(layer(x))
+            x = self.activation(layer(x))
         return self.layers[-1](x)
 
 

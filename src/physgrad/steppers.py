@@ -2,20 +2,23 @@
 
 List, Chen, Bali & Thuerey, "Differentiability in unrolled training of neural physics
 simulators on transient dynamics", CMAME 2025.
-One step u ↦ u⁺ of a stepper, with P the (coarse) numerical solver and f_θ the network:
+One step u ↦ u⁺ of a stepper, with P the (coarse) numerical solver and f_θ the network, is
+one of five composition objects, passed to a time-stepper problem as diffrax takes its
+``adjoint=`` (each object computes its own step):
 
-================  ==============================  =======================================
-setup             composition                     u⁺
-================  ==============================  =======================================
-prediction        ``full``                        f_θ(u)
-prediction        ``residual``                    u + f_θ(u)
-correction        ``parallel`` (List's KS)        P(u) + α f_θ(u)
-correction        ``sequential``                  f_θ(P(u))
-correction        ``bypass`` (List's KOLM)        P(u) + α f_θ(P(u))
-================  ==============================  =======================================
+===========================  =======================  =======================================
+setup                        composition              u⁺
+===========================  =======================  =======================================
+prediction                   :class:`Prediction`      f_θ(u)
+prediction                   :class:`Residual`        u + f_θ(u)
+correction                   :class:`Parallel` (α)    P(u) + α f_θ(u)       (List's KS)
+correction                   :class:`Sequential`      f_θ(P(u))
+correction                   :class:`Bypass` (α)      P(u) + α f_θ(P(u))    (List's KOLM)
+===========================  =======================  =======================================
 
-α is the problem's network scale (List's KS uses Δt). The network also receives the
-sample's conditioning value (domain size, Reynolds number) as a constant channel.
+α is the problem's network scale (List's KS uses the substep Δt). The network also
+receives the sample's conditioning value (domain size, Reynolds number) as a constant
+channel.
 
 A :class:`Solver` declares whether it can be differentiated. The state enters a step twice,
 as the network sees it (``u_net``) and as the solver sees it (``u_phys``), so a gradient-flow
@@ -36,9 +39,6 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 from jaxtyping import Array
-
-SETUPS = ("prediction", "correction")
-COMPOSITIONS = {"prediction": ("full", "residual"), "correction": ("parallel", "sequential", "bypass")}
 
 
 class Solver(eqx.Module):
@@ -94,38 +94,100 @@ def _no_vjp_fwd(perturbed, u, solver, cond):
 @_no_vjp.def_bwd
 def _no_vjp_bwd(residuals, g, perturbed, u, solver, cond):
     raise NotDifferentiableError(
-        f"{type(solver).__name__} is not differentiable: train with a method that never "
-        "differentiates the solver (one, nog)"
+        f"{type(solver).__name__} is not differentiable: train with a gradient-flow policy that stops the "
+        "solver's input (physgrad.rollout.S(), or teacher_forcing=True)"
     )
 
 
-def check_composition(setup: str, composition: str) -> None:
-    """Raise a one-line ``ValueError`` for an unknown setup or composition."""
-    if setup not in SETUPS:
-        raise ValueError(f"unknown setup {setup!r}; valid choices: {', '.join(SETUPS)}")
-    if composition not in COMPOSITIONS[setup]:
-        raise ValueError(
-            f"unknown composition {composition!r} for the {setup} setup; valid choices: {', '.join(COMPOSITIONS[setup])}"
-        )
+Network = Callable[[Array, Array], Array]  # f_θ(u, cond) -> a state-shaped output
 
 
-def stepper_step(setup: str, composition: str, solver: Solver | None, network, u_net, u_phys, cond, scale: float = 1.0):
-    """One stepper step for one sample (see the module table): ``(u⁺, ok)``.
+class AbstractComposition(eqx.Module):
+    """How one stepper step combines the solver P and the network f_θ (module table).
 
-    ``network(u, cond) -> Δ`` maps a state and its conditioning value to a state-shaped
-    output. In the prediction setup the solver is not called and ``u_phys`` is unused.
+    ``composition(solver, network, u_net, u_phys, cond) -> (u⁺, ok)`` for one sample: ``u_net``
+    is the state as the network sees it, ``u_phys`` as the solver sees it (the same array
+    unless a gradient-flow policy stops one of them), ``ok`` the solver's success flag.
+    ``uses_solver`` declares whether the step calls P at all (the prediction setup does
+    not: its problems then build no solver and declare the rollout differentiable).
     """
-    if setup == "prediction":
-        out = network(u_net, cond)
-        return (u_net + out if composition == "residual" else out), jnp.asarray(True)
-    if solver is None:
-        raise ValueError(f"the {setup} setup needs a solver")
-    p, ok = solver.step(u_phys, cond)
-    if composition == "parallel":
-        return p + scale * network(u_net, cond), ok
-    if composition == "sequential":
-        return network(p, cond), ok
-    return p + scale * network(p, cond), ok  # bypass
+
+    uses_solver: ClassVar[bool]
+
+    @abc.abstractmethod
+    def __call__(
+        self, solver: Solver | None, network: Network, u_net: Array, u_phys: Array, cond: Array
+    ) -> tuple[Array, Array]: ...
+
+
+class AbstractPrediction(AbstractComposition):
+    """The prediction setup: the network alone steps the state; ``u_phys`` is unused."""
+
+    uses_solver: ClassVar[bool] = False
+
+    @abc.abstractmethod
+    def predict(self, network: Network, u: Array, cond: Array) -> Array:
+        """u⁺ from the state ``u`` as the network sees it."""
+
+    def __call__(self, solver, network, u_net, u_phys, cond):
+        return self.predict(network, u_net, cond), jnp.asarray(True)
+
+
+class AbstractCorrection(AbstractComposition):
+    """The correction setup: the solver steps the state and the network corrects it."""
+
+    uses_solver: ClassVar[bool] = True
+
+    @abc.abstractmethod
+    def correct(self, network: Network, u: Array, p: Array, cond: Array) -> Array:
+        """u⁺ from the state ``u`` as the network sees it and the solver's step ``p = P(u)``."""
+
+    def __call__(self, solver, network, u_net, u_phys, cond):
+        if solver is None:
+            raise ValueError(f"{type(self).__name__} corrects a solver; the problem gave none")
+        p, ok = solver.step(u_phys, cond)
+        return self.correct(network, u_net, p, cond), ok
+
+
+class Prediction(AbstractPrediction):
+    """u⁺ = f_θ(u): the network replaces the solver (List et al.'s prediction setup)."""
+
+    def predict(self, network, u, cond):
+        return network(u, cond)
+
+
+class Residual(AbstractPrediction):
+    """u⁺ = u + f_θ(u): the network predicts the change of the state."""
+
+    def predict(self, network, u, cond):
+        return u + network(u, cond)
+
+
+class Parallel(AbstractCorrection):
+    """u⁺ = P(u) + α f_θ(u): solver and network side by side (List et al.'s KS setup, with
+    α the solver's substep Δt)."""
+
+    scale: float = eqx.field(static=True, default=1.0)  # α
+
+    def correct(self, network, u, p, cond):
+        return p + self.scale * network(u, cond)
+
+
+class Sequential(AbstractCorrection):
+    """u⁺ = f_θ(P(u)): the network post-processes the solver's step."""
+
+    def correct(self, network, u, p, cond):
+        return network(p, cond)
+
+
+class Bypass(AbstractCorrection):
+    """u⁺ = P(u) + α f_θ(P(u)): sequential with a bypass of the solver's step (List et al.'s
+    Kolmogorov setup)."""
+
+    scale: float = eqx.field(static=True, default=1.0)  # α
+
+    def correct(self, network, u, p, cond):
+        return p + self.scale * network(p, cond)
 
 
 def stack_solvers(solvers):

@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import Any
 
 from .. import rundir
-from ..errors import ConfigError
+from ..errors import ConfigError, RunDirectoryExists, RunDirectoryRefused
 from . import record as records
 from .recording import is_final, kept_path, read_json, read_summary, write_json
 from .types import Budget, Epochs
@@ -52,12 +52,13 @@ def recorded(request: Any) -> dict[str, Any] | None:
         foreign = sorted(n for n in names if not n.startswith(".") and n not in EARLY_RUN_FILES)
         if foreign:
             shown = ", ".join(foreign[:3]) + (", …" if len(foreign) > 3 else "")
-            raise ConfigError(f"{run_dir} holds files that are not a physgrad run ({shown}); a run would overwrite "
-                              "them: choose another run directory")  # fmt: skip
+            raise RunDirectoryRefused(
+                f"{run_dir} holds files that are not a physgrad run ({shown}); a run would overwrite them: "
+            )
         return None
     path = run_dir / "config.json"
     if not request.resume:
-        raise ConfigError(f"run directory {run_dir} exists; resume it (resume=True) or choose another run directory")
+        raise RunDirectoryExists(run_dir)
     old = read_json(path)
     verdict = request.same_run(old)
     if verdict is True or (not isinstance(verdict, bool) and not list(verdict)):
@@ -65,8 +66,9 @@ def recorded(request: Any) -> dict[str, Any] | None:
     differ = records.differences(records.identity(old), records.identity(records.like(json.loads(json.dumps(request.record, default=str)), old))) \
         if isinstance(verdict, bool) else list(verdict)  # fmt: skip
     what = f" ({'; '.join(differ[:6])}{'; …' if len(differ) > 6 else ''})" if differ else ""
-    raise ConfigError(f"run directory {run_dir} holds a different configuration{what}; resume it with its own "
-                      "settings or choose another run directory")  # fmt: skip
+    raise RunDirectoryRefused(
+        f"run directory {run_dir} holds a different configuration{what}; resume it with its own settings or "
+    )
 
 
 def done_already(run_dir: Path, budget: Budget, wall_cap: float = 0.0) -> dict[str, Any] | None:
@@ -121,4 +123,4 @@ def budget_met(
     trained = (
         f"the run in {run_dir} has already trained {what}, more than the budget of {budget}; resume it with at least"
     )
-    raise ConfigError(f"{trained} that budget, or choose another run directory")
+    raise RunDirectoryRefused(f"{trained} that budget, or ")

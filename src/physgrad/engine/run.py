@@ -70,7 +70,7 @@ def fit(
     settings: TrainSettings = DEFAULT_SETTINGS,
     resume: bool = False,
     progress: AbstractProgressMeter | None = None,
-    devices: int | str | None = 1,
+    devices: int | Sequence[jax.Device] | None = 1,
     record: dict[str, Any] | None = None,
     same_run: Callable[[dict[str, Any]], Any] | None = None,
     label: str = "",
@@ -106,8 +106,8 @@ def fit(
     outside ``jax.jit`` (:mod:`physgrad.engine.callbacks`).
 
     A run whose loss turns NaN or infinite stops with status ``"diverged"``, the step and
-    the last finite loss. ``devices`` (a number or ``"all"``) splits every batch over a
-    device mesh; in a multi-process run every process calls ``fit`` alike and only process
+    the last finite loss. ``devices`` (a number, a sequence of jax devices, or None for
+    every device) splits every batch over a device mesh; in a multi-process run every process calls ``fit`` alike and only process
     0 writes.
 
     Keys: everything random derives from ``key = jax.random.key(seed)``:

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Sequence
 
 import jax
 import numpy as np
@@ -128,7 +129,7 @@ class ChunkSize:
 class Placement:
     """Where arrays live: one device, or a data mesh over devices and processes."""
 
-    devices: int | str | None = 1
+    devices: int | Sequence[jax.Device] | None = 1
 
     def __post_init__(self):
         self.mesh = distributed.make_mesh(self.devices)

@@ -18,7 +18,7 @@ from typing import Any, ClassVar, NamedTuple, final
 import equinox as eqx
 
 from .. import checks
-from ..errors import ConfigError
+from ..errors import BudgetOutOfRange, ConfigError, NoBudget
 from ..methods import AbstractMethod, Objective
 from ..problems import AbstractProblem
 
@@ -53,7 +53,7 @@ class Budget(metaclass=_KeywordSpelling):
 
     def __post_init__(self):
         if not self.check.valid(self.amount):  # a NaN or infinite budget would never be met
-            raise ConfigError(f"Budget({self.kind}={self.amount!r}): {self.kind} must be {self.check.text}")
+            raise BudgetOutOfRange(self.kind, self.amount, self.check.text)
 
     @staticmethod
     def of(record: dict[str, Any]) -> Budget:
@@ -62,7 +62,7 @@ class Budget(metaclass=_KeywordSpelling):
             unknown = set(record) - set(_BUDGETS)
             if unknown:
                 raise TypeError(f"Budget() got an unexpected keyword argument {sorted(unknown)[0]!r}")
-            raise ConfigError("give exactly one budget: Budget(steps=N), Budget(epochs=E) or Budget(seconds=S)")
+            raise NoBudget()
         ((kind, amount),) = record.items()
         return _BUDGETS[kind](amount)
 

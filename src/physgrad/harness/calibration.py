@@ -183,11 +183,12 @@ def step_programs(config: RunConfig, devices: int | str | None = 1) -> tuple[lis
     from ..engine.step import Steps
     from ..engine.strategies import Placement
     from ..engine.types import TrainState
+    from .objects import devices as edge_devices
     from .run_chunks import Replay, epoch_inputs, run_chunks
     from .train import build, settings_of
 
     setup = build(config)
-    placement = Placement(devices)
+    placement = Placement(edge_devices(devices))
     params = placement.put(setup.params)
     steps = Steps(setup, placement, settings_of(config), config.seed)
     programs, warmups = [], []

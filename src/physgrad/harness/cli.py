@@ -294,7 +294,7 @@ def main(argv=None) -> int:
             warnings.showwarning = _one_line_warnings(err, warnings.showwarning)
             return COMMANDS[args.command](args, console)
     except (UsageError, ConfigError) as e:  # the library's line in the command line's words where it has them
-        err.print(f"physgrad: error: {command_line_words(str(e))}", markup=False, highlight=False, soft_wrap=True)
+        err.print(f"physgrad: error: {command_line_words(e)}", markup=False, highlight=False, soft_wrap=True)
         return 2
     except OSError as e:  # a full disk, a read-only file system, a permission, a name too long: one line
         err.print(f"physgrad: error: {os_error_line(e)}", markup=False, highlight=False, soft_wrap=True)

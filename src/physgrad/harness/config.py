@@ -14,6 +14,7 @@ from ..engine import ADDED_SETTINGS, UNGUARDED_SETTINGS, Budget, TrainSettings
 from ..engine.record import CARRIED_OUT_SETTINGS, EVALUATION_CADENCE
 from ..errors import ConfigError
 from ..extras import MissingExtra, require
+from .objects import problem_defaults
 from .registry import METHODS, PROBLEMS, hyperparameters, is_optax_name, optax_method, paper_defaults
 
 # Training-engine settings, settable with --set like problem and method settings: the batch
@@ -290,7 +291,7 @@ def valid_settings(problem: str, method: str) -> dict[str, Any]:
     hyper = {}
     for name in phase_methods(method):
         hyper.update(hyperparameters(name))
-    return {**PROBLEMS[problem].settings(), **hyper, **train_settings(problem)}
+    return {**problem_defaults(PROBLEMS[problem]), **hyper, **train_settings(problem)}
 
 
 def train_settings(problem: str) -> dict[str, Any]:
@@ -343,7 +344,7 @@ def make_config(
         run_level.update(values)
     problem_cls = PROBLEMS[problem]
     # Every value by type (parse_value) and range (physgrad.checks), before anything is built.
-    problem_settings = {k: setting(k, run_level.get(k, d), d) for k, d in problem_cls.settings().items()}
+    problem_settings = {k: setting(k, run_level.get(k, d), d) for k, d in problem_defaults(problem_cls).items()}
 
     def stage_value(name, key, default, paper):
         return setting(key, scoped.get(name, {}).get(key, plain.get(key, paper.get(key, default))), default)

@@ -41,6 +41,7 @@ from ..methods.kronecker_hig import KroneckerPower
 from ..methods.sip import L1Proxy, L2Proxy
 from ..methods.unrolling import Plateau
 from ..rollout import Combined, M, R, S
+from . import objects
 from .papers import protocol
 
 # `# isort: skip`: isort would split this compact `# fmt: skip` import into one name a line
@@ -179,7 +180,7 @@ def make_solver(name: str, *, analytic=None, rcond=1e-5, max_loss_change=0.2, ma
         return SaddleFreeNewton(max_loss_change if max_loss_change > 0 else None)
     if name == "lbfgs":
         return LBFGS(max_steps, tol, accept_last)
-    return LinearSolve(krylov, rtol=tol, max_steps=max_steps)
+    return LinearSolve(**objects.krylov(krylov), rtol=tol, max_steps=max_steps)
 
 
 SIP_PROXIES = {"l2": L2Proxy(), "l1": L1Proxy()}

@@ -28,17 +28,20 @@ from ..engine import (
     read_summary,
 )
 from ..engine.record import differences
+from ..errors import RunDirectoryRefused
 from ..problems.direct import DirectOptimisation
 from ..programs import ProgramCache
 from ..progress import AbstractProgressMeter
 from .config import ConfigError, RunConfig
+from .objects import devices as edge_devices
+from .objects import make_problem
 from .registry import METHODS, PROBLEMS
 
 
 def problem_of(config: RunConfig, overrides: dict[str, Any] | None = None):
     """The configured problem instance (wrapped for direct optimisation with ``no_network``)."""
     try:
-        problem = PROBLEMS[config.problem](**{**config.problem_settings, **(overrides or {})})
+        problem = make_problem(PROBLEMS[config.problem], {**config.problem_settings, **(overrides or {})})
     except ValueError as e:
         raise ConfigError(f"{config.problem}: {e}") from None
     return DirectOptimisation(problem) if config.no_network else problem
@@ -86,9 +89,9 @@ def _same_run(recorded: dict[str, Any], config: RunConfig) -> list[str]:
     try:
         old = RunConfig.from_dict(recorded)
     except (KeyError, TypeError, ValueError, AttributeError):
-        raise ConfigError("the run directory's config.json was not written by the command line (a run of "
-                          "physgrad.fit from Python?); resume it with physgrad.fit(..., resume=True) as it was "
-                          "started, or choose another run directory") from None  # fmt: skip
+        raise RunDirectoryRefused("the run directory's config.json was not written by the command line (a run of "
+                                  "physgrad.fit from Python?); resume it with physgrad.fit(..., resume=True) as it "
+                                  "was started, or ") from None  # fmt: skip
     return differences(old.identity(), config.identity())
 
 
@@ -111,7 +114,7 @@ def train(
         raise ConfigError(f"prdp needs a problem with an iterative solver; valid choices: {', '.join(valid)}")
     return fit(
         problem_of(config), phases_of(config), budget=config.budget, out=run_dir, seed=config.seed,
-        settings=settings_of(config), resume=resume, progress=progress, devices=devices,
+        settings=settings_of(config), resume=resume, progress=progress, devices=edge_devices(devices),
         record=config.to_dict(), same_run=lambda old: _same_run(old, config), name=config.method,
     ).summary  # fmt: skip
 

@@ -1,37 +1,57 @@
-"""The library's errors in the command line's words.
+"""The library's errors in the command line's words, by error type and argument.
 
 The library speaks its own arguments (``resume=True``, ``Budget(steps=N)``, ``devices=4``,
 ``out``); the command line prints the same line with its flags (``--resume``, ``--steps N``,
-``--devices 4``, ``--out``). The translation lives here, beside the flags, so no module of
-the core names a flag. Each rule rewrites one phrase the core is known to use; a message
-with none of them is printed as it is.
+``--devices 4``, ``--out``). The core raises the small error types of
+:mod:`physgrad.errors`, which carry the arguments they name as fields; this module writes
+each type's line from those fields, beside the flags, so no module of the core names a flag
+and no message is parsed. Any other error is printed as it is.
 """
 
 from __future__ import annotations
 
-import re
+from collections.abc import Callable
 
-# (pattern, replacement), applied in order; every pattern is a phrase of a core message
-_RULES: tuple[tuple[re.Pattern[str], str], ...] = tuple(
-    (re.compile(pattern), replacement)
-    for pattern, replacement in (
-        (r"resume it \(resume=True\) or choose another run directory", "pass --resume or choose another --out"),
-        (r"choose another run directory", "choose another --out"),
-        (r"Budget\(steps=N\), Budget\(epochs=E\) or Budget\(seconds=S\)", "--steps N, --epochs E or --seconds S"),
-        (r"Budget\((steps|epochs|seconds)=([^)]*)\): \1 must be (.*)$", r"--\1 must be \3, got \2"),
-        (r"0 <= process_id < num_processes", "0 <= --process-id < --num-processes"),
-        (r"^coordinator must be", "--coordinator must be"),
-        (r"^devices must be", "--devices must be"),
-        (r"\bdevices=(\d+)", r"--devices \1"),
-        (r"(?<![-\w])out '", "--out '"),  # not the "--out '" of a message already in flags
-        (r"\banother out\b", "another --out"),
-    )
+from ..errors import (
+    BudgetOutOfRange,
+    CoordinatorInvalid,
+    DevicesInvalid,
+    DevicesRefused,
+    DoesNotFit,
+    NoBudget,
+    PathRefused,
+    ProcessesInvalid,
+    RunDirectoryExists,
+    RunDirectoryRefused,
 )
 
+# the library's argument -> the command line's flag
+FLAGS = {"out": "--out", "devices": "--devices", "resume": "--resume", "coordinator": "--coordinator"}
 
-def command_line_words(message: str) -> str:
-    """``message`` (a :class:`~physgrad.ConfigError`'s line) with the library's argument
-    names replaced by the command line's flags."""
-    for pattern, replacement in _RULES:
-        message = pattern.sub(replacement, message)
-    return message
+
+def _devices(count: int) -> str:
+    return f"{FLAGS['devices']} {count}"
+
+
+# error type -> its line in the command line's words, from the error's fields
+_LINES: dict[type, Callable] = {
+    RunDirectoryExists: lambda e: f"run directory {e.run_dir} exists; pass --resume or choose another --out",
+    RunDirectoryRefused: lambda e: f"{e.reason}choose another --out",
+    NoBudget: lambda e: "give exactly one budget: --steps N, --epochs E or --seconds S",
+    BudgetOutOfRange: lambda e: f"--{e.kind} must be {e.requirement}, got {e.amount!r}",
+    ProcessesInvalid: lambda e: f"need 0 <= --process-id < --num-processes; got {e.process_id} and {e.num_processes}",
+    CoordinatorInvalid: lambda e: f"--coordinator must be HOST:PORT, got {e.coordinator!r}",
+    DevicesInvalid: lambda e: f"--devices must be {e.accepted}, got {e.devices!r}",
+    DevicesRefused: lambda e: f"{e.before}{_devices(e.devices)}{e.after}",
+    DoesNotFit: lambda e: e.before if e.devices is None else f"{e.before}{_devices(e.devices)}{e.after}",
+    PathRefused: lambda e: e.template.format(argument=FLAGS.get(e.argument, e.argument), **e.values),
+}
+
+
+def command_line_words(error: BaseException) -> str:
+    """``error``'s one line with the library's argument names replaced by the command line's
+    flags (by its type, :data:`_LINES`); any other error's own line."""
+    for kind in type(error).__mro__:
+        if kind in _LINES:
+            return _LINES[kind](error)
+    return str(error)

@@ -8,11 +8,13 @@ to x. The PBDL book's SIP on the linear oscillators uses ``pinv(J, rcond=1e-5)``
 (its linear-oscillators notebook). Assumes real x; complex outputs enter as (Re, Im) pairs.
 Cost: one Jacobian and one SVD per sample. Converged = finite.
 
-The Jacobian is built in forward mode (dim x JVPs) or reverse mode (dim y VJPs):
-``jacobian="auto"`` (default) takes reverse mode when the simulator has no forward mode
+The Jacobian is built in forward mode (dim x JVPs) or reverse mode (dim y VJPs), a mode
+object of :mod:`physgrad.jacobian`: ``jacobian=AutoMode()`` (default) takes reverse mode when the simulator has no forward mode
 (a ``jax.custom_vjp`` such as PhiFlow's solves, :mod:`physgrad.phiflow`: detected at trace
 time, :func:`physgrad.jacobian.supports_forward_mode`) or when dim y < dim x, else forward
-mode. Both give the same J up to rounding.
+mode; ``ForwardMode()`` and ``ReverseMode()`` force one. Both give the same J up to rounding.
+The strings ``"auto"|"forward"|"reverse"`` still work for one release, with a
+``DeprecationWarning``.
 """
 
 from __future__ import annotations
@@ -20,19 +22,16 @@ from __future__ import annotations
 import equinox as eqx
 import jax.numpy as jnp
 
-from ..jacobian import MODES, dense_jacobian
+from ..jacobian import AbstractJacobianMode, AutoMode, as_jacobian_mode, dense_jacobian
 from .base import AbstractInverseSolver, InverseResult, all_finite, as_flat_real, flat_physics
 
 
 class GaussNewton(AbstractInverseSolver):
-    """x̃ = x + pinv(∂P/∂x, rcond) (y_t − y); ``jacobian``: ``"auto" | "forward" | "reverse"``."""
+    """x̃ = x + pinv(∂P/∂x, rcond) (y_t − y); ``jacobian``: a mode object (``AutoMode()``,
+    ``ForwardMode()``, ``ReverseMode()``)."""
 
     rcond: float = eqx.field(static=True, default=1e-5)
-    jacobian: str = eqx.field(static=True, default="auto")
-
-    def __check_init__(self):
-        if self.jacobian not in MODES:
-            raise ValueError(f"unknown jacobian {self.jacobian!r}; valid choices: {', '.join(MODES)}")
+    jacobian: AbstractJacobianMode = eqx.field(static=True, default=AutoMode(), converter=as_jacobian_mode)
 
     def __call__(self, simulate, x, y, y_target, sample):
         forward, x_flat = flat_physics(simulate, x, sample)

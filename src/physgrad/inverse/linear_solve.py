@@ -4,13 +4,19 @@ For P(x) = A x + b the inverse step solves, matrix-free through lineax,
 
     A Δ = r,   r = y_t − y,      x̃ = x + Δ,
 
-with A applied as the JVP of ``simulate`` at x (never materialised). ``krylov`` picks the
-method and states the assumption on A:
+with A applied as the JVP of ``simulate`` at x (never materialised). ``solver`` is a lineax
+iterative solver object, which picks the method; ``tags`` state what it assumes of A
+(lineax's operator tags):
 
-- ``"cg"``: A symmetric positive (semi)definite;  ``"cg_negative"``: symmetric negative
+- ``lx.CG(...)`` with ``tags=(lx.symmetric_tag, lx.positive_semidefinite_tag)``: A symmetric
+  positive (semi)definite; with ``lx.negative_semidefinite_tag``: symmetric negative
   (semi)definite (e.g. a Laplacian or its inverse);
-- ``"gmres"``, ``"bicgstab"``: any square non-singular A;
-- ``"normal_cg"``: CG on the normal equations, any full-column-rank A.
+- ``lx.GMRES(...)`` (the default), ``lx.BiCGStab(...)``: any square non-singular A;
+- ``lx.Normal(lx.CG(...))``: CG on the normal equations, any full-column-rank A.
+
+The command line's ``krylov=cg|cg_negative|gmres|bicgstab|normal_cg`` names these five
+(:mod:`physgrad.harness.objects`); ``LinearSolve("gmres")`` and ``LinearSolve(krylov="gmres")``
+still work for one release, with a ``DeprecationWarning``.
 
 Tolerances. The system is solved for ``r / ‖r‖_∞`` (then scaled back: A is linear), so
 lineax's test, component by component in the max norm,
@@ -18,7 +24,9 @@ lineax's test, component by component in the max norm,
     |A u − r̂|_i ≤ atol + rtol · |r̂|_i     and     |u_k − u_{k−1}|_i ≤ atol + rtol · |u_k|_i,
 
 holds ``atol`` relative to the largest residual component: the same setting works
-whatever the physics' scale (SIP's point). Left at None, both are ``ε^{3/4}`` of the
+whatever the physics' scale (SIP's point). The tolerances and the iteration limit are
+``LinearSolve``'s own fields, which replace those the solver object was built with (one
+rule for every solver, resolved for the operand's dtype). Left at None, both are ``ε^{3/4}`` of the
 operand's dtype (6.4e-6 in float32, 1.8e-12 in float64): between ``√ε``, the usual
 Krylov default, which on a float32 SPD operator of condition 170 left 2 % error in x̃,
 and ε, which no solve can promise (64 samples of a 32 × 32 SPD operator in float32: CG
@@ -43,6 +51,10 @@ Under ``precision=jnp.float64`` SIP runs the solve in :func:`physgrad.precision.
 
 from __future__ import annotations
 
+import dataclasses
+import warnings
+from collections.abc import Iterable
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -51,17 +63,24 @@ import lineax as lx
 from ..jacobian import require_forward_mode
 from .base import AbstractInverseSolver, InverseResult, all_finite
 
-KRYLOV = ("cg", "cg_negative", "gmres", "bicgstab", "normal_cg")
+# The deprecated string spellings (one release): name -> (solver, tags).
+_PSD = (lx.symmetric_tag, lx.positive_semidefinite_tag)
+_NSD = (lx.symmetric_tag, lx.negative_semidefinite_tag)
+_KRYLOV_NAMES = {
+    "cg": (lx.CG(rtol=0.0, atol=0.0, max_steps=1000), _PSD),
+    "cg_negative": (lx.CG(rtol=0.0, atol=0.0, max_steps=1000), _NSD),
+    "gmres": (lx.GMRES(rtol=0.0, atol=0.0, max_steps=1000), ()),
+    "bicgstab": (lx.BiCGStab(rtol=0.0, atol=0.0, max_steps=1000), ()),
+    "normal_cg": (lx.Normal(lx.CG(rtol=0.0, atol=0.0, max_steps=1000)), ()),
+}
 
 
-def _krylov(name, rtol, atol, max_steps):
-    if name in ("cg", "cg_negative"):
-        return lx.CG(rtol=rtol, atol=atol, max_steps=max_steps)
-    if name == "normal_cg":
-        return lx.Normal(lx.CG(rtol=rtol, atol=atol, max_steps=max_steps))
-    if name == "gmres":
-        return lx.GMRES(rtol=rtol, atol=atol, max_steps=max_steps)
-    return lx.BiCGStab(rtol=rtol, atol=atol, max_steps=max_steps)
+def with_limits(solver, rtol: float, atol: float, max_steps: int):
+    """``solver`` (a lineax iterative solver, or ``lx.Normal`` around one) with its
+    tolerances and iteration limit replaced."""
+    if isinstance(solver, lx.Normal):
+        return lx.Normal(with_limits(solver.inner_solver, rtol, atol, max_steps))
+    return dataclasses.replace(solver, rtol=rtol, atol=atol, max_steps=max_steps)
 
 
 def default_tolerance(dtype) -> float:
@@ -73,20 +92,49 @@ class LinearSolve(AbstractInverseSolver):
     """x̃ = x + A⁻¹ (y_t − y) for affine P with A = ∂P/∂x, by a lineax Krylov solver.
 
     Fields:
-        krylov: the Krylov method (module docstring).
+        solver: the lineax iterative solver (module docstring); default ``lx.GMRES``.
         rtol, atol: lineax's tolerances on the system normalised by ‖y_t − y‖_∞; None:
-            ``ε^{3/4}`` of x's dtype.
-        max_steps: the iteration limit (a solve that reaches it is a failure).
+            ``ε^{3/4}`` of x's dtype. They replace the solver object's own.
+        max_steps: the iteration limit (a solve that reaches it is a failure); it replaces
+            the solver object's own.
+        tags: lineax operator tags, what the solver assumes of A (CG: symmetric and
+            positive or negative semi-definite).
     """
 
-    krylov: str = eqx.field(static=True, default="gmres")
-    rtol: float | None = eqx.field(static=True, default=None)
-    atol: float | None = eqx.field(static=True, default=None)
-    max_steps: int = eqx.field(static=True, default=1000)
+    solver: lx.AbstractLinearSolver = eqx.field(static=True)
+    rtol: float | None = eqx.field(static=True)
+    atol: float | None = eqx.field(static=True)
+    max_steps: int = eqx.field(static=True)
+    tags: frozenset = eqx.field(static=True)
+
+    def __init__(
+        self,
+        solver: lx.AbstractLinearSolver | str | None = None,
+        rtol: float | None = None,
+        atol: float | None = None,
+        max_steps: int = 1000,
+        tags: Iterable = (),
+        *,
+        krylov: str | None = None,
+    ):
+        if isinstance(solver, str) or krylov is not None:
+            name = krylov if krylov is not None else solver
+            warnings.warn(
+                f"LinearSolve({name!r}) is deprecated; pass a lineax solver object, e.g. "
+                "LinearSolve(lx.GMRES(rtol=0.0, atol=0.0, max_steps=1000))",
+                DeprecationWarning,
+                stacklevel=2,
+            )
+            if name not in _KRYLOV_NAMES:
+                raise ValueError(f"unknown krylov {name!r}; valid choices: {', '.join(_KRYLOV_NAMES)}")
+            solver, tags = _KRYLOV_NAMES[name]
+        self.solver = _KRYLOV_NAMES["gmres"][0] if solver is None else solver
+        self.rtol, self.atol, self.max_steps = rtol, atol, max_steps
+        self.tags = frozenset(tags)
 
     def __check_init__(self):
-        if self.krylov not in KRYLOV:
-            raise ValueError(f"unknown krylov {self.krylov!r}; valid choices: {', '.join(KRYLOV)}")
+        if not isinstance(self.solver, lx.AbstractLinearSolver):
+            raise TypeError(f"solver must be a lineax solver (e.g. lx.GMRES(...)), got {self.solver!r}")
         for name, value in (("rtol", self.rtol), ("atol", self.atol)):
             if value is not None and not value >= 0:
                 raise ValueError(f"{name} must be >= 0 or None (ε^{3 / 4} of the dtype), got {value}")
@@ -105,12 +153,8 @@ class LinearSolve(AbstractInverseSolver):
         def apply(v):  # in x's dtype: a float64 simulator on float32 x stays a square operator
             return jax.jvp(lambda z: simulate(z, sample), (x,), (v,))[1].astype(x.dtype)
 
-        tags = {
-            "cg": (lx.symmetric_tag, lx.positive_semidefinite_tag),
-            "cg_negative": (lx.symmetric_tag, lx.negative_semidefinite_tag),
-        }.get(self.krylov, ())
-        operator = lx.FunctionLinearOperator(apply, jax.eval_shape(lambda: x), tags=frozenset(tags))
-        solver = _krylov(self.krylov, *self.tolerances(x.dtype), self.max_steps)
+        operator = lx.FunctionLinearOperator(apply, jax.eval_shape(lambda: x), tags=self.tags)
+        solver = with_limits(self.solver, *self.tolerances(x.dtype), self.max_steps)
         residual = (y_target - y).astype(x.dtype)
         # A is linear: solve for the residual scaled to ‖·‖_∞ = 1, so atol is relative.
         scale = jnp.max(jnp.abs(residual))

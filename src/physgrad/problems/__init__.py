@@ -18,10 +18,11 @@ from .poisson_hig import PoissonHig
 from .quantum_control import QuantumControl
 from .quantum_dipole import QuantumDipole
 from .sine import Sine
-from .time_stepper import TimeStepperProblem
+from .time_stepper import AbstractTimeStepper, TimeStepperProblem
 from .toy2d import Toy2d
 
 __all__ = [
+    "AbstractTimeStepper",
     "TimeStepperProblem",
     "KuramotoSivashinsky",
     "Kolmogorov",

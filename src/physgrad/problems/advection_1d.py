@@ -29,8 +29,8 @@ import numpy as np
 
 from ..extras import import_extra
 from ..precision import float64_scope
-from ..steppers import Repeated, Solver
-from .time_stepper import TimeStepperProblem, solver_rollout
+from ..steppers import AbstractComposition, Parallel, Repeated, Solver
+from .time_stepper import AbstractTimeStepper, solver_rollout
 
 
 class ImplicitUpwind(Solver):
@@ -54,13 +54,18 @@ def fou_distance(network, cfl: float = -0.75) -> float:
     return float(np.linalg.norm(w - np.array([1 + cfl, -cfl])))
 
 
-class Advection1d(TimeStepperProblem):
+class Advection1d(AbstractTimeStepper):
     name: ClassVar[str] = "advection_1d"
     source: ClassVar[str] = "trainax README; List et al. 2025; Bhatia et al. ICLR 2025"
     extra: ClassVar[str | None] = "pde"  # exponax (the reference)
     default_eval_samples: ClassVar[int] = 0
 
+    composition: AbstractComposition = eqx.field(static=True, default=Parallel(scale=1.0))
     m: int = eqx.field(static=True, default=5)
+    eval_horizon: int = eqx.field(static=True, default=12)
+    data_seed: int = eqx.field(static=True, default=0)
+    differentiable_solver: bool = eqx.field(static=True, default=True)
+    zero_init: bool = eqx.field(static=True, default=False)
     n: int = eqx.field(static=True, default=30)
     cfl: float = eqx.field(static=True, default=-0.75)
     highest_mode: int = eqx.field(static=True, default=5)

@@ -66,7 +66,7 @@ class CartPole(AbstractClosedLoop):
         return jnp.concatenate([cart[:, None, :], poles], axis=1)  # (n, 1 + poles, 2)
 
     def make_network(self, key):
-        net = MLP((2 * (1 + self.poles), self.width, self.width, 1), "tanh", key=key)
+        net = MLP((2 * (1 + self.poles), self.width, self.width, 1), jax.nn.tanh, key=key)
         return zero_last_kernel(net) if self.zero_init else net
 
     def control(self, network, s):

@@ -51,7 +51,7 @@ class ExpInverse(AbstractProblem):
         return {"train": draw(k_train, self.n_train), "test": draw(k_test, self.n_test)}
 
     def make_network(self, key):
-        return MLP((1, 16, 64, 16, 1), "sigmoid", key=key)
+        return MLP((1, 16, 64, 16, 1), jax.nn.sigmoid, key=key)
 
     def network_output(self, network, sample):
         return network(sample["y"])

@@ -101,7 +101,7 @@ class Guidance(AbstractClosedLoop):
 
     def make_network(self, key):
         agents = self.drivers + self.evaders
-        net = MLP((agents * 4, self.width, self.width, 2 * self.drivers), "tanh", key=key)
+        net = MLP((agents * 4, self.width, self.width, 2 * self.drivers), jax.nn.tanh, key=key)
         return zero_last_kernel(net) if self.zero_init else net
 
     def control(self, network, s):

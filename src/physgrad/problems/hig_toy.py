@@ -58,7 +58,7 @@ class HigToy(AbstractProblem):
     def make_network(self, key):
         if self.needs_float64:
             require_float64(f"{self.name} with dtype={self.dtype}")
-        return MLP((1, self.hidden, 2), "tanh", key=key, dtype=jnp.dtype(self.dtype))
+        return MLP((1, self.hidden, 2), jax.nn.tanh, key=key, dtype=jnp.dtype(self.dtype))
 
     def network_output(self, network, sample):
         return network(sample["x"])

@@ -32,21 +32,25 @@ import numpy as np
 from ..extras import import_extra
 from ..nets import ConvResNet
 from ..precision import float64_scope
-from ..steppers import Repeated, single_precision, stack_solvers
-from .time_stepper import TimeStepperProblem, solver_rollout
+from ..steppers import AbstractComposition, Bypass, Repeated, single_precision, stack_solvers
+from .time_stepper import AbstractTimeStepper, solver_rollout
 
 TRAIN_RE = (300, 400, 500, 700, 800, 900)
 TEST_RE = (600, 1000)
 
 
-class Kolmogorov(TimeStepperProblem):
+class Kolmogorov(AbstractTimeStepper):
     name: ClassVar[str] = "kolmogorov"
     source: ClassVar[str] = "List et al., CMAME 2025"
     extra: ClassVar[str | None] = "pde"  # exponax
-    default_composition: ClassVar[str] = "bypass"
     default_eval_samples: ClassVar[int] = 64
 
+    composition: AbstractComposition = eqx.field(static=True, default=Bypass(scale=1.0))
     m: int = eqx.field(static=True, default=4)
+    eval_horizon: int = eqx.field(static=True, default=12)
+    data_seed: int = eqx.field(static=True, default=0)
+    differentiable_solver: bool = eqx.field(static=True, default=True)
+    zero_init: bool = eqx.field(static=True, default=False)
     n: int = eqx.field(static=True, default=32)
     refinement: int = eqx.field(static=True, default=4)
     dt: float = eqx.field(static=True, default=0.02)

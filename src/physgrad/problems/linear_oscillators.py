@@ -25,9 +25,11 @@ solver against the matrix exponential.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import ClassVar
 
 import equinox as eqx
+import jax
 
 from .oscillators import AbstractOscillators
 
@@ -48,7 +50,7 @@ class LinearOscillators(AbstractOscillators):
     n_train: int = eqx.field(static=True, default=4096)
     n_test: int = eqx.field(static=True, default=4096)  # physgrad's test set (the book has none)
     hidden: int = eqx.field(static=True, default=20)
-    activation: str = eqx.field(static=True, default="tanh")
+    activation: Callable = eqx.field(static=True, default=jax.nn.tanh)
     dtype: str = eqx.field(static=True, default="float32")
 
     name: ClassVar[str] = "linear_oscillators"

@@ -18,6 +18,7 @@ Network 4 → 20 → 20 → 20 → 96, ReLU, glorot-uniform kernels, zero biases
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import ClassVar
 
 import equinox as eqx
@@ -49,7 +50,7 @@ class AbstractOscillators(AbstractProblem):
     n_train: eqx.AbstractVar[int]
     n_test: eqx.AbstractVar[int]
     hidden: eqx.AbstractVar[int]
-    activation: eqx.AbstractVar[str]
+    activation: eqx.AbstractVar[Callable]  # of the hidden layers (jax.nn.relu, jax.nn.tanh, ...)
     dtype: eqx.AbstractVar[str]
 
     @property
@@ -111,7 +112,7 @@ class Oscillators(AbstractOscillators):
     n_train: int = eqx.field(static=True, default=4096)
     n_test: int = eqx.field(static=True, default=4096)
     hidden: int = eqx.field(static=True, default=20)
-    activation: str = eqx.field(static=True, default="relu")
+    activation: Callable = eqx.field(static=True, default=jax.nn.relu)
     dtype: str = eqx.field(static=True, default="float32")
 
     name: ClassVar[str] = "oscillators"

@@ -107,7 +107,7 @@ class PoissonHig(AbstractProblem):
     def make_network(self, key):
         if self.needs_float64:
             require_float64(f"{self.name} with dtype={self.dtype}")
-        return MLP((self.size, 64, 128, 64, self.size), "tanh", key=key, dtype=jnp.dtype(self.dtype))
+        return MLP((self.size, 64, 128, 64, self.size), jax.nn.tanh, key=key, dtype=jnp.dtype(self.dtype))
 
     def network_output(self, network, sample):
         return network(sample["rhs"].ravel()).reshape(self.resolution, self.resolution)

@@ -132,7 +132,7 @@ class QuantumDipole(AbstractProblem):
         if self.needs_float64:
             require_float64(f"{self.name} with dtype={self.dtype}")
         sizes = (2 * self.n_interior, self.hidden, self.hidden, self.hidden, self.n_steps)
-        return MLP(sizes, "tanh", key=key, dtype=jnp.dtype(self.dtype))
+        return MLP(sizes, jax.nn.tanh, key=key, dtype=jnp.dtype(self.dtype))
 
     def network_output(self, network, sample):
         return network(sample["target"].ravel())

@@ -59,7 +59,7 @@ class Sine(AbstractProblem):
         return {"train": draw(k_train, self.n_train), "test": draw(k_test, self.n_test)}
 
     def make_network(self, key):
-        return MLP((2, 32, 64, 32, 2), "relu", key=key)
+        return MLP((2, 32, 64, 32, 2), jax.nn.relu, key=key)
 
     def network_output(self, network, sample):
         return network(sample["y"])

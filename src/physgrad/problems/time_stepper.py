@@ -2,8 +2,8 @@
 
 List, Chen, Bali & Thuerey, CMAME 2025. A training
 sample is a window of m+1 reference frames ũ⁰…ũᵐ with its conditioning value; the stepper
-S_θ (:mod:`physgrad.steppers`: prediction, or a correction of a coarse solver) is rolled
-out from ũ⁰ and scored by
+S_θ (a composition object of :mod:`physgrad.steppers`: a prediction, or a correction of a
+coarse solver) is rolled out from ũ⁰ and scored by
 
     L = (1/m) Σ_{k=1..m} ℓ_k,      ℓ_k = MSE(uᵏ, ũᵏ)
 
@@ -40,6 +40,7 @@ m steps. Metrics on trajectories at least ``eval_horizon`` long (§1.5):
 from __future__ import annotations
 
 import abc
+import warnings
 from typing import Any, ClassVar
 
 import equinox as eqx
@@ -50,7 +51,17 @@ import numpy as np
 from .. import loops
 from ..cache import cached_arrays
 from ..rollout import System
-from ..steppers import NonDifferentiable, Solver, check_composition, select, stepper_step
+from ..steppers import (
+    AbstractComposition,
+    Bypass,
+    NonDifferentiable,
+    Parallel,
+    Prediction,
+    Residual,
+    Sequential,
+    Solver,
+    select,
+)
 from .base import AbstractProblem
 
 DATA_VERSION = 1  # bump when a generator changes, so cached data are regenerated
@@ -98,8 +109,35 @@ def _output_layer(net):
     return lambda n: n
 
 
-class TimeStepperProblem(AbstractProblem):
-    """Base class: subclasses define the reference data, the coarse solver and the network."""
+class AbstractTimeStepper(AbstractProblem):
+    """A neural time-stepper problem: the rollout, data windows, metrics and open-loop
+    contract, implemented once.
+
+    Equinox's abstract/final pattern (as :class:`~physgrad.problems.oscillators.AbstractOscillators`):
+    the settings are abstract fields that each final problem declares with its own paper's
+    values; a final problem adds its physics (:meth:`generate`, :meth:`solvers`,
+    :meth:`make_network`, :meth:`apply`) and nothing here is overridden.
+
+    Fields:
+        composition: how the network and the solver make one step
+            (:class:`~physgrad.steppers.Prediction`, :class:`~physgrad.steppers.Residual`,
+            :class:`~physgrad.steppers.Parallel`, :class:`~physgrad.steppers.Sequential`,
+            :class:`~physgrad.steppers.Bypass`).
+        m: the unrolled steps per training window.
+        eval_horizon: the steps the metrics score.
+        data_seed: the seed of the reference trajectories (the run's seed draws the network).
+        differentiable_solver: false treats the solver as an external code without
+            derivatives (:class:`~physgrad.steppers.NonDifferentiable`).
+        zero_init: the network's last layer starts at zero, so a corrector starts as the bare
+            solver (and a residual predictor as the identity); false: the paper's initialisation.
+    """
+
+    composition: eqx.AbstractVar[AbstractComposition]
+    m: eqx.AbstractVar[int]
+    eval_horizon: eqx.AbstractVar[int]
+    data_seed: eqx.AbstractVar[int]
+    differentiable_solver: eqx.AbstractVar[bool]
+    zero_init: eqx.AbstractVar[bool]
 
     default_batch_size: ClassVar[int] = 16
     default_eval_samples: ClassVar[int] = 512
@@ -109,30 +147,16 @@ class TimeStepperProblem(AbstractProblem):
     # one permutation of all windows; trainax: a fresh permutation per epoch).
     default_shuffle: ClassVar[bool] = True
     state_channels: ClassVar[int] = 1
-
-    setup: str = eqx.field(static=True, default="correction")
-    composition: str = eqx.field(static=True, default="")  # "": the setup's default
-    m: int = eqx.field(static=True, default=3)
-    eval_horizon: int = eqx.field(static=True, default=12)
-    data_seed: int = eqx.field(static=True, default=0)
-    # false: treat the solver as an external code without derivatives (NonDifferentiable)
-    differentiable_solver: bool = eqx.field(static=True, default=True)
-    # true: the network's last layer starts at zero, so a corrector starts as the bare solver
-    # (and a residual predictor as the identity); false: the paper's initialisation
-    zero_init: bool = eqx.field(static=True, default=False)
-
-    default_composition: ClassVar[str] = "parallel"  # of the correction setup
-
-    @property
-    def stepper_composition(self) -> str:
-        """The composition in use: the setting, or ``full`` (prediction) / the problem's
-        default (correction)."""
-        if self.composition:
-            return self.composition
-        return "full" if self.setup == "prediction" else self.default_composition
+    # α of the paper's parallel and bypass compositions: the command line's
+    # ``composition=parallel|bypass`` builds them with it.
+    network_scale: ClassVar[float] = 1.0
 
     def __check_init__(self):
-        check_composition(self.setup, self.stepper_composition)
+        if not isinstance(self.composition, AbstractComposition):
+            raise TypeError(
+                f"composition must be a physgrad.steppers composition (Prediction(), Residual(), Parallel(scale), "
+                f"Sequential(), Bypass(scale)), got {self.composition!r}"
+            )
         if self.m < 1:
             raise ValueError(f"m must be >= 1, got {self.m}")
 
@@ -151,8 +175,6 @@ class TimeStepperProblem(AbstractProblem):
     def apply(self, network, u, cond):
         """The network's output for one state and its conditioning value (state-shaped)."""
 
-    network_scale: ClassVar[float] = 1.0  # α in the parallel and bypass compositions
-
     @property
     def solver_differentiable(self) -> bool:
         """The coarse solver's declaration (False when ``differentiable_solver=false``)."""
@@ -168,7 +190,7 @@ class TimeStepperProblem(AbstractProblem):
         """The settings that may change the generated data (the cache key): all but the
         stepper's and the network's (``m`` and ``eval_horizon`` stay: split lengths depend
         on them)."""
-        skip = {"setup", "composition", "differentiable_solver", "zero_init"} | set(self.training_only_settings)
+        skip = {"composition", "setup", "differentiable_solver", "zero_init"} | set(self.training_only_settings)
         return {k: getattr(self, k) for k in self.settings() if k not in skip}
 
     training_only_settings: ClassVar[tuple[str, ...]] = ()
@@ -215,14 +237,12 @@ class TimeStepperProblem(AbstractProblem):
     def step(self, network_fn, u_net, u_phys, cond, index, solvers=None):
         """One stepper step of one sample: ``(u⁺, ok)``; ``network_fn(u, cond)``."""
         solver = None
-        if self.setup == "correction":
+        if self.composition.uses_solver:
             solvers = self.solvers() if solvers is None else solvers
             solver = select(solvers, index) if isinstance(solvers, tuple) else solvers
             if not self.differentiable_solver:
                 solver = NonDifferentiable(solver)
-        return stepper_step(
-            self.setup, self.stepper_composition, solver, network_fn, u_net, u_phys, cond, self.network_scale
-        )
+        return self.composition(solver, network_fn, u_net, u_phys, cond)
 
     def system(self, apply, m: int | None = None, teacher_forcing: bool = False) -> System:
         """The rollout :class:`~physgrad.rollout.System` over a batch of windows, with
@@ -232,7 +252,7 @@ class TimeStepperProblem(AbstractProblem):
         m = self.m if m is None else m
         if not 1 <= m <= self.m:
             raise ValueError(f"a rollout of {m} steps does not fit the problem's windows of m = {self.m}")
-        solvers = self.solvers() if self.setup == "correction" else None
+        solvers = self.solvers() if self.composition.uses_solver else None
 
         def transition(params, s_net, s_phys, k):
             u_net = s_net["traj"][:, k] if teacher_forcing else s_net["u"]
@@ -252,11 +272,11 @@ class TimeStepperProblem(AbstractProblem):
                     "ok": jnp.ones((b,), bool)}  # fmt: skip
 
         weights = jnp.full((m,), 1.0 / m, jnp.float32)
-        differentiable = self.setup == "prediction" or self._differentiable(solvers)
+        differentiable = not self.composition.uses_solver or self._differentiable(solvers)
         return System(transition, m, weights, init, differentiable)
 
     def check_refinable(self):
-        if self.setup == "prediction":
+        if not self.composition.uses_solver:
             raise ValueError("prdp refines the solver of a correction setup; use setup=correction")
 
     def objective(self, static):
@@ -279,7 +299,7 @@ class TimeStepperProblem(AbstractProblem):
     # --- the open-loop contract and the metrics -------------------------------------------
     def network_output(self, network, sample):
         """The autoregressive rollout u¹…u^T from ũ⁰ over the whole sample (T, C, *N)."""
-        solvers = self.solvers() if self.setup == "correction" else None
+        solvers = self.solvers() if self.composition.uses_solver else None
         fn = lambda u, c: self.apply(network, u, c)  # noqa: E731
 
         def body(u, _):
@@ -324,3 +344,56 @@ class TimeStepperProblem(AbstractProblem):
     def with_cond_channel(self, u, cond):
         """The state with its conditioning value appended as a constant channel."""
         return jnp.concatenate([u, jnp.full_like(u[:1], cond)], axis=0)
+
+
+# The names of the deprecated string spellings (one release): the command line's own
+# translation is physgrad.harness.objects'.
+_DEPRECATED_COMPOSITIONS = {
+    ("prediction", ""): Prediction,
+    ("prediction", "full"): Prediction,
+    ("prediction", "residual"): Residual,
+    ("correction", "parallel"): Parallel,
+    ("correction", "sequential"): Sequential,
+    ("correction", "bypass"): Bypass,
+}
+
+
+class TimeStepperProblem(AbstractTimeStepper):
+    """A base for a user's own time-stepper: :class:`AbstractTimeStepper` with its settings at
+    the common defaults (``composition=Parallel(1.0)``, ``m=3``, ``eval_horizon=12``,
+    ``data_seed=0``, ``differentiable_solver=True``, ``zero_init=False``). Subclass it with
+    :meth:`generate`, :meth:`solvers`, :meth:`make_network` and :meth:`apply`.
+
+    ``setup="prediction"|"correction"`` and ``composition="full"|"residual"|"parallel"|
+    "sequential"|"bypass"`` (strings) still work for one release, with a
+    ``DeprecationWarning``; pass a composition object instead.
+    """
+
+    composition: AbstractComposition = eqx.field(static=True, default=Parallel(1.0))
+    m: int = eqx.field(static=True, default=3)
+    eval_horizon: int = eqx.field(static=True, default=12)
+    data_seed: int = eqx.field(static=True, default=0)
+    differentiable_solver: bool = eqx.field(static=True, default=True)
+    zero_init: bool = eqx.field(static=True, default=False)
+    setup: str | None = eqx.field(static=True, default=None)  # deprecated: the composition's setup
+
+    def __post_init__(self):
+        if self.setup is None and not isinstance(self.composition, str):
+            return
+        warnings.warn(
+            "TimeStepperProblem(setup=..., composition='...') is deprecated; pass a composition object, "
+            "e.g. composition=physgrad.steppers.Parallel(1.0) or Prediction()",
+            DeprecationWarning,
+            stacklevel=3,
+        )
+        name = self.composition if isinstance(self.composition, str) else ""
+        setup = self.setup or ("prediction" if name in ("full", "residual") else "correction")
+        if (setup, name) == ("correction", ""):
+            composition = self.composition if not isinstance(self.composition, str) else Parallel(self.network_scale)
+        elif (setup, name) in _DEPRECATED_COMPOSITIONS:
+            cls = _DEPRECATED_COMPOSITIONS[setup, name]
+            composition = cls(self.network_scale) if cls in (Parallel, Bypass) else cls()
+        else:
+            raise ValueError(f"unknown composition {name!r} for the {setup} setup")
+        self.composition = composition
+        self.setup = None
