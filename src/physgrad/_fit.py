@@ -43,7 +43,7 @@ def fit(
     settings: TrainSettings = _run.DEFAULT_SETTINGS,
     resume: bool = False,
     progress: AbstractProgressMeter | None = None,
-    devices: int | Sequence[jax.Device] | None = 1,
+    devices: int | Sequence[jax.Device] | None = 1,  # pyright: ignore[reportInvalidTypeForm]
     record: dict[str, Any] | None = None,
     same_run: Callable[[dict[str, Any]], Any] | None = None,
     label: str = "",

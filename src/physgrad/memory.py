@@ -213,17 +213,17 @@ def check_step_fits(
         if _accepts(variant, b, n) and fits(variant.footprint(objective, params, batch, n) + rest):
             suggestions.append(_difference(method, variant))
             break
-    devices = None  # a device count that would fit, written by the error in its reader's words
+    more_devices = None  # a device count that would fit, written by the error in its reader's words
     if mine[0].platform != "cpu":  # more accelerators add memory; more CPU devices do not
         for more in range(n + 1, jax.device_count() + 1):
             if b % more == 0 and fits(max(method.footprint(objective, params, batch, more), (step or 0) * n / more)):
-                devices = more
+                more_devices = more
                 break
     note = method.footprint_note(objective, params, batch)
     if step is not None and step > footprint:
         note = "compiled step" + (f"; {note}" if note else "")
-    if suggestions or devices is not None:
-        fit = f"would fit: {' or '.join(suggestions)}" + (" or " if suggestions and devices is not None else "")
+    if suggestions or more_devices is not None:
+        fit = f"would fit: {' or '.join(suggestions)}" + (" or " if suggestions and more_devices is not None else "")
     else:
         fit = "found no batch size, variant or device count that fits"
     held = f", {_size(resident * shared)} of it for the data and parameters" if resident else ""
@@ -232,9 +232,9 @@ def check_step_fits(
         + f" but {where} has {_size(min(free))} available{held}; {fit}"
     )  # fmt: skip
     guard = " (memory_guard=false skips this check)"
-    if devices is None:
+    if more_devices is None:
         raise DoesNotFit(message + guard)
-    raise DoesNotFit(message, devices, guard)
+    raise DoesNotFit(message, more_devices, guard)
 
 
 def tree_bytes(tree: Any) -> int:

@@ -83,7 +83,7 @@ class MLP(eqx.Module):
         self.layers = tuple(
             Dense(n_in, n_out, key=k, dtype=dtype) for n_in, n_out, k in zip(sizes[:-1], sizes[1:], keys)
         )
-        self.activation = activation
+        self.activation = activation  # pyright: ignore[reportAttributeAccessIssue]  (a str was mapped above)
 
     def __call__(self, x: Float[Array, " in"]) -> Float[Array, " out"]:
         for layer in self.layers[:-1]:

@@ -70,7 +70,7 @@ def fit(
     settings: TrainSettings = DEFAULT_SETTINGS,
     resume: bool = False,
     progress: AbstractProgressMeter | None = None,
-    devices: int | Sequence[jax.Device] | None = 1,
+    devices: int | Sequence[jax.Device] | None = 1,  # pyright: ignore[reportInvalidTypeForm]
     record: dict[str, Any] | None = None,
     same_run: Callable[[dict[str, Any]], Any] | None = None,
     label: str = "",

@@ -129,7 +129,7 @@ class ChunkSize:
 class Placement:
     """Where arrays live: one device, or a data mesh over devices and processes."""
 
-    devices: int | Sequence[jax.Device] | None = 1
+    devices: int | Sequence[jax.Device] | None = 1  # pyright: ignore[reportInvalidTypeForm]
 
     def __post_init__(self):
         self.mesh = distributed.make_mesh(self.devices)

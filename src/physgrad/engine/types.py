@@ -28,7 +28,7 @@ class _KeywordSpelling(abc.ABCMeta):
     """``Budget(steps=N)`` is ``Steps(N)``: the keyword spelling, as ``config.json`` writes a
     budget (``{"steps": N}``), builds the final class it names (:meth:`Budget.of`)."""
 
-    def __call__(cls, *args: Any, **kwargs: Any):
+    def __call__(cls, *args: Any, **kwargs: Any) -> Any:  # Any: Budget(...) is one of its final classes
         if cls is Budget:
             given = dict(zip(("steps", "epochs", "seconds"), args), **kwargs)
             return Budget.of({k: v for k, v in given.items() if v is not None})

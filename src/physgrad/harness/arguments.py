@@ -56,7 +56,7 @@ def budget_of(args):
         given = {"seconds": DEFAULT_SECONDS}
     if len(given) > 1:
         raise UsageError("give only one of --steps, --epochs, --seconds")
-    return Budget(**given)
+    return Budget.of(given)
 
 
 def run_settings(args):

@@ -43,7 +43,7 @@ from pathlib import Path
 from typing import Any
 
 from .. import rundir
-from ..engine import Budget
+from ..engine.types import Steps
 from ..errors import ConfigError
 from .config import RunConfig
 
@@ -165,7 +165,7 @@ def fingerprint(config: RunConfig) -> str:
     """What a calibration is valid for: the run's configuration with seed 0 and no budget
     (the problem, its settings, every stage's method, hyperparameters and batch size)."""
     untimed = dataclasses.replace(config.settings, eval_every=0, eval_seconds=0.0)
-    return dataclasses.replace(config, seed=0, budget=Budget(steps=1), settings=untimed).digest()
+    return dataclasses.replace(config, seed=0, budget=Steps(1), settings=untimed).digest()
 
 
 def step_programs(config: RunConfig, devices: int | str | None = 1) -> tuple[list[Program], list[float], list[Any]]:

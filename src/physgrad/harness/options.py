@@ -74,9 +74,9 @@ class StudyOptions:
     @classmethod
     def demo(cls, seconds: float, out: str) -> StudyOptions:
         """The demo's study (:data:`physgrad.harness.arguments.DEMO`) at ``seconds`` per run."""
-        from .config import Budget
+        from ..engine.types import Seconds
 
-        return cls(DEMO["problem"], tuple(DEMO["methods"]), range(DEMO["seeds"]), Budget(seconds=seconds),
+        return cls(DEMO["problem"], tuple(DEMO["methods"]), range(DEMO["seeds"]), Seconds(seconds),
                    DEMO["settings"], Path(out))  # fmt: skip
 
 

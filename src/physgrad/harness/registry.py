@@ -128,7 +128,7 @@ def _lm(*, lr: float = 1.0, damping: float = 1e-3, truncation: float = 1e-6, rou
     """Levenberg–Marquardt: −η Jᵀ(J Jᵀ + λI)⁻¹ g, λ = μ σ_max², μ by Nielsen's gain-ratio rule (rejects bad steps)."""
     _check_route_sizes(blocks, lanczos_steps)
     rule = JacobianPower(-1.0, truncation, make_route(route, blocks=blocks, lanczos_steps=lanczos_steps))
-    return LevenbergMarquardt(rule, optax.sgd(lr), damping, reject)
+    return LevenbergMarquardt(rule, optax.sgd(lr), damping=damping, reject=reject)  # pyright: ignore[reportCallIssue]  (acceptance is a property)
 
 
 def _khig(*, lr: float = 1.0, power: float = -0.75, truncation: float = 1e-6, damping: float = 1e-4,
@@ -146,7 +146,7 @@ def _khig(*, lr: float = 1.0, power: float = -0.75, truncation: float = 1e-6, da
     rule = KroneckerPower(power, truncation, damping, explicit_max)
     if curvature_ema == 0.0 and inverse_every == 1:
         return Method(rule, optax.sgd(lr))
-    return AveragedKronecker(rule, optax.sgd(lr), curvature_ema, inverse_every)
+    return AveragedKronecker(rule, optax.sgd(lr), curvature_ema=curvature_ema, inverse_every=inverse_every)  # pyright: ignore[reportCallIssue]  (control is a property)
 
 
 def _check_route_sizes(blocks, lanczos_steps):

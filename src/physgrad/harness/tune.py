@@ -240,7 +240,7 @@ def _plan_registered(problem, methods, budget, out, settings, spaces, holdout, s
             if calibration is not None:
                 c = calibrated_config(c, calibration, float(budget.amount))
             if steps is not None:
-                c = dataclasses.replace(c, budget=Budget(steps=steps))
+                c = dataclasses.replace(c, budget=Steps(steps))
             return ConfiguredRun(c, run_dir, validation=True, holdout=holdout)
 
         steps = calibration.steps(config.method, float(budget.amount)) if calibration is not None else (
@@ -270,7 +270,7 @@ def _plan_object(problem, methods, budget, settings, spaces, holdout, seed) -> l
 
     if isinstance(budget, Seconds):
         raise ConfigError("a problem object is tuned on a steps or epochs budget (a seconds budget is calibrated "
-                          "from a registered problem's configuration): Budget(steps=N)")  # fmt: skip
+                          "from a registered problem's configuration): Steps(N)")  # fmt: skip
     plans = []
     for method in methods:
         if method not in METHODS:
@@ -281,7 +281,7 @@ def _plan_object(problem, methods, budget, settings, spaces, holdout, seed) -> l
         batch, train = object_settings(problem, method, settings)
 
         def make(params, steps, run_dir, method=method, defaults=defaults, batch=batch, train=train):
-            run_budget = Budget(steps=steps) if steps is not None else budget
+            run_budget = Steps(steps) if steps is not None else budget
             return ObjectRun(problem, method, {**defaults, **params}, batch, seed, run_budget, run_dir, train,
                              validation=True, holdout=holdout)  # fmt: skip
 

@@ -118,7 +118,7 @@ class LinearSolve(AbstractInverseSolver):
         krylov: str | None = None,
     ):
         if isinstance(solver, str) or krylov is not None:
-            name = krylov if krylov is not None else solver
+            name = str(krylov if krylov is not None else solver)
             warnings.warn(
                 f"LinearSolve({name!r}) is deprecated; pass a lineax solver object, e.g. "
                 "LinearSolve(lx.GMRES(rtol=0.0, atol=0.0, max_steps=1000))",
@@ -128,7 +128,7 @@ class LinearSolve(AbstractInverseSolver):
             if name not in _KRYLOV_NAMES:
                 raise ValueError(f"unknown krylov {name!r}; valid choices: {', '.join(_KRYLOV_NAMES)}")
             solver, tags = _KRYLOV_NAMES[name]
-        self.solver = _KRYLOV_NAMES["gmres"][0] if solver is None else solver
+        self.solver = _KRYLOV_NAMES["gmres"][0] if solver is None else solver  # pyright: ignore[reportAttributeAccessIssue]  (a name was mapped above)
         self.rtol, self.atol, self.max_steps = rtol, atol, max_steps
         self.tags = frozenset(tags)
 

@@ -235,5 +235,5 @@ def levenberg_marquardt(predict, loss, *, optimizer: optax.GradientTransformatio
     and ``accepted`` (1 or 0).
     """
     optimizer = optax.sgd(1.0) if optimizer is None else optimizer
-    method = LevenbergMarquardt(JacobianPower(-1.0, truncation, route), optimizer, damping, reject)
+    method = LevenbergMarquardt(JacobianPower(-1.0, truncation, route), optimizer, damping=damping, reject=reject)  # pyright: ignore[reportCallIssue]  (acceptance is a property)
     return Stepper(method, Objective(predict, loss))

@@ -18,8 +18,9 @@ import json
 from collections.abc import Callable, Sequence
 from typing import Any
 
+from ...engine.types import Steps
 from ...extras import MissingExtra
-from ..config import Budget, make_config, phase_methods
+from ..config import make_config, phase_methods
 from ..failures import one_line
 from .choices import check_settings, problem_settings
 
@@ -71,9 +72,7 @@ def applicability(problem: str, methods: Sequence[str], settings: dict[str, Any]
     verdicts = []
     for method in methods:
         try:
-            config = make_config(
-                problem, method, budget=Budget(steps=1), settings=problem_settings(problem, method, settings)
-            )
+            config = make_config(problem, method, budget=Steps(1), settings=problem_settings(problem, method, settings))
         except MissingExtra as e:  # an optional extra is not installed: listed with the pip line
             verdicts.append(Verdict(method, "skipped", one_line(e)))
             continue

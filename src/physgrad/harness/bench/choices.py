@@ -82,9 +82,9 @@ PROFILES: dict[str, dict[str, Any]] = {"quick": QUICK, "standard": STANDARD}
 
 def profile_budgets(profile: dict[str, Any], problems: Sequence[str]) -> dict[str, Any]:
     """A profile's per-problem seconds (``problem_seconds``) as budgets, for ``problems``."""
-    from ..config import Budget
+    from ...engine.types import Seconds
 
-    return {p: Budget(seconds=s) for p, s in profile.get("problem_seconds", {}).items() if p in problems}
+    return {p: Seconds(s) for p, s in profile.get("problem_seconds", {}).items() if p in problems}
 
 
 def standard_problems() -> list[str]:

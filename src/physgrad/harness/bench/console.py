@@ -42,13 +42,13 @@ def choices(options: BenchOptions) -> BenchChoices:
         problems = bench.choose_problems(options.problems) if options.problems else list(profile["problems"])
         methods = bench.choose_methods(options.methods) if options.methods else list(profile["methods"])
         settings = {**bench.quick_settings(problems, methods, name), **settings}
-        budget = options.budget or Budget(seconds=profile["seconds"])
+        budget = options.budget or Seconds(profile["seconds"])
         budgets = {} if options.budget else bench.profile_budgets(profile, problems)
         seeds = options.seeds or profile["seeds"]
     else:
         problems = bench.choose_problems(options.problems)
         methods = bench.choose_methods(options.methods)
-        budget, seeds, budgets = options.budget or Budget(seconds=DEFAULT_SECONDS), options.seeds or 1, {}
+        budget, seeds, budgets = options.budget or Seconds(DEFAULT_SECONDS), options.seeds or 1, {}
     out = output_dir(options.out if options.out is not None else (f"bench-{name}" if name else "bench"))
     return BenchChoices(problems, methods, range(seeds), budget, budgets, settings, out)
 
@@ -90,8 +90,8 @@ def print_bench(console, result) -> None:
 
     out = result.files["markdown"].parent
     info = rundir.read_json(out / "bench.json", rundir.NOT_A_STUDY)
-    budget = Budget(**info["budget"])
-    budgets = {p: Budget(**b) for p, b in info.get("budgets", {}).items()}
+    budget = Budget.of(info["budget"])
+    budgets = {p: Budget.of(b) for p, b in info.get("budgets", {}).items()}
     seeds = len(info["seeds"])
     for problem in info["problems"]:
         table = result.tables[problem]

@@ -149,11 +149,11 @@ def print_report(console, options: ReportOptions) -> int:
 
 def calibrate_command(console, options: CalibrateOptions) -> int:
     """``physgrad calibrate``: the calibration phase of a study alone, as a table (and a file)."""
+    from ...engine.types import Steps
     from ..calibration import CSV_COLUMNS, EXTRA_COLUMNS, Calibration, calibrate, csv_rows, write_csv
-    from ..config import Budget
     from . import plan, read_csv
 
-    configs = plan(options.problem, options.methods, [0], Budget(steps=1), options.settings)
+    configs = plan(options.problem, options.methods, [0], Steps(1), options.settings)
     timing: dict[str, Any] = {k: v for k, v in (("repeats", options.repeats), ("max_seconds", options.max_seconds))
                               if v is not None}  # fmt: skip
     record = calibrate({c.method: c for c in configs}, devices=options.devices, echo=console.print, **timing)

@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import Any
 
 from ... import rundir
-from ...engine.types import Seconds
+from ...engine.types import Seconds, Steps
 from ...errors import ConfigError
 from ...progress import AbstractProgressMeter
 from ..config import (
@@ -202,7 +202,7 @@ def calibrated_config(config: RunConfig, calibration, seconds: float) -> RunConf
     the wall-clock budget: its run meets the same error and is recorded."""
     if not calibration.has(config.method):
         return config
-    changes: dict[str, Any] = {"budget": Budget(steps=calibration.steps(config.method, seconds))}
+    changes: dict[str, Any] = {"budget": Steps(calibration.steps(config.method, seconds))}
     if config.eval_seconds > 0:
         every = max(1, round(config.eval_seconds / calibration.seconds_per_step(config.method)))
         changes.update(eval_every=every, eval_seconds=0.0)
