@@ -224,7 +224,7 @@ def test_a_config_error_or_an_interrupt_still_stops_the_study(tmp_path, monkeypa
 
 def test_the_memory_guards_refusal_is_recorded_not_raised(tmp_path, monkeypatch):
     """The real guard (a ConfigError subclass, DoesNotFit) refuses each seed: both recorded, the study goes on."""
-    from physgrad import memory
+    from physgrad.engine import memory
     from physgrad.harness.study import compare
 
     monkeypatch.setattr(memory, "available_bytes", lambda device=None: 1000)

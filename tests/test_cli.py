@@ -12,11 +12,11 @@ import pytest
 
 import physgrad
 from physgrad import Budget
+from physgrad.engine.progress import NoProgressMeter
 from physgrad.harness.cli import main
 from physgrad.harness.config import make_config
 from physgrad.harness.registry import METHODS
 from physgrad.harness.train import train
-from physgrad.progress import NoProgressMeter
 
 RUN_FILES = ("config.json", "metrics.csv", "env.json", "summary.json", "params.eqx", "checkpoint/state.eqx")
 
@@ -229,7 +229,7 @@ def test_console_script_and_module_entry_points():
 
 
 def test_rich_progress_meter_runs_through_a_training_run(tmp_path):
-    from physgrad.progress import RichProgressMeter
+    from physgrad.engine.progress import RichProgressMeter
 
     meter = RichProgressMeter(refresh_seconds=0.0)
     config = make_config("hig_toy", "adam", budget=Budget(epochs=2), settings={"batch_size": 256})

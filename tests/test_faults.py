@@ -1,7 +1,7 @@
 """Fault injection: run directories never lose or corrupt a result (issue 29).
 
 Runs are killed with SIGKILL at named points (``PHYSGRAD_TEST_FAULT``, a test-only hook in
-:mod:`physgrad.rundir`) and at random moments, terminated with SIGTERM, written by two
+:mod:`physgrad.engine.rundir`) and at random moments, terminated with SIGTERM, written by two
 processes at once, and given damaged checkpoints; a resumed run must end bit-identical to an
 uninterrupted one (``params.eqx`` bytes, ``test_cases.json`` bytes, every metric value and
 the summary apart from its timings), a refused one must say why in one line with exit 2.
@@ -25,7 +25,7 @@ from pathlib import Path
 import jax
 import pytest
 
-from physgrad import rundir
+from physgrad.engine import rundir
 from physgrad.harness.cli import main
 
 STEPS = 20

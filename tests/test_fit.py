@@ -218,7 +218,7 @@ def _scalars(logdir) -> dict[str, list[tuple[int, float]]]:
 
 def test_the_tensorboard_callback_writes_every_evaluation(tmp_path):
     pytest.importorskip("tensorboardX")
-    from physgrad.tensorboard import TensorBoard
+    from physgrad.engine.tensorboard import TensorBoard
 
     with TensorBoard(tmp_path / "tb", prefix="adam/") as board:
         result = physgrad.fit(Square(), ADAM, budget=physgrad.Budget(steps=25), batch_size=BATCH, settings=SETTINGS,

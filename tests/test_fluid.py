@@ -1,4 +1,4 @@
-"""physgrad.fluid against independent references: a dense NumPy Poisson solve, SciPy's
+"""physgrad.problems.sim.fluid against independent references: a dense NumPy Poisson solve, SciPy's
 linear interpolation, exact shifts, the convergence order, conservation of energy and of
 incompressibility, finite differences for both autodiff modes."""
 
@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from physgrad import fluid
 from physgrad.precision import float64_scope
+from physgrad.problems.sim import fluid
 
 
 def random_velocity(key, n, scale=1.0):

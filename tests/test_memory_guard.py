@@ -1,4 +1,4 @@
-"""The memory guard (physgrad.memory): footprints, refusals that say what fits, the switch."""
+"""The memory guard (physgrad.engine.memory): footprints, refusals that say what fits, the switch."""
 
 import gc
 import re
@@ -13,8 +13,8 @@ import optax
 import pytest
 
 import physgrad
-from physgrad import memory, routes
-from physgrad.engine import Phase, build_setup
+from physgrad import routes
+from physgrad.engine import Phase, build_setup, memory
 from physgrad.harness.cli import main
 from physgrad.harness.config import make_config
 from physgrad.harness.words import command_line_words

@@ -7,10 +7,10 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from physgrad import fluid
 from physgrad.harness.cli import main
 from physgrad.problems import NavierStokes
 from physgrad.problems.navier_stokes import frequency_loss, threshold_top
+from physgrad.problems.sim import fluid
 
 # a quarter of the paper's grid: lengths and the loss's falloff (in cycles per cell) scaled by 1/4
 SMALL = dict(

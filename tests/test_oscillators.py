@@ -5,9 +5,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from physgrad.integrators import integrate, rk4_step
 from physgrad.nets import parameter_count
 from physgrad.problems import Oscillators
+from physgrad.problems.sim.integrators import integrate, rk4_step
 
 
 def rhs_loop(state, u, n, cubic=1.0, linear=0.0, gain=3.0):

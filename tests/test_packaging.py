@@ -52,7 +52,7 @@ def test_the_wheel_carries_the_license_and_py_typed():
 
 
 def test_the_metadata_names_authors_keywords_and_a_posix_system():
-    """physgrad.rundir locks run directories with fcntl (POSIX only), so no "OS Independent"."""
+    """physgrad.engine.rundir locks run directories with fcntl (POSIX only), so no "OS Independent"."""
     project = PYPROJECT["project"]
     assert project["authors"] == [{"name": "physgrad developers"}] and len(project["keywords"]) >= 5
     assert "Operating System :: POSIX" in project["classifiers"]
@@ -81,7 +81,7 @@ def test_optional_packages_are_extras_and_every_floor_is_pinned_by_make_test_flo
     assert extras["kfac"] == ["kfac-jax>=0.0.8,<0.0.9"]  # kfac.py patches a private kfac-jax function
     assert [requirement(r)[0] for r in extras["pde"]] == ["exponax"]
     assert extras["all"] == ["physgrad[kfac,pde,phiflow,postgres,tensorboard]"]
-    # physgrad.phiflow subclasses a private PhiML class: phiml below its next minor version
+    # physgrad.problems.sim.phiflow subclasses a private PhiML class: phiml below its next minor version
     phiml = dict(requirement(r) for r in extras["phiflow"])["phiml"]
     assert re.fullmatch(r">=1\.16\.0,<1\.17", phiml), phiml
     assert "optuna" in core and "distributed" in core  # tune and the workers need nothing extra

@@ -1,4 +1,4 @@
-"""PhiFlow as a simulator source (:mod:`physgrad.phiflow`) against the pure-JAX fluid.
+"""PhiFlow as a simulator source (:mod:`physgrad.problems.sim.phiflow`) against the pure-JAX fluid.
 
 What is compared, and why the tolerances are what they are (measured on 8×8 to 16×16 grids,
 dx = 2, dt = 0.25, 1 to 8 steps, float32):
@@ -6,7 +6,7 @@ dx = 2, dt = 0.25, 1 to 8 steps, float32):
 - PhiFlow 3.4's ``advect.mac_cormack`` clamps each *staggered* velocity component to the
   2 × 2 values around the back-traced point as if the component were cell centred (its
   ``Field.closest_values`` ignores the face offset: the limiter's neighbourhood is shifted
-  half a cell along the component's own axis), while :func:`physgrad.fluid.mac_cormack` uses
+  half a cell along the component's own axis), while :func:`physgrad.problems.sim.fluid.mac_cormack` uses
   the component's own faces. Where the limiter bites, the two differ by up to ~5 % of the
   velocity after one step; after 8 steps |Δv| reaches 0.44 of max |v| ≈ 2 and the marker
   0.06 (gradients ~25 % apart). The marker advection (cell centred), the projection and
@@ -19,7 +19,7 @@ dx = 2, dt = 0.25, 1 to 8 steps, float32):
   on these small grids). What remains is float32 rounding through bilinear sampling,
   clamping and the energy rescale. Tolerances: states 1e-4 absolute (values O(1)),
   gradients 1e-3 of max |g|.
-- ``physgrad.fluid.rollout`` differs from PhiFlow by the limiter alone: the difference
+- ``physgrad.problems.sim.fluid.rollout`` differs from PhiFlow by the limiter alone: the difference
   PhiFlow − fluid equals reference − fluid to the same 1e-4.
 
 PhiFlow is slow to trace and XLA slow to compile these graphs on one core, so everything
@@ -41,15 +41,16 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from physgrad import fluid, jacobian, phiflow
+from physgrad import jacobian
 from physgrad.inverse import GaussNewton
+from physgrad.problems.sim import fluid, phiflow
 
 # The PhiFlow comparisons trace PhiFlow and compile its graphs in a fresh interpreter (about a
 # minute of CPU from a cold cache): the slow tier, which CI runs after make test.
 pytestmark = pytest.mark.slow
 
 # A spec check, not pytest.importorskip("phi"): collecting this module imports no PhiFlow
-# (physgrad.phiflow imports it on first use, which the tests below exercise).
+# (physgrad.problems.sim.phiflow imports it on first use, which the tests below exercise).
 if not phiflow.phiflow_available():
     pytest.skip("PhiFlow is not installed (pip install physgrad[phiflow])", allow_module_level=True)
 
@@ -60,7 +61,7 @@ DX = 2.0  # cell size in the tests of the adapter alone
 README_EXAMPLE = """
 import jax
 import jax.numpy as jnp
-from physgrad import fluid, phiflow
+from physgrad.problems.sim import fluid, phiflow
 
 n, dx, dt, steps = 8, 2.0, 0.25, 2  # the SIP paper's fluid: 64 x 64 cells, dx = 2, dt = 0.25, 8 steps
 keys = jax.random.split(jax.random.PRNGKey(0), 3)
@@ -103,7 +104,7 @@ FAST_COMPILE = {"xla_backend_optimization_level": 0, "xla_llvm_disable_expensive
 def fresh(tmp_path_factory):
     """One fresh interpreter with JAX's defaults (x64 off, as a user's), XLA at -O0 (these
     graphs take 30 s to compile at -O2 on one core). It checks that importing physgrad and
-    physgrad.phiflow imports no PhiFlow and that a missing PhiFlow is one ImportError naming
+    physgrad.problems.sim.phiflow imports no PhiFlow and that a missing PhiFlow is one ImportError naming
     the extra; runs the README example verbatim (jit, vmap and grad through PhiFlow: losses,
     states and gradients); and records JAX's flags and PhiML's global settings
     before and after. Returns (the record, the arrays)."""
@@ -114,7 +115,7 @@ def fresh(tmp_path_factory):
         import json, sys
         import numpy as np
         import jax, jax.numpy as jnp
-        import physgrad, physgrad.phiflow as pf
+        import physgrad, physgrad.problems.sim.phiflow as pf
         out = {{"phi_imported_by_physgrad": "phi" in sys.modules or "phiml" in sys.modules}}
         sys.modules["phi"] = None  # PhiFlow missing
         try:
@@ -263,7 +264,7 @@ def test_a_default_solve_is_refused_in_one_line():
 
 # --- (b) the process's configuration ---------------------------------------------------------------
 def test_importing_and_using_phiflow_leaves_the_configuration_alone(fresh):
-    """physgrad and physgrad.phiflow import no PhiFlow; a missing PhiFlow is one ImportError
+    """physgrad and physgrad.problems.sim.phiflow import no PhiFlow; a missing PhiFlow is one ImportError
     naming the extra; after the adapter imported PhiFlow (inside a jax.enable_x64 scope, as
     SIP's float64 inverse would) and ran it, x64 is still off, no JAX flag changed, and
     PhiML's default backend and precision are what they were."""

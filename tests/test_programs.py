@@ -1,4 +1,4 @@
-"""Compile once: a study's seeds share one compiled step and evaluation (physgrad.programs)."""
+"""Compile once: a study's seeds share one compiled step and evaluation (physgrad.engine.programs)."""
 
 import jax
 import numpy as np
@@ -6,9 +6,9 @@ import pytest
 
 from physgrad import Budget
 from physgrad.engine import initial_network
+from physgrad.engine.programs import ProgramCache, abstract_key, key, static_key
 from physgrad.harness import study
 from physgrad.problems import HigToy
-from physgrad.programs import ProgramCache, abstract_key, key, static_key
 
 
 class CompileCounter:
@@ -66,7 +66,7 @@ def test_a_second_seed_of_a_study_compiles_nothing(tmp_path, compiles):
 
 
 def test_cached_step_gives_the_result_of_a_fresh_compile(tmp_path):
-    from physgrad import programs
+    from physgrad.engine import programs
 
     settings = {"lam": 0.41, "eval_every": 3}
     study.compare("hig_toy", ["hig"], [0], Budget(steps=3), tmp_path / "warm", settings=settings, echo=lambda s: None)
@@ -129,7 +129,7 @@ def test_persistent_compilation_cache_from_the_command_line(tmp_path):
     """)
     library = textwrap.dedent(f"""
         import jax
-        from physgrad import programs
+        from physgrad.engine import programs
         programs.use_compilation_cache({str(tmp_path / "xla2")!r}, min_compile_seconds=0)
         jax.jit(lambda x: x * 3 + 1)(jax.numpy.ones(5)).block_until_ready()
     """)

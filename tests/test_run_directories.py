@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 
 import physgrad
-from physgrad import rundir
+from physgrad.engine import rundir
 from physgrad.harness.cli import main
 from physgrad.harness.registry import METHODS, PROBLEMS
 from test_faults import ARGS, STEPS, one_line_error, result, spawn, train
@@ -137,7 +137,7 @@ def test_4_a_lock_that_is_a_link_is_refused_and_its_target_untouched(tmp_path, c
 # --- 5, 19: the dataset cache ------------------------------------------------------------------------
 @pytest.mark.parametrize("damage", ["truncated", "empty", "flipped", "missing", "text"])
 def test_5_a_damaged_cached_dataset_is_made_again(tmp_path, monkeypatch, capsys, damage):
-    from physgrad.cache import cached_arrays
+    from physgrad.problems.sim.cache import cached_arrays
 
     monkeypatch.setenv("PHYSGRAD_CACHE", str(tmp_path))
     made = {"x": np.arange(1000.0), "y": np.ones((4, 5), np.float32)}
@@ -165,7 +165,7 @@ def test_5_a_damaged_cached_dataset_is_made_again(tmp_path, monkeypatch, capsys,
 
 
 def test_19_a_cache_that_is_a_file_is_one_line_before_generating(tmp_path, monkeypatch):
-    from physgrad.cache import cached_arrays
+    from physgrad.problems.sim.cache import cached_arrays
 
     monkeypatch.setenv("PHYSGRAD_CACHE", str(tmp_path / "afile"))
     (tmp_path / "afile").write_text("")
@@ -209,7 +209,7 @@ def test_16_the_checkpoint_interval_is_not_part_of_the_identity(reference, tmp_p
 
 # --- 8, 22: the memory guard --------------------------------------------------------------------------
 def test_8_22_data_beyond_memory_is_refused_at_once(tmp_path, monkeypatch, capsys):
-    from physgrad import memory
+    from physgrad.engine import memory
 
     monkeypatch.setattr(memory, "available_bytes", lambda device=None: 2**20)
     argv = ["train", "exp_inverse", "--method", "hig", "--set", "n_train=200000", "--set", "batch_size=200000",

@@ -113,6 +113,30 @@ def test_the_count_finds_a_default_overridden_twice():
     assert overridden_defaults({"AbstractBase": AbstractBase, "AbstractMiddle": AbstractMiddle, "C": C, "D": D}) == []
 
 
+# Defaults still overridden more than once, each with what keeps it (issue 52 left them for a
+# later step). The list may only shrink: a new offender fails, and so does an entry that no
+# longer offends (delete it).
+KNOWN = {
+    # three rules add checks of their own (rollout systems, local inverses, unrolled windows);
+    # an abstract check would break users' rules that need none (test_engine's BrokenFootprint)
+    "physgrad.methods.base.AbstractRule.check",
+    # AbstractProblem's optional hooks are the documented contract for a user's own problem
+    # (README: five required methods, the rest defaulted); as abstract methods every user
+    # problem would have to write them. Validation wraps a problem and forwards every hook.
+    # The way out is fields (needs_float64 as a declared flag, metrics as metric objects).
+    "physgrad.problems.base.AbstractProblem.metrics",
+    "physgrad.problems.base.AbstractProblem.initial_guess",
+    "physgrad.problems.base.AbstractProblem.predict",
+    "physgrad.problems.base.AbstractProblem.needs_float64",
+    "physgrad.problems.base.AbstractProblem.initial_network",
+    "physgrad.problems.base.AbstractProblem.objective",
+    "physgrad.problems.base.AbstractProblem.batch_groups",
+}
+
+
 def test_no_concrete_method_of_an_abstract_base_is_overridden_by_more_than_one_subclass():
     offenders = overridden_defaults(_classes())
-    assert not offenders, "concrete methods of abstract bases overridden more than once:\n" + "\n".join(offenders)
+    new = [o for o in offenders if o.split(":")[0] not in KNOWN]
+    assert not new, "concrete methods of abstract bases overridden more than once:\n" + "\n".join(new)
+    gone = KNOWN - {o.split(":")[0] for o in offenders}
+    assert not gone, f"no longer overridden more than once (delete from KNOWN): {sorted(gone)}"

@@ -14,8 +14,7 @@ import optax
 import pytest
 
 import physgrad  # noqa: F401
-from physgrad import prdp
-from physgrad.engine import Placement, Steps, TrainSettings, grouped_order
+from physgrad.engine import Placement, Steps, TrainSettings, grouped_order, prdp
 from physgrad.harness.cli import main
 from physgrad.harness.config import Budget, ConfigError, make_config
 from physgrad.harness.objects import make_problem
@@ -24,9 +23,7 @@ from physgrad.harness.train import build, make_step, settings_of, train
 from physgrad.problems import Advection1d, Kolmogorov, KuramotoSivashinsky
 from physgrad.problems.advection_1d import ImplicitUpwind, fou_distance
 from physgrad.problems.ks import ks_stepper
-from physgrad.problems.time_stepper import windows
-from physgrad.rollout import value_and_grad
-from physgrad.steppers import (
+from physgrad.problems.sim.steppers import (
     Bypass,
     NonDifferentiable,
     NotDifferentiableError,
@@ -36,6 +33,8 @@ from physgrad.steppers import (
     Sequential,
     Solver,
 )
+from physgrad.problems.time_stepper import windows
+from physgrad.rollout import value_and_grad
 
 
 @pytest.fixture(autouse=True)

@@ -1,6 +1,6 @@
 """A user's own exponax stepper as the solver of a time-stepper problem, the documented path
 (README, "A neural time-stepper around your own solver"; examples/04_time_stepper_exponax.ipynb):
-``physgrad.steppers.Repeated(exponax_stepper, substeps)`` as ``solvers()`` of a
+``physgrad.problems.sim.steppers.Repeated(exponax_stepper, substeps)`` as ``solvers()`` of a
 ``TimeStepperProblem`` subclass, trained by ``physgrad.unrolled`` in the user's loop (ONE,
 NOG, WIG) and by ``physgrad.fit``; and ``zero_init`` on a user's multi-layer network."""
 
@@ -17,8 +17,8 @@ import pytest
 
 import physgrad
 from physgrad.problems import TimeStepperProblem
+from physgrad.problems.sim.steppers import Bypass, Parallel, Repeated, Residual, Solver, single_precision
 from physgrad.rollout import R, S
-from physgrad.steppers import Bypass, Parallel, Repeated, Residual, Solver, single_precision
 
 
 def _conv_net(key, width=8):

@@ -22,11 +22,11 @@ from typing import TYPE_CHECKING, Any
 from . import cpu as _cpu
 from .engine import run as _run
 from .engine.callbacks import Callback
+from .engine.progress import AbstractProgressMeter
 from .engine.result import FitResult
 from .engine.types import Budget, Phase, TrainSettings
 from .methods import AbstractMethod
 from .problems import AbstractProblem
-from .progress import AbstractProgressMeter
 
 if TYPE_CHECKING:
     import jax

@@ -6,8 +6,8 @@ The core install trains every problem and method except these:
 - ``kfac`` (kfac-jax, which brings distrax and TensorFlow Probability): the ``kfac`` method;
 - ``pde`` (exponax): the time-stepper problems ``ks``, ``kolmogorov`` and ``advection_1d``
   (their reference and coarse solvers);
-- ``phiflow`` (PhiFlow and PhiML): PhiFlow simulators (:mod:`physgrad.phiflow`);
-- ``tensorboard`` (tensorboardX): :class:`physgrad.tensorboard.TensorBoard`, a callback of
+- ``phiflow`` (PhiFlow and PhiML): PhiFlow simulators (:mod:`physgrad.problems.sim.phiflow`);
+- ``tensorboard`` (tensorboardX): :class:`physgrad.engine.tensorboard.TensorBoard`, a callback of
   :func:`physgrad.fit` that writes TensorBoard event files.
 
 ``all`` installs every one of them. Nothing here imports an optional package: whether one is

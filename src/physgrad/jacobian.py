@@ -52,7 +52,7 @@ def stacked_jacobian(predict: Callable[[PyTree, PyTree], Array], params: PyTree,
 
 # --- simulators without forward mode -------------------------------------------------------
 # A function built on ``jax.custom_vjp`` (e.g. PhiFlow/PhiML's implicit-adjoint linear solves,
-# :mod:`physgrad.phiflow`) has reverse-mode derivatives only: ``jax.jvp``/``jacfwd`` raise
+# :mod:`physgrad.problems.sim.phiflow`) has reverse-mode derivatives only: ``jax.jvp``/``jacfwd`` raise
 # "can't apply forward-mode autodiff (jvp) to a custom_vjp function" (while tracing, or only
 # when the traced computation is evaluated or lowered). The helpers below let
 # the Jacobian-based pieces pick reverse mode for such functions, and let the pieces that

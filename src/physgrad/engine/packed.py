@@ -11,7 +11,7 @@ import io
 from pathlib import Path
 from typing import IO, Any
 
-from .. import rundir
+from . import rundir
 
 
 def kept_path(path: str | Path) -> Path:
@@ -38,7 +38,7 @@ def open_kept(path: str | Path) -> IO[str]:
 def pack_file(source: str | Path, target: str | Path) -> Path:
     """``source`` gzipped to ``target``, the same bytes for the same file: no name or time in
     the gzip header, so that packing a kept file again changes nothing in git. Written all at
-    once (:func:`physgrad.rundir.atomic_write`), so ``target`` is never half-written;
+    once (:func:`physgrad.engine.rundir.atomic_write`), so ``target`` is never half-written;
     :func:`kept_path` finds it."""
     rundir.atomic_write(target, gzip_bytes(Path(source).read_bytes()))
     return Path(target)

@@ -2,7 +2,7 @@
 (:class:`Recorder`), checkpoints of the loop state (:class:`Checkpointer`), the final files
 and summary (:func:`finish`), and reading run directories back (:func:`read_summary`,
 :func:`is_complete`; ``metrics.csv``, plain or packed: :mod:`physgrad.engine.packed`).
-Every file is written whole (:mod:`physgrad.rundir`); a run in memory
+Every file is written whole (:mod:`physgrad.engine.rundir`); a run in memory
 (``fit(..., out=None)``) writes none of them.
 
 A run directory holds ``config.json`` (what the caller says identifies the run),
@@ -30,10 +30,11 @@ import equinox as eqx
 import jax
 import numpy as np
 
-from .. import cpu, distributed, rundir
+from .. import cpu, distributed
 from ..errors import ConfigError
 from ..nets import parameter_count
 from ..precision import x64_enabled
+from . import rundir
 from .callbacks import Callbacks
 from .packed import gzip_bytes, kept_path, open_kept, pack_file, packed_path, read_metrics  # noqa: F401 — their old home
 from .result import Row, rows_from_metrics
@@ -192,7 +193,7 @@ class Checkpointer:
     the previous save (or the start), at every evaluation and at the end, so a kill loses at
     most that much work. Each save is one atomic commit of ``checkpoint/`` (arrays in
     ``state.eqx``, host scalars in ``counters.json``, sizes and checksums in
-    ``manifest.json``: :func:`physgrad.rundir.save_checkpoint`).
+    ``manifest.json``: :func:`physgrad.engine.rundir.save_checkpoint`).
 
     Loading verifies the manifest; a checkpoint of an older physgrad (no manifest) still
     loads, unverified. Without a run directory (``run_dir`` None: a run in memory) it
@@ -236,7 +237,7 @@ class Checkpointer:
     def load(self, like: Callable[[dict[str, Any]], TrainState]) -> TrainState | None:
         """The checkpointed state (None without one); ``like(counters)`` gives its structure
         (the optimizer state depends on the stage it was taken in). Damaged files are a
-        one-line ConfigError (:func:`physgrad.rundir.load_checkpoint`); files that verify
+        one-line ConfigError (:func:`physgrad.engine.rundir.load_checkpoint`); files that verify
         but do not fit ``like`` were written by another version of the method."""
         found = rundir.load_checkpoint(self.run_dir) if self.run_dir is not None else None
         if found is None:
@@ -338,7 +339,7 @@ def environment() -> dict[str, Any]:
 
 
 def write_json(path: Path, data: dict[str, Any]):
-    """Write ``data`` as JSON all at once (:func:`physgrad.rundir.atomic_write`)."""
+    """Write ``data`` as JSON all at once (:func:`physgrad.engine.rundir.atomic_write`)."""
     rundir.atomic_write(path, rundir.json_text(data))
 
 
@@ -377,7 +378,7 @@ def is_final(summary: dict[str, Any]) -> bool:
 
 @contextlib.contextmanager
 def writer_lock(run_dir: Path, placement: Placement):
-    """The writer process locks the run directory (:func:`physgrad.rundir.one_writer`); in a
+    """The writer process locks the run directory (:func:`physgrad.engine.rundir.one_writer`); in a
     multi-process run every process learns whether it got the lock, so that none waits at a
     collective for a writer that was refused."""
     with contextlib.ExitStack() as stack:

@@ -11,9 +11,9 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from .. import rundir
 from ..errors import ConfigError, RunDirectoryExists, RunDirectoryRefused
 from . import record as records
+from . import rundir
 from .recording import is_final, kept_path, read_json, read_summary, write_json
 from .types import Budget, Epochs
 

@@ -30,14 +30,15 @@ from typing import Any, NamedTuple
 import jax
 import numpy as np
 
-from .. import checks, distributed, rundir
+from .. import checks, distributed
 from ..errors import ConfigError
 from ..methods import AbstractMethod
 from ..precision import float64_scope
 from ..problems import AbstractProblem
-from ..progress import AbstractProgressMeter, NoProgressMeter
 from . import record as records
+from . import rundir
 from .callbacks import Callback, Callbacks
+from .progress import AbstractProgressMeter, NoProgressMeter
 from .recording import (
     Checkpointer,
     MetricsLog,

@@ -20,10 +20,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .. import distributed, memory
+from .. import distributed
 from ..errors import ConfigError
 from ..methods import AbstractMethod, Objective
 from ..problems import AbstractProblem
+from . import memory
 from .types import Phase, Setup, Stage
 
 # JAX's errors for host code given a tracer (NumPy on an array, ``float(x)``, ``if x:``):

@@ -1,6 +1,6 @@
 """The jitted training step and evaluation, and :class:`Steps`: the training data on the
 devices, each epoch's batch order and each stage's steps compiled (and checked by the
-memory guard, :mod:`physgrad.memory`) ahead of time.
+memory guard, :mod:`physgrad.engine.memory`) ahead of time.
 
 The run takes its steps in chunks (:func:`make_steps`): up to :data:`CHUNK` steps in one
 dispatch, their statistics read back once, so a step of a fraction of a millisecond is not
@@ -15,11 +15,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .. import distributed, memory, programs
+from .. import distributed
 from ..acceptance import SKIPPED
 from ..errors import ConfigError
 from ..methods import AbstractMethod
 from ..precision import x64_enabled
+from . import memory, programs
 from .setup import mesh_devices, method_refusals, scalar_loss
 from .strategies import Placement
 from .types import Setup, Stage, TrainSettings, TrainState
@@ -156,7 +157,7 @@ def make_evaluate(setup: Setup, chunk: int = 1024, per_sample: bool = False):
     sample's values (for paired tests). Under a mesh the samples are split over its devices.
 
     Runs of the same problem and network structure share one jitted function (and so its
-    compilations, :mod:`physgrad.programs`): the seeds differ in arguments only."""
+    compilations, :mod:`physgrad.engine.programs`): the seeds differ in arguments only."""
     key = programs.key("evaluate", setup.problem, chunk, per_sample, static=setup.static)
     return programs.EVALUATIONS.get(key, lambda: _make_evaluate(setup, chunk, per_sample))[0]
 
@@ -192,7 +193,7 @@ class Steps:
     compiled ahead of time (:func:`make_steps`; compilation is counted in ``compile_seconds``).
 
     With ``settings.memory_guard`` a stage's step is checked before it first runs
-    (:mod:`physgrad.memory`): the method's footprint before compiling, XLA's memory
+    (:mod:`physgrad.engine.memory`): the method's footprint before compiling, XLA's memory
     analysis of the compiled steps after; a step that cannot fit raises ConfigError."""
 
     def __init__(self, setup: Setup, placement: Placement, settings: TrainSettings, seed: int):
@@ -251,7 +252,7 @@ class Steps:
         """The current stage's steps, compiled (and checked by the memory guard) with the
         chunk :func:`loop_chunk` chooses, or the
         same program compiled earlier in this process by a run that differs only in its
-        seed (:mod:`physgrad.programs`)."""
+        seed (:mod:`physgrad.engine.programs`)."""
         stage = setup.stages[state.stage]
         t0 = time.perf_counter()
         lower = lambda size, chunk: self._lower(state, setup=setup, stage=stage, batch_size=size, chunk=chunk)  # noqa: E731

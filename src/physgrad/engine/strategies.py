@@ -2,7 +2,7 @@
 budget is spent), :class:`EvalSchedule` (when to evaluate), :class:`ChunkSize` (how many
 steps one dispatch takes), :class:`Placement` (where arrays live: one device or a data
 mesh over devices and processes) and :class:`Fidelity` (PRDP's solver refinement). The
-progress meter is :mod:`physgrad.progress`'s."""
+progress meter is :mod:`physgrad.engine.progress`'s."""
 
 from __future__ import annotations
 
@@ -14,9 +14,9 @@ import jax
 import numpy as np
 
 from .. import distributed
-from .. import prdp as prdp_control
 from ..errors import ConfigError
 from ..problems import AbstractProblem
+from . import prdp as prdp_control
 from .types import Budget, Setup, Stage, TrainSettings, TrainState
 
 

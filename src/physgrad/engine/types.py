@@ -278,13 +278,13 @@ class TrainSettings:
     fresh_samples: bool | None = checks.declared(None, checks.FLAG, earlier=False)
     # wall-clock seconds between checkpoints; also at every evaluation and the end
     checkpoint_seconds: float = checks.declared(60.0, checks.NON_NEGATIVE)
-    # refine the solver's iteration count on validation plateaus (physgrad.prdp)
+    # refine the solver's iteration count on validation plateaus (physgrad.engine.prdp)
     prdp: bool = checks.declared(False, checks.FLAG)
     prdp_start: int = checks.declared(1, checks.POSITIVE_INT)
     prdp_increment: int = checks.declared(1, checks.POSITIVE_INT)
     prdp_tau_step: float = checks.declared(0.98, checks.UNIT)
     prdp_tau_stop: float = checks.declared(0.9, checks.UNIT)
-    # refuse a step that cannot fit in memory before it runs (physgrad.memory)
+    # refuse a step that cannot fit in memory before it runs (physgrad.engine.memory)
     memory_guard: bool = checks.declared(True, checks.FLAG, guards=True)
     # if > 0: stop as well once the training wall-clock reaches this many seconds, a cap beside
     # a steps (or calibrated) budget; the summary then says ``wall_capped``

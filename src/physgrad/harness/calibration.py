@@ -5,7 +5,7 @@ A wall-clock race on a shared machine measures the machine's load as much as the
 rule (one busy neighbour made a HIG step 55× slower, an Adam step 3×). So a study with a
 seconds budget first **calibrates**: it builds each method's run (seed 0, the study's
 settings), compiles its step with the engine's own :class:`~physgrad.engine.step.Steps`
-(the compiled program is kept in :data:`physgrad.programs.STEPS`, so the runs that follow
+(the compiled program is kept in :data:`physgrad.engine.programs.STEPS`, so the runs that follow
 do not compile it again), calls it once more to warm it up, and then times it in
 **interleaved rounds** (one call of every method per round, so that a change of load
 touches every method alike) under the thread setting the study runs with. A call replays
@@ -42,7 +42,7 @@ from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from .. import rundir
+from ..engine import rundir
 from ..engine.types import Steps
 from ..errors import ConfigError
 from .config import RunConfig
@@ -173,7 +173,7 @@ def step_programs(config: RunConfig, devices: int | str | None = 1) -> tuple[lis
     seconds spent compiling and warming up each, and the stages (the engine's
     :class:`~physgrad.engine.types.Stage`). Built with the engine's
     :class:`~physgrad.engine.step.Steps`, so the program is the one the run uses (and finds
-    in :data:`physgrad.programs.STEPS` instead of compiling it again); the memory guard
+    in :data:`physgrad.engine.programs.STEPS` instead of compiling it again); the memory guard
     checks it as in a run. Call inside :func:`physgrad.precision.float64_scope` where the
     problem needs float64 (:func:`calibrate` does)."""
     import jax

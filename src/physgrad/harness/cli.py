@@ -31,7 +31,6 @@ from pathlib import Path
 
 from rich.console import Console
 
-from .. import rundir
 from ..errors import ConfigError
 from .arguments import DEMO, UsageError, build_parser, output_dir, threads_of
 from .words import command_line_words
@@ -74,7 +73,7 @@ def cmd_list(args, console):
 
 
 def _progress(args, console):
-    from ..progress import NoProgressMeter, RichProgressMeter
+    from ..engine.progress import NoProgressMeter, RichProgressMeter
 
     return NoProgressMeter() if args.quiet or not console.is_terminal else RichProgressMeter()
 
@@ -231,6 +230,8 @@ def _damaged_files_as_one_line(command, args, console):
     import gzip
     import zlib
 
+    from ..engine import rundir
+
     try:
         return command(args, console)
     except (
@@ -281,7 +282,7 @@ def main(argv=None) -> int:
             return 2
         cache = getattr(args, "compilation_cache", None) or os.environ.get("PHYSGRAD_COMPILATION_CACHE")
         if cache and args.command != "list":
-            from ..programs import use_compilation_cache
+            from ..engine.programs import use_compilation_cache
 
             use_compilation_cache(cache)
         # The thread pools for the command (physgrad.cpu): set before the first JAX
@@ -290,6 +291,8 @@ def main(argv=None) -> int:
 
         threads = process_threads(threads_of(args)) if hasattr(args, "threads") else contextlib.nullcontext()
         # SIGTERM stops every command as Ctrl-C does (a study's calibration too): locks released, one line
+        from ..engine import rundir  # here, not at the top: the engine package imports JAX
+
         with warnings.catch_warnings(), threads, rundir.terminate_as_interrupt():
             warnings.showwarning = _one_line_warnings(err, warnings.showwarning)
             return COMMANDS[args.command](args, console)
@@ -312,7 +315,7 @@ def main(argv=None) -> int:
                   "or the batch size", markup=False, highlight=False, soft_wrap=True)  # fmt: skip
         return 1
     except KeyboardInterrupt as e:  # Ctrl-C, or SIGTERM (rundir.Terminated): runs checkpoint first
-        from ..rundir import Terminated
+        from ..engine.rundir import Terminated
 
         err.print(
             f"physgrad: {'terminated' if isinstance(e, Terminated) else 'interrupted'}; finished runs are kept, "

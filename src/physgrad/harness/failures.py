@@ -18,7 +18,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from .. import rundir
+from ..engine import rundir
 from ..errors import ConfigError, DoesNotFit
 
 FAILURES = "failures.json"

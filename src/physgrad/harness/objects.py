@@ -7,9 +7,9 @@ maps one to the other, so a run directory written before the objects existed kee
 
 - the time-stepper problems' ``setup=prediction|correction`` and
   ``composition=full|residual|parallel|sequential|bypass`` (``""``: the setup's default) →
-  :mod:`physgrad.steppers`' :class:`~physgrad.steppers.Prediction`,
-  :class:`~physgrad.steppers.Residual`, :class:`~physgrad.steppers.Parallel`,
-  :class:`~physgrad.steppers.Sequential`, :class:`~physgrad.steppers.Bypass`, with α the
+  :mod:`physgrad.problems.sim.steppers`' :class:`~physgrad.problems.sim.steppers.Prediction`,
+  :class:`~physgrad.problems.sim.steppers.Residual`, :class:`~physgrad.problems.sim.steppers.Parallel`,
+  :class:`~physgrad.problems.sim.steppers.Sequential`, :class:`~physgrad.problems.sim.steppers.Bypass`, with α the
   problem's ``network_scale``;
 - problem settings that hold an activation function (the oscillators' ``activation``) →
   ``jax.nn.relu``, ``jax.nn.tanh``, ... (:data:`ACTIVATIONS`);
@@ -29,7 +29,7 @@ import lineax as lx
 from ..errors import ConfigError
 from ..nets import identity
 from ..problems.base import AbstractProblem
-from ..steppers import AbstractComposition, Bypass, Parallel, Prediction, Residual, Sequential
+from ..problems.sim.steppers import AbstractComposition, Bypass, Parallel, Prediction, Residual, Sequential
 
 # setup -> composition name -> (problem's network scale α) -> composition object
 COMPOSITIONS = {

@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from .. import rundir
+from ..engine import rundir
 
 # The widest log range a figure shows: beyond it matplotlib's log ticks overflow, and no
 # training curve needs it. Above the curves' highest starting value a figure shows at most
@@ -31,7 +31,7 @@ class FigureWarning(UserWarning):
 
 
 def save_figure(fig, path: str | Path, **options) -> None:
-    """``fig.savefig`` through :func:`physgrad.rundir.atomic_file`: a kill or a failed write
+    """``fig.savefig`` through :func:`physgrad.engine.rundir.atomic_file`: a kill or a failed write
     leaves the previous figure whole, never an empty or half-written PNG."""
     path = Path(path)
     with rundir.atomic_file(path) as f:

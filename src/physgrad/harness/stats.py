@@ -37,7 +37,7 @@ from typing import Any
 
 import numpy as np
 
-from .. import rundir
+from ..engine import rundir
 from ..engine.packed import kept_path, open_kept
 from ..errors import ConfigError
 

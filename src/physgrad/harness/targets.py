@@ -34,7 +34,7 @@ from typing import Any
 
 import numpy as np
 
-from .. import rundir
+from ..engine import rundir
 from .papers import Target, protocol
 from .seeds import MIN_SEEDS_INTERVAL, as_float, interval, number, summarize
 

@@ -14,7 +14,6 @@ from typing import Any
 
 import equinox as eqx
 
-from .. import rundir
 from ..engine import (
     Phase,
     Setup,
@@ -26,12 +25,13 @@ from ..engine import (
     make_step,
     read_metrics,
     read_summary,
+    rundir,
 )
+from ..engine.programs import ProgramCache
+from ..engine.progress import AbstractProgressMeter
 from ..engine.record import differences
 from ..errors import RunDirectoryRefused
 from ..problems.direct import DirectOptimisation
-from ..programs import ProgramCache
-from ..progress import AbstractProgressMeter
 from .config import ConfigError, RunConfig
 from .objects import devices as edge_devices
 from .objects import make_problem
@@ -52,7 +52,7 @@ def phases_of(config: RunConfig) -> list[Phase]:
 
     A method configured alike is built once per process and shared: a method object holds
     optax closures, so only the same object lets a study's seeds share one compiled step
-    (:mod:`physgrad.programs`). Methods are immutable, so sharing them is safe."""
+    (:mod:`physgrad.engine.programs`). Methods are immutable, so sharing them is safe."""
     out = []
     for phase in config.phases:
         key = (phase.method, repr(sorted(phase.hyperparameters.items())))

@@ -45,8 +45,7 @@ from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any, NamedTuple
 
-from .. import rundir
-from ..engine import Budget, TrainSettings
+from ..engine import Budget, TrainSettings, rundir
 from ..engine.types import Seconds, Steps
 from ..errors import ConfigError
 from .spaces import Space, describe_space, distributions

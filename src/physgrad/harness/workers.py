@@ -17,7 +17,7 @@ Each run keeps its own run directory, lock, checkpoints and resume (:func:`physg
 A worker that dies takes its run's work since the last checkpoint with it: the scheduler
 hands the job to another worker (``distributed.scheduler.allowed-failures``, and
 ``retries`` for a job that raised), which resumes the run from its checkpoint. A worker
-keeps the programs it compiled (:mod:`physgrad.programs`), so each worker compiles a
+keeps the programs it compiled (:mod:`physgrad.engine.programs`), so each worker compiles a
 (problem, method, shapes) step once, as the single process does. Every worker process
 runs with ``threads`` threads per pool (:func:`physgrad.cpu.process_threads`), set before
 its JAX backend starts.

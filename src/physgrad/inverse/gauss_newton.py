@@ -10,7 +10,7 @@ Cost: one Jacobian and one SVD per sample. Converged = finite.
 
 The Jacobian is built in forward mode (dim x JVPs) or reverse mode (dim y VJPs), a mode
 object of :mod:`physgrad.jacobian`: ``jacobian=AutoMode()`` (default) takes reverse mode when the simulator has no forward mode
-(a ``jax.custom_vjp`` such as PhiFlow's solves, :mod:`physgrad.phiflow`: detected at trace
+(a ``jax.custom_vjp`` such as PhiFlow's solves, :mod:`physgrad.problems.sim.phiflow`: detected at trace
 time, :func:`physgrad.jacobian.supports_forward_mode`) or when dim y < dim x, else forward
 mode; ``ForwardMode()`` and ``ReverseMode()`` force one. Both give the same J up to rounding.
 The strings ``"auto"|"forward"|"reverse"`` still work for one release, with a

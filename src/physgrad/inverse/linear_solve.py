@@ -41,7 +41,7 @@ counts the others (``stats["inverse_failures"]``) and warns when most of a batch
 For nonlinear P this is one Newton–Krylov step, not the exact inverse. The error of x̃
 grows like the condition number times the tolerance: on ill-conditioned operators run
 SIP with ``precision=jnp.float64``. A = ∂P/∂x is applied in forward mode: a reverse-mode-only
-simulator (PhiFlow, :mod:`physgrad.phiflow`) gets a one-line ``ValueError`` naming
+simulator (PhiFlow, :mod:`physgrad.problems.sim.phiflow`) gets a one-line ``ValueError`` naming
 ``GaussNewton``/``LBFGS``.
 
 Under ``precision=jnp.float64`` SIP runs the solve in :func:`physgrad.precision.float64_call`:

@@ -47,7 +47,7 @@ user's functions.
 
 Rules and methods may also estimate the memory of their own large arrays
 (``footprint``, from shapes alone) and name lighter variants of themselves (``lighter``):
-the engine's memory guard (:mod:`physgrad.memory`) checks a step against the device
+the engine's memory guard (:mod:`physgrad.engine.memory`) checks a step against the device
 before the first step and says what would fit.
 """
 

@@ -29,7 +29,7 @@ import numpy as np
 
 from ..extras import import_extra
 from ..precision import float64_scope
-from ..steppers import AbstractComposition, Parallel, Repeated, Solver
+from .sim.steppers import AbstractComposition, Parallel, Repeated, Solver
 from .time_stepper import AbstractTimeStepper, solver_rollout
 
 

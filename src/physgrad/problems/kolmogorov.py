@@ -32,7 +32,7 @@ import numpy as np
 from ..extras import import_extra
 from ..nets import ConvResNet
 from ..precision import float64_scope
-from ..steppers import AbstractComposition, Bypass, Repeated, single_precision, stack_solvers
+from .sim.steppers import AbstractComposition, Bypass, Repeated, single_precision, stack_solvers
 from .time_stepper import AbstractTimeStepper, solver_rollout
 
 TRAIN_RE = (300, 400, 500, 700, 800, 900)

@@ -41,7 +41,7 @@ import numpy as np
 from ..extras import import_extra
 from ..nets import ConvResNet
 from ..precision import float64_scope
-from ..steppers import AbstractComposition, Parallel, Repeated, single_precision, stack_solvers
+from .sim.steppers import AbstractComposition, Parallel, Repeated, single_precision, stack_solvers
 from .time_stepper import AbstractTimeStepper, solver_rollout
 
 TRAIN_FACTORS = (0.9, 0.95, 1.0, 1.1, 1.2, 1.3)

@@ -3,7 +3,7 @@
 Source: Holl, Koltun, Thuerey, *Scale-invariant Learning by Physics Inversion*, NeurIPS
 2022, §5 and Fig. 7 (their ``fluid/train_fluid.py`` and ``fluid/fluid_base.py``).
 
-Physics (:mod:`physgrad.fluid`): a passive marker m is carried by an inviscid,
+Physics (:mod:`physgrad.problems.sim.fluid`): a passive marker m is carried by an inviscid,
 incompressible, energy-conserving flow on a 64 × 64 periodic staggered grid over a
 128 × 128 domain (Δx = 2), 8 steps of Δt = 0.25 (T = 2). Given the marker at the start and
 at the end, (m₀, m_T*), the network predicts the initial velocity v₀ (cell centred, 2
@@ -54,7 +54,7 @@ Differences from the authors' code (all documented in docs/reproductions/sip.md)
 - MacCormack's limiter clamps a staggered velocity component to its own faces' 2 × 2
   neighbourhood; ``limiter="cells"`` uses PhiFlow 3.4's (as if cell centred), and
   ``simulator="phiflow"`` runs the same step written with PhiFlow itself
-  (:mod:`physgrad.phiflow`; reverse-mode only, CG at 1e-4);
+  (:mod:`physgrad.problems.sim.phiflow`; reverse-mode only, CG at 1e-4);
 - the reference simulation runs on the same staggered grid as the predictions (the
   authors ran the ground truth on a centred grid without an initial projection), and the
   metric compares the centred v₀ directly;
@@ -84,11 +84,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .. import fluid
-from ..cache import cached_arrays
 from ..nets import UNET_ACTIVATIONS, UNet
 from .base import AbstractProblem
 from .poisson_hig import phiflow_noise
+from .sim import fluid
+from .sim.cache import cached_arrays
 
 DATA_VERSION = 1  # bump when the generator changes, so cached data are regenerated
 PROJECTIONS = ("fft", "cg")
@@ -194,8 +194,8 @@ class NavierStokes(AbstractProblem):
 
     def rollout(self, marker, velocity):
         """``(m_T, v_T, markers)`` after ``steps`` steps from a staggered, divergence-free velocity."""
-        if self.simulator == "phiflow":  # PhiFlow's own step (CG, its limiter): physgrad.phiflow
-            from .. import phiflow
+        if self.simulator == "phiflow":  # PhiFlow's own step (CG, its limiter): physgrad.problems.sim.phiflow
+            from .sim import phiflow
 
             return phiflow.rollout(marker, velocity, self.steps, self.dt, self.dx)
         return self.reference_rollout(marker, velocity)

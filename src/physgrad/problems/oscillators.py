@@ -25,10 +25,10 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from ..integrators import integrate, rk4_step
 from ..nets import MLP
 from ..precision import require_float64
 from .base import AbstractProblem
+from .sim.integrators import integrate, rk4_step
 
 
 class AbstractOscillators(AbstractProblem):

@@ -2,7 +2,7 @@
 
 List, Chen, Bali & Thuerey, CMAME 2025. A training
 sample is a window of m+1 reference frames ũ⁰…ũᵐ with its conditioning value; the stepper
-S_θ (a composition object of :mod:`physgrad.steppers`: a prediction, or a correction of a
+S_θ (a composition object of :mod:`physgrad.problems.sim.steppers`: a prediction, or a correction of a
 coarse solver) is rolled out from ũ⁰ and scored by
 
     L = (1/m) Σ_{k=1..m} ℓ_k,      ℓ_k = MSE(uᵏ, ũᵏ)
@@ -49,9 +49,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import loops
-from ..cache import cached_arrays
 from ..rollout import System
-from ..steppers import (
+from .base import AbstractProblem
+from .sim.cache import cached_arrays
+from .sim.steppers import (
     AbstractComposition,
     Bypass,
     NonDifferentiable,
@@ -62,7 +63,6 @@ from ..steppers import (
     Solver,
     select,
 )
-from .base import AbstractProblem
 
 DATA_VERSION = 1  # bump when a generator changes, so cached data are regenerated
 
@@ -120,14 +120,14 @@ class AbstractTimeStepper(AbstractProblem):
 
     Fields:
         composition: how the network and the solver make one step
-            (:class:`~physgrad.steppers.Prediction`, :class:`~physgrad.steppers.Residual`,
-            :class:`~physgrad.steppers.Parallel`, :class:`~physgrad.steppers.Sequential`,
-            :class:`~physgrad.steppers.Bypass`).
+            (:class:`~physgrad.problems.sim.steppers.Prediction`, :class:`~physgrad.problems.sim.steppers.Residual`,
+            :class:`~physgrad.problems.sim.steppers.Parallel`, :class:`~physgrad.problems.sim.steppers.Sequential`,
+            :class:`~physgrad.problems.sim.steppers.Bypass`).
         m: the unrolled steps per training window.
         eval_horizon: the steps the metrics score.
         data_seed: the seed of the reference trajectories (the run's seed draws the network).
         differentiable_solver: false treats the solver as an external code without
-            derivatives (:class:`~physgrad.steppers.NonDifferentiable`).
+            derivatives (:class:`~physgrad.problems.sim.steppers.NonDifferentiable`).
         zero_init: the network's last layer starts at zero, so a corrector starts as the bare
             solver (and a residual predictor as the identity); false: the paper's initialisation.
     """
@@ -154,7 +154,7 @@ class AbstractTimeStepper(AbstractProblem):
     def __check_init__(self):
         if not isinstance(self.composition, AbstractComposition):
             raise TypeError(
-                f"composition must be a physgrad.steppers composition (Prediction(), Residual(), Parallel(scale), "
+                f"composition must be a physgrad.problems.sim.steppers composition (Prediction(), Residual(), Parallel(scale), "
                 f"Sequential(), Bypass(scale)), got {self.composition!r}"
             )
         if self.m < 1:
@@ -168,8 +168,8 @@ class AbstractTimeStepper(AbstractProblem):
 
     @abc.abstractmethod
     def solvers(self) -> Solver | tuple[Any, Any]:
-        """The coarse solver, stacked over conditions (:func:`physgrad.steppers.stack_solvers`),
-        or a single :class:`~physgrad.steppers.Solver` used for every sample."""
+        """The coarse solver, stacked over conditions (:func:`physgrad.problems.sim.steppers.stack_solvers`),
+        or a single :class:`~physgrad.problems.sim.steppers.Solver` used for every sample."""
 
     @abc.abstractmethod
     def apply(self, network, u, cond):
@@ -382,7 +382,7 @@ class TimeStepperProblem(AbstractTimeStepper):
             return
         warnings.warn(
             "TimeStepperProblem(setup=..., composition='...') is deprecated; pass a composition object, "
-            "e.g. composition=physgrad.steppers.Parallel(1.0) or Prediction()",
+            "e.g. composition=physgrad.problems.sim.steppers.Parallel(1.0) or Prediction()",
             DeprecationWarning,
             stacklevel=3,
         )

@@ -56,8 +56,8 @@ from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
+from ...engine.rundir import atomic_write, one_writer
 from ...engine.types import Seconds
-from ...rundir import atomic_write, one_writer
 from ..calibration import machine
 from ..config import Budget
 from ..failures import read_failures

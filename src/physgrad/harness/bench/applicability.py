@@ -115,8 +115,8 @@ def _refused_by_footprint(method, objective, shapes, batch_size: int) -> None:
     """A method's footprint from the shapes alone, which raises ``ValueError`` where the
     method refuses what only shapes and dtypes show (kfac: a complex simulator output), as
     the run's memory preflight would; a footprint that needs concrete values is left to the run."""
+    from ...engine.memory import stand_in
     from ...engine.setup import NOT_TRACEABLE
-    from ...memory import stand_in
 
     if shapes.data is None:
         return

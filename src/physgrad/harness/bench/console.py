@@ -9,7 +9,7 @@ import dataclasses
 from pathlib import Path
 from typing import Any
 
-from ... import rundir
+from ...engine import rundir
 from ...engine.types import Seconds
 from ..arguments import DEFAULT_SECONDS, UsageError, output_dir
 from ..config import Budget
@@ -71,7 +71,7 @@ def bench_command(console, options: BenchOptions) -> int:
     if options.plan or options.calibrate_only:
         return print_plan(console, options, run)
     console.print("deciding which methods apply to which problem (from shapes; no data, no training)")
-    from ...progress import RichProgressMeter
+    from ...engine.progress import RichProgressMeter
     from ..tune_cli import executor_of  # --workers / --scheduler (harness/workers.py)
 
     meter = None if options.quiet or not console.is_terminal else RichProgressMeter

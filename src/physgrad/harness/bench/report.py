@@ -8,8 +8,8 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, NamedTuple
 
-from ... import rundir
-from ...rundir import atomic_write
+from ...engine import rundir
+from ...engine.rundir import atomic_write
 from .. import plots, targets
 from ..config import ConfigError
 from ..failures import read_failures

@@ -10,7 +10,7 @@ import math
 from pathlib import Path
 from typing import Any
 
-from ... import rundir
+from ...engine import rundir
 from ...engine.types import Seconds
 from ..arguments import UsageError
 from ..console import files, print_table
@@ -19,7 +19,7 @@ from ..options import CalibrateOptions, ReportOptions, StudyOptions
 
 def _meter(options: StudyOptions, console):
     """A progress bar per run in a terminal (none with --quiet or in a pipe)."""
-    from ...progress import RichProgressMeter
+    from ...engine.progress import RichProgressMeter
 
     return None if options.quiet or not console.is_terminal else RichProgressMeter
 

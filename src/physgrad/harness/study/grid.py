@@ -13,9 +13,9 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any, NamedTuple
 
-from ... import rundir
+from ...engine import rundir
+from ...engine.progress import AbstractProgressMeter
 from ...errors import ConfigError
-from ...progress import AbstractProgressMeter
 from ..config import Budget, choose
 from ..papers import protocol
 from ..seeds import aggregate, as_float, median_cell, runs_cell

@@ -7,7 +7,7 @@ import math
 from pathlib import Path
 from typing import Any, NamedTuple
 
-from ... import rundir
+from ...engine import rundir
 from ...engine.recording import kept_path
 from ...errors import ConfigError
 from ..seeds import aggregate, format_table, paired_ratio

@@ -11,10 +11,10 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
-from ... import rundir
+from ...engine import rundir
+from ...engine.progress import AbstractProgressMeter
 from ...engine.types import Seconds, Steps
 from ...errors import ConfigError
-from ...progress import AbstractProgressMeter
 from ..config import (
     Budget,
     RunConfig,

@@ -10,7 +10,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from ... import rundir
+from ...engine import rundir
 from ...engine.recording import gzip_bytes, open_kept, packed_path
 from ...errors import ConfigError
 from ..train import read_metrics, read_summary
@@ -64,7 +64,7 @@ def collect(out: str | Path) -> list[dict[str, Any]]:
 
 
 def write_csv(path: Path, columns: Sequence[str], rows: list[dict[str, Any]]):
-    """A table written all at once (:func:`physgrad.rundir.atomic_write`; never half). A
+    """A table written all at once (:func:`physgrad.engine.rundir.atomic_write`; never half). A
     table kept gzipped (``path.gz`` exists: a committed study, docs/reproductions/
     keep_studies.py --gzip) is rewritten gzipped and any plain copy beside it removed, so
     re-collecting a kept study leaves one copy, never a stale one."""
