@@ -19,9 +19,10 @@ install: $(STAMP)
 demo: $(STAMP)
 	$(BIN)/physgrad demo
 
-# `make test`: every test but the slow tier, on every core (pytest-xdist), in under 10 minutes
-# on 2 cores; `make test-slow`: the end-to-end command-line studies and paper-size builds;
-# `make test-all`: both. CI (.ci/run) runs make test, then make test-slow.
+# `make test`: every test but the slow tier, on every core (pytest-xdist), in under 7 minutes
+# on 2 cores (a fast-tier test over 5 s of CPU says why, @pytest.mark.costly("..."), or is slow:
+# the run ends with a list of those that do neither, tests/conftest.py); `make test-slow`: the
+# end-to-end command-line studies and paper-size builds; `make test-all`: both. CI (.ci/run) runs make test, then make test-slow.
 # --dist loadfile: a module's tests run in one worker, so its module fixtures (generated
 # data, reference rollouts) are built once, not once per worker
 PYTEST := $(BIN)/python -m pytest -n auto --dist loadfile --durations=30

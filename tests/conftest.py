@@ -1,4 +1,6 @@
 import os
+import resource
+import time
 
 # Four CPU devices for the data-parallel tests (test_distributed.py); set before JAX
 # starts. Every other test runs on device 0 alone, as before.
@@ -22,6 +24,7 @@ if "xla_backend_optimization_level" not in _flags:
 os.environ["XLA_FLAGS"] = _flags.strip()
 
 import jax  # noqa: E402
+import pytest  # noqa: E402
 
 # The test session enables float64 itself (importing physgrad does not): the reference
 # tests compare against NumPy float64 to 1e-7 and build float64 problems, as equinox's and
@@ -70,3 +73,55 @@ if _xla_cache:
     jax.config.update("jax_compilation_cache_dir", _xla_cache)
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+
+
+# --- the fast tier's CPU rule -----------------------------------------------------------------
+# `make test` stays under 7 minutes on 2 cores only while each fast-tier test is cheap. A test
+# whose setup, call and teardown need more than COSTLY_CPU_S seconds of CPU (the subprocesses it
+# waits for included) either says why it belongs in the fast tier, with
+# `@pytest.mark.costly("why")`, or moves to the slow tier (`@pytest.mark.slow`). The end of a
+# run lists the tests that do neither. It is a report, never a failure: CPU time, not wall time,
+# so a loaded machine lists the same tests and no test fails for being slow. A test's CPU
+# includes what it is the first to compile or build (a module fixture, a program that later
+# tests of its worker reuse), so the list can differ a little between `-n auto` and one process.
+COSTLY_CPU_S = 5.0
+_CPU_START = pytest.StashKey[float]()
+_unexplained: list[tuple[float, str]] = []  # (CPU seconds, test id), filled where reports arrive
+
+
+def _cpu_seconds() -> float:
+    """CPU seconds of this process (every thread) and of its finished subprocesses."""
+    children = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return time.process_time() + children.ru_utime + children.ru_stime
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_protocol(item, nextitem):
+    item.stash[_CPU_START] = _cpu_seconds()
+    yield
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_makereport(item, call):
+    if call.when == "teardown":  # the whole test is done; xdist ships user_properties to the controller
+        explained = item.get_closest_marker("slow") is not None or item.get_closest_marker("costly") is not None
+        item.user_properties.append(("cpu_s", round(_cpu_seconds() - item.stash[_CPU_START], 2)))
+        item.user_properties.append(("cpu_explained", explained))
+    yield
+
+
+def pytest_runtest_logreport(report):
+    if report.when == "teardown":
+        props = dict(report.user_properties)
+        if props.get("cpu_s", 0.0) > COSTLY_CPU_S and not props.get("cpu_explained", True):
+            _unexplained.append((props["cpu_s"], report.nodeid))
+
+
+def pytest_terminal_summary(terminalreporter):
+    if _unexplained:
+        terminalreporter.write_sep("=", f"tests over {COSTLY_CPU_S:g} s of CPU that say no reason")
+        for cpu, nodeid in sorted(_unexplained, reverse=True):
+            terminalreporter.write_line(f"{cpu:7.1f}s  {nodeid}")
+        terminalreporter.write_line(
+            'Mark each @pytest.mark.costly("why it is in the fast tier") or @pytest.mark.slow (CONTRIBUTING.md).'
+        )

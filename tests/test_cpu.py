@@ -57,6 +57,7 @@ def test_process_threads_sets_and_restores_the_variables(monkeypatch):
         assert setting["requested"] is None and os.environ["OPENBLAS_NUM_THREADS"] == "7"
 
 
+@pytest.mark.costly("XLA's flags act only before its backend starts: a fresh interpreter runs the command line")
 def test_the_command_line_sizes_xla_before_its_backend_starts(tmp_path):
     """In a fresh interpreter without thread variables: ``--threads 1`` (the default) sets
     XLA_FLAGS before JAX's backend starts (XLA accepts the flags: the run finishes), and the

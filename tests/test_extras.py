@@ -15,6 +15,8 @@ import subprocess
 import sys
 import textwrap
 
+import pytest
+
 BLOCKED = ("kfac_jax", "exponax")
 
 SCRIPT = """
@@ -59,6 +61,9 @@ def core_only_env(tmp_path):
     return env
 
 
+# A fresh interpreter trains three runs core-only (15 s of CPU). The fast tier keeps the
+# missing-extra message (the test below); .ci/smoke.sh trains from a core-only wheel as well.
+@pytest.mark.slow
 def test_core_install_trains_and_names_the_missing_extras(tmp_path):
     env = core_only_env(tmp_path)
     result = subprocess.run([sys.executable, "-c", textwrap.dedent(SCRIPT)], capture_output=True, text=True,
@@ -76,6 +81,7 @@ def test_core_install_trains_and_names_the_missing_extras(tmp_path):
     ]
 
 
+@pytest.mark.costly("the fast tier's one check that the command line names a missing extra: two fresh interpreters")
 def test_command_line_names_the_missing_extra_in_one_line(tmp_path):
     env = core_only_env(tmp_path)
     for args, line in (

@@ -162,6 +162,7 @@ def physgrad_is_complete(out):
     return is_complete(out)
 
 
+@pytest.mark.costly("the fast tier's one SIGKILL inside a checkpoint's commit: two child runs, each resumed")
 def test_a_killed_run_resumes_bit_identical_from_named_points(reference, tmp_path):
     """SIGKILL between the final checkpoint and the summary, and between the two renames of
     a checkpoint's commit (only checkpoint.old/ is there)."""

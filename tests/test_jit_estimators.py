@@ -112,9 +112,16 @@ def a_matrix():
 
 
 CASES = _estimators()
+# The same jit-versus-eager contract for each: the fast tier keeps one estimator of each family
+# (dp and hig: open loop; sip_analytic: SIP; bptt, bptt_truncated and unrolled: closed loop).
+# These take 4-8 s of CPU each, most of it op by op (Newton's Hessian, the Gauss-Newton and
+# K-FAC factors, GMRES, the stabilised rollout's two passes): the slow tier.
+SLOW_CASES = {"gauss_newton", "kronecker_hig", "newton", "sip_linear_solve", "stabilised_bptt"}
 
 
-@pytest.mark.parametrize("name", sorted(CASES))
+@pytest.mark.parametrize(
+    "name", [pytest.param(n, marks=pytest.mark.slow) if n in SLOW_CASES else n for n in sorted(CASES)]
+)
 def test_estimator_under_plain_jit_matches_eager(name):
     estimate, params, batch = CASES[name]
     hash(estimate)  # jax.jit hashes the function it wraps

@@ -145,6 +145,9 @@ def test_keep_merges_the_bench_records_of_lanes_into_one(tmp_path):
 BENCHES = ROOT / "docs" / "benchmark"
 
 
+# `physgrad report` over the whole committed bench (10 s of CPU); the fast tier tests the bench
+# tables and the leaderboard on small studies (test_bench.py).
+@pytest.mark.slow
 @pytest.mark.parametrize("kept", ["dense"])
 def test_a_kept_bench_is_redrawn_from_its_files(kept, tmp_path, capsys):
     """The committed bench (its problems kept without their runs, or with their small files)

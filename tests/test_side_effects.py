@@ -199,6 +199,7 @@ def fresh_update_rules(tmp_path_factory):
     return save_in_fresh("update_rule_arrays", tmp_path_factory.mktemp("rules"))
 
 
+@pytest.mark.costly("x64 off needs a fresh interpreter; its module fixture serves the next three tests too")
 def test_update_rules_with_x64_off_are_float32_and_equal_the_x64_results(fresh_update_rules):
     here = update_rule_arrays()  # x64 on (conftest)
     assert set(fresh_update_rules) == set(here)
@@ -283,6 +284,9 @@ def test_a_float64_problem_without_x64_fails_in_one_line():
             problems.Toy2d().make_data(jax.random.key(0))
 
 
+# A fresh interpreter builds Heat's data (10 s of CPU); the fast tier checks the scope itself
+# with x64 off in this process (test_precision_helpers) and the one-line refusal above.
+@pytest.mark.slow
 def test_a_float64_problem_runs_inside_a_scope_and_leaves_x64_off(tmp_path):
     info = run_fresh(
         """
