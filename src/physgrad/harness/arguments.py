@@ -328,6 +328,15 @@ def build_parser() -> Parser:
                         "the plan")  # fmt: skip
     p.add_argument("--devices", default="1", metavar="N|all", help="devices to split each batch over (default 1)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
+    p.add_argument("--tuned", action="store_true",
+                   help="AlgoPerf-style external tuning: every applicable method gets --trials trials from its declared "
+                        "search space on each problem (physgrad tune), chosen on validation, then the chosen "
+                        "configuration on --seeds seeds (default 3) on test; leaderboard: the integrated performance "
+                        "profile (capped at 4x) and the geo-mean score at half and full budget")  # fmt: skip
+    p.add_argument("--trials", type=int, default=None, help="--tuned: trials per method and problem (default 5)")
+    p.add_argument("--holdout", type=float, default=None,
+                   help="--tuned: the fraction of train held out for validation where a problem has no val split "
+                        "(default 0.2)")  # fmt: skip
     _add_workers(p, "1")
     _add_budget(p, calibrated=True)
 
