@@ -192,7 +192,8 @@ def _add_compilation_cache(p):
 def _add_workers(p, default: str):
     p.add_argument("--workers", type=int, default=None, metavar="N",
                    help=f"runs in parallel on N Dask worker processes of one thread each, an in-process LocalCluster "
-                        f"(default {default}; 1: one after the other in this process); the numbers do not change")  # fmt: skip
+                        f"(default {default}, or $PHYSGRAD_WORKERS; 1 where JAX has an accelerator; 1: one after the "
+                        "other in this process); the numbers do not change")  # fmt: skip
     p.add_argument("--scheduler", metavar="tcp://HOST:8786",
                    help="send the runs to a running Dask scheduler instead (its workers need physgrad and the "
                         "output directory)")  # fmt: skip
@@ -245,7 +246,7 @@ def build_parser() -> Parser:
     p.add_argument("--calibrate-only", action="store_true",
                    help="time each method's step into --out (calibration.json) and train nothing: run it on a quiet "
                         "machine, then the same command without it trains with those step counts under any load")  # fmt: skip
-    _add_workers(p, "1")
+    _add_workers(p, "the machine's cores")
     _add_budget(p, calibrated=True)
 
     p = sub.add_parser(
@@ -337,7 +338,7 @@ def build_parser() -> Parser:
     p.add_argument("--holdout", type=float, default=None,
                    help="--tuned: the fraction of train held out for validation where a problem has no val split "
                         "(default 0.2)")  # fmt: skip
-    _add_workers(p, "1")
+    _add_workers(p, "the machine's cores")
     _add_budget(p, calibrated=True)
 
     p = sub.add_parser(
