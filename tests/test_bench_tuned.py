@@ -121,7 +121,7 @@ def test_the_leaderboard_equals_a_recomputation_from_the_kept_files(tuned_bench,
     best = json.loads((out / "hig_toy" / "best.json").read_text())
     hyper = {(h["method"], h["name"]): h for h in rows(out / "hyperparameters.csv")}
     assert float(hyper[("hig", "lr")]["tuned"]) == pytest.approx(best["hig"]["lr"], rel=1e-5)
-    assert float(hyper[("hig", "lr")]["untuned"]) == 1.0
+    assert float(hyper[("hig", "lr")]["untuned"]) == 1.0 and hyper[("hig", "lr")]["trials_finished"] == "2"
     # a target some runs reach, then the report redrawn from the kept files alone
     target = _target_between(out)
     monkeypatch.setattr(targets, "target_of", lambda problem: Target(target, "test", "a level the runs reach"))

@@ -52,7 +52,7 @@ CAP = 4.0  # r_max: AlgoPerf's cap on the performance ratio
 BUDGETS = (("half", 0.5), ("full", 1.0))  # (name, fraction of each run's budget)
 BOARD_COLUMNS = ("budget", "fraction", "method", "integrated", "score", "score_problems", "fastest", "solved",
                  "problems_solved", "problems", "problems_run")  # fmt: skip
-HYPER_COLUMNS = ("problem", "method", "name", "untuned", "tuned", "low", "high")
+HYPER_COLUMNS = ("problem", "method", "name", "untuned", "tuned", "low", "high", "trials_finished", "trials")
 
 
 class TunedReport(NamedTuple):
@@ -148,14 +148,21 @@ def hyperparameters(out: Path, problem: str) -> list[dict[str, Any]]:
     tune, best = out / problem / "tune.json", out / problem / "best.json"
     if not tune.exists() or not best.exists():
         return []
+    from ..study import read_csv
+
     asked, chosen = json.loads(tune.read_text()), json.loads(best.read_text())
+    # A method none of whose trials finished (all diverged, or the problem cannot hold out a
+    # validation split) keeps its untuned configuration: the count says which case it is.
+    trials = read_csv(out / problem / "trials.csv") if (out / problem / "trials.csv").exists() else []
     rows = []
     for method, params in chosen.items():
+        mine = [t for t in trials if t["method"] == method]
+        finished = sum(t["state"] == "COMPLETE" for t in mine)
         for name, value in params.items():
             low, high = asked.get("bounds", {}).get(method, {}).get(name, [math.nan, math.nan])
             rows.append({"problem": problem, "method": method, "name": name,
                          "untuned": asked.get("defaults", {}).get(method, {}).get(name), "tuned": value,
-                         "low": low, "high": high})  # fmt: skip
+                         "low": low, "high": high, "trials_finished": finished, "trials": len(mine)})  # fmt: skip
     return rows
 
 
@@ -212,10 +219,11 @@ def _cell(x: Any) -> Any:
 
 def hyper_lines(hyper: Sequence[Mapping[str, Any]]) -> list[list[str]]:
     """Printable lines (header first) of the tuned hyperparameters."""
-    lines = [["problem", "method", "hyperparameter", "untuned", "tuned", "searched range"]]
+    lines = [["problem", "method", "hyperparameter", "untuned", "tuned", "searched range", "trials finished"]]
     for h in hyper:
         lines.append([h["problem"], h["method"], h["name"], number(as_float(h["untuned"]), ".3g"),
-                      number(as_float(h["tuned"]), ".3g"), f"[{h['low']:.3g}, {h['high']:.3g}]"])  # fmt: skip
+                      number(as_float(h["tuned"]), ".3g"), f"[{h['low']:.3g}, {h['high']:.3g}]",
+                      f"{h['trials_finished']}/{h['trials']}" + (" (untuned kept)" if not h["trials_finished"] else "")])  # fmt: skip
     return lines
 
 
