@@ -180,7 +180,9 @@ def test_plan_counts_trials_and_test_runs(tmp_path, capsys):
 def test_an_interrupted_tuned_bench_resumes_to_the_same_tables(tmp_path, monkeypatch):
     """Interrupted in its test study (after every trial and one test run), the same command
     again finishes with every table equal to an uninterrupted bench's, given the same
-    calibration (copied: a calibration is a measurement, the only thing two benches may differ in)."""
+    calibration (copied: a calibration is a measurement, the only thing two benches may differ
+    in). The test runs train the trials' calibrated steps (the tune's calibration carried to
+    its final/ study)."""
     from physgrad.harness import workers
 
     argv = ["bench", "--tuned", "--problems", "hig_toy,exp_inverse", "--methods", "adam,hig", "--trials", "2",
@@ -189,9 +191,10 @@ def test_an_interrupted_tuned_bench_resumes_to_the_same_tables(tmp_path, monkeyp
     whole, cut = tmp_path / "whole", tmp_path / "cut"
     assert main([*argv, "--out", str(whole)]) == 0
     for problem in ("hig_toy", "exp_inverse"):
-        for sub in ("", "final"):
-            (cut / problem / sub).mkdir(parents=True, exist_ok=True)
-            shutil.copy(whole / problem / sub / "calibration.json", cut / problem / sub / "calibration.json")
+        (cut / problem).mkdir(parents=True)
+        shutil.copy(whole / problem / "calibration.json", cut / problem / "calibration.json")
+        trial_steps = {(r["method"], r["steps"]) for r in rows(whole / problem / "trials.csv")}
+        assert {(r["method"], r["steps"]) for r in rows(whole / problem / "final" / "summary.csv")} == trial_steps
     real, calls = workers.ConfiguredRun.__call__, []
 
     def interrupted(self):

@@ -38,11 +38,11 @@ from typing import Any
 from ...engine.rundir import atomic_write, one_writer
 from ...engine.types import Seconds
 from ...errors import ConfigError
-from ..calibration import machine, read
+from ..calibration import machine
 from ..config import Budget
 from .applicability import Verdict, plan
 from .choices import study_settings
-from .estimate import UNCALIBRATED_COMPILE_SECONDS, estimate
+from .estimate import estimate
 
 
 def tuned_bench(
@@ -109,17 +109,9 @@ def tuned_estimate(
     """The plan of a tuned bench (:func:`physgrad.harness.bench.estimate.estimate`'s rows):
     per method ``trials`` trial runs and ``seeds`` test runs at the same calibrated steps
     (a trial trains on the training split less the holdout, which does not change a step's
-    cost), from the calibration in ``BENCH/<problem>/`` where there is one; plus the test
-    study's own calibration (``final/``) where it has not run yet, which times the chosen
-    configurations again (:data:`UNCALIBRATED_COMPILE_SECONDS` per method)."""
-    rows = estimate(problems, verdicts, range(trials + seeds), budget, out, budgets)
-    for row in rows:
-        mine = (budgets or {}).get(row["problem"], budget)
-        final = read(Path(out) / row["problem"] / "final")
-        if isinstance(mine, Seconds) and final is None:
-            row["calibration_seconds"] += row["methods"] * UNCALIBRATED_COMPILE_SECONDS
-            row["total"] += row["methods"] * UNCALIBRATED_COMPILE_SECONDS
-    return rows
+    cost; the test study takes the trials' calibration, :func:`physgrad.harness.tune.tune`),
+    from the calibration in ``BENCH/<problem>/`` where there is one."""
+    return estimate(problems, verdicts, range(trials + seeds), budget, out, budgets)
 
 
 __all__ = ["tuned_bench", "tuned_estimate"]
