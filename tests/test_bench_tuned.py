@@ -158,6 +158,7 @@ def test_the_same_command_again_runs_nothing_and_keeps_the_tables(tuned_bench, c
         (["--tuned", "--problems", "hig_toy", "--trials", "0"], "--trials must be at least 1"),
         (["--tuned", "--problems", "hig_toy", "--holdout", "1.5"], "--holdout is a fraction in (0, 1)"),
         (["--tuned", "--problems", "hig_toy", "--seconds", "1", "--no-calibrate"], "calibrated step budgets"),
+        (["--tuned", "--problems", "hig_toy", "--devices", "2"], "--tuned runs each trial on one device"),
         (["--tuned", "--problems", "nope"], "unknown problem 'nope'"),
         (["--tuned", "--problems", "hig_toy", "--methods", "adam,nope"], "unknown method 'nope'"),
     ],
@@ -167,6 +168,21 @@ def test_bad_input_is_one_line_exit_2(argv, message, tmp_path, capsys):
     err = capsys.readouterr().err.strip()
     assert message in err and len(err.splitlines()) == 1 and "Traceback" not in err
     assert not (tmp_path / "b").exists()
+
+
+def test_the_report_of_a_tuned_bench_interrupted_before_its_first_problem(tmp_path):
+    from physgrad.harness.bench.tuned_report import tuned_report
+
+    info = {"problems": ["hig_toy"], "methods": ["adam", "bptt"], "seeds": [0, 1, 2], "budget": {"seconds": 5.0},
+            "settings": {}, "tuned": {"trials": 5, "holdout": 0.2},
+            "verdicts": {"hig_toy": [{"method": "adam", "status": "applicable", "reason": ""},
+                                     {"method": "bptt", "status": "not applicable", "reason": "no rollout"}]}}  # fmt: skip
+    (tmp_path / "bench.json").write_text(json.dumps(info))
+    result = tuned_report(tmp_path)
+    assert [t["status"] for t in result.tables["hig_toy"]] == ["pending", "not applicable"]
+    assert [(b["budget"], b["method"], b["integrated"]) for b in result.board] == [("half", "adam", 0.0),
+                                                                                 ("full", "adam", 0.0)]  # fmt: skip
+    assert "5 trials per method" in (tmp_path / "bench.md").read_text() and result.hyperparameters == []
 
 
 def test_plan_counts_trials_and_test_runs(tmp_path, capsys):

@@ -132,6 +132,8 @@ class BenchOptions:
             raise UsageError(f"--trials must be at least 1, got {trials}")
         if holdout is not None and not 0 < holdout < 1:
             raise UsageError(f"--holdout is a fraction in (0, 1), got {holdout}")
+        if tuned and str(args.devices) != "1":
+            raise UsageError("--tuned runs each trial on one device; --devices applies to the untuned bench")
         if tuned and args.no_calibrate:
             raise UsageError("--tuned trials train calibrated step budgets; --no-calibrate would tie them to the load")
         profile = "quick" if args.quick else "standard" if args.standard else ""
