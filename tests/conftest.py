@@ -12,6 +12,10 @@ import time
 # sets wins.
 for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_var, "1")
+# compare, bench and tune default to one Dask worker per core (harness/workers.py); the tests'
+# runs take milliseconds, and a cluster per command would cost seconds each: one after the
+# other in the test process unless a test passes --workers (or sets the variable) itself.
+os.environ.setdefault("PHYSGRAD_WORKERS", "1")
 _flags = os.environ.get("XLA_FLAGS", "")
 _flags += " --xla_force_host_platform_device_count=4"
 if "multi_thread_eigen" not in _flags:

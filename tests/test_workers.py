@@ -38,6 +38,27 @@ def test_executor_for_picks_in_process_for_one_worker():
     assert results[0] == (0, 1, None) and isinstance(results[1][2], ZeroDivisionError)
 
 
+def test_the_default_workers_are_the_cores_unless_the_variable_or_an_accelerator_says_otherwise(monkeypatch):
+    import os
+
+    from physgrad.errors import ConfigError
+    from physgrad.harness import workers
+
+    monkeypatch.setenv("PHYSGRAD_WORKERS", "3")
+    assert default_workers() == 3  # the variable wins (tests/conftest.py sets 1)
+    monkeypatch.delenv("PHYSGRAD_WORKERS")
+    monkeypatch.setattr(workers, "_accelerator_plugin", lambda: False)
+    assert default_workers() == len(os.sched_getaffinity(0))
+    monkeypatch.setattr(workers, "_accelerator_plugin", lambda: True)
+    monkeypatch.setenv("JAX_PLATFORMS", "cuda")
+    assert default_workers() == 1  # one accelerator shared by every worker process: one worker
+    monkeypatch.setenv("JAX_PLATFORMS", "cpu")
+    assert default_workers() == len(os.sched_getaffinity(0))
+    monkeypatch.setenv("PHYSGRAD_WORKERS", "zero")
+    with pytest.raises(ConfigError, match="PHYSGRAD_WORKERS must be a number of workers"):
+        default_workers()
+
+
 @pytest.mark.slow  # a LocalCluster of two worker processes and a study run twice: ~1-2 minutes on 2 cores
 def test_two_workers_one_killed_mid_run_give_the_sequential_tables(tmp_path):
     """A study on a LocalCluster of two worker processes, one killed (SIGKILL) while it

@@ -192,7 +192,8 @@ def _add_compilation_cache(p):
 def _add_workers(p, default: str):
     p.add_argument("--workers", type=int, default=None, metavar="N",
                    help=f"runs in parallel on N Dask worker processes of one thread each, an in-process LocalCluster "
-                        f"(default {default}; 1: one after the other in this process); the numbers do not change")  # fmt: skip
+                        f"(default {default}, or $PHYSGRAD_WORKERS; 1 where JAX has an accelerator; 1: one after the "
+                        "other in this process); the numbers do not change")  # fmt: skip
     p.add_argument("--scheduler", metavar="tcp://HOST:8786",
                    help="send the runs to a running Dask scheduler instead (its workers need physgrad and the "
                         "output directory)")  # fmt: skip
@@ -245,7 +246,7 @@ def build_parser() -> Parser:
     p.add_argument("--calibrate-only", action="store_true",
                    help="time each method's step into --out (calibration.json) and train nothing: run it on a quiet "
                         "machine, then the same command without it trains with those step counts under any load")  # fmt: skip
-    _add_workers(p, "1")
+    _add_workers(p, "the machine's cores")
     _add_budget(p, calibrated=True)
 
     p = sub.add_parser(
@@ -328,7 +329,16 @@ def build_parser() -> Parser:
                         "the plan")  # fmt: skip
     p.add_argument("--devices", default="1", metavar="N|all", help="devices to split each batch over (default 1)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
-    _add_workers(p, "1")
+    p.add_argument("--tuned", action="store_true",
+                   help="AlgoPerf-style external tuning: every applicable method gets --trials trials from its declared "
+                        "search space on each problem (physgrad tune), chosen on validation, then the chosen "
+                        "configuration on --seeds seeds (default 3) on test; leaderboard: the integrated performance "
+                        "profile (capped at 4x) and the geo-mean score at half and full budget")  # fmt: skip
+    p.add_argument("--trials", type=int, default=None, help="--tuned: trials per method and problem (default 5)")
+    p.add_argument("--holdout", type=float, default=None,
+                   help="--tuned: the fraction of train held out for validation where a problem has no val split "
+                        "(default 0.2)")  # fmt: skip
+    _add_workers(p, "the machine's cores")
     _add_budget(p, calibrated=True)
 
     p = sub.add_parser(

@@ -166,8 +166,17 @@ def cmd_report(args, console):
 
         return report_command(options, console)
     if (Path(options.dir) / "bench.json").exists():  # a bench directory: every problem's table, the leaderboard
+        import json
+
         from . import bench
         from .bench.console import print_bench
+
+        if json.loads((Path(options.dir) / "bench.json").read_text()).get("tuned"):  # bench --tuned
+            from .bench.console import print_tuned
+            from .bench.tuned_report import tuned_report
+
+            print_tuned(console, tuned_report(options.dir))
+            return 0
 
         print_bench(console, bench.report(options.dir))
         return 0

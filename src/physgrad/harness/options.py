@@ -114,6 +114,9 @@ class BenchOptions:
     quiet: bool
     workers: int | None = None
     scheduler: str | None = None
+    tuned: bool = False  # --tuned: each method tuned per problem first (harness/bench/tuned.py)
+    trials: int = 5
+    holdout: float = 0.2
 
     @classmethod
     def from_args(cls, args) -> BenchOptions:
@@ -121,12 +124,24 @@ class BenchOptions:
             raise UsageError("--seeds must be at least 1")
         if args.quick and args.standard:
             raise UsageError("give only one of --quick, --standard")
+        tuned = getattr(args, "tuned", False)
+        trials, holdout = getattr(args, "trials", None), getattr(args, "holdout", None)
+        if not tuned and (trials is not None or holdout is not None):
+            raise UsageError("--trials and --holdout need --tuned")
+        if trials is not None and trials < 1:
+            raise UsageError(f"--trials must be at least 1, got {trials}")
+        if holdout is not None and not 0 < holdout < 1:
+            raise UsageError(f"--holdout is a fraction in (0, 1), got {holdout}")
+        if tuned and str(args.devices) != "1":
+            raise UsageError("--tuned runs each trial on one device; --devices applies to the untuned bench")
+        if tuned and args.no_calibrate:
+            raise UsageError("--tuned trials train calibrated step budgets; --no-calibrate would tie them to the load")
         profile = "quick" if args.quick else "standard" if args.standard else ""
         settings = run_settings(args)
         given = any(getattr(args, k) is not None for k in ("steps", "epochs", "seconds"))
         return cls(args.problems, args.methods, args.seeds, profile, settings, budget_of(args) if given else None,
                    args.out, args.plan, args.calibrate_only, args.no_calibrate, args.devices, args.quiet,
-                   args.workers, args.scheduler)  # fmt: skip
+                   args.workers, args.scheduler, tuned, trials or 5, holdout or 0.2)  # fmt: skip
 
 
 @dataclasses.dataclass(frozen=True)

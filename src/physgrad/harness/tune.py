@@ -452,6 +452,8 @@ def _final(problem, plans, best, budget, seeds, out: Path, settings, executor, e
         from .study import compare
 
         chosen = {f"{m}.{k}": v for m, params in best.items() for k, v in params.items()}
+        if isinstance(budget, Seconds):
+            _carry_calibration(problem, [m.name for m in plans], budget, {**settings, **chosen}, out.parent, out)
         return compare(problem, [m.name for m in plans], range(seeds), budget, out, settings={**settings, **chosen},
                        echo=echo, record_failures=True, executor=executor)  # fmt: skip
     from .config import method_slug
@@ -471,6 +473,28 @@ def _final(problem, plans, best, budget, seeds, out: Path, settings, executor, e
             continue
         rows.append({"problem": problem.name, "method": method, "seed": s, **summary})
     return sorted(rows, key=lambda r: (r["method"], r["seed"]))
+
+
+def _carry_calibration(problem: str, methods: list[str], budget: Budget, settings, tuned: Path, final: Path) -> None:
+    """The trials' calibration recorded for the chosen configurations in ``final/`` (where it
+    has none): the searched settings do not change a step's cost, so the test runs train the
+    trials' steps (chosen at N steps, reported at N steps), not timed again under another load."""
+    from .calibration import CALIBRATION_CSV, CALIBRATION_FILE, Calibration, csv_rows, fingerprint, read, write_csv
+    from .study import plan
+
+    old = read(tuned)
+    if old is None or (final / CALIBRATION_FILE).exists():
+        return
+    record = dict(old.record)
+    timed, chosen = dict(record.get("by_fingerprint") or {}), {}
+    for config in plan(problem, methods, [0], budget, settings):
+        entry = (record.get("methods") or {}).get(config.method) or {}
+        if entry.get("stages"):  # a method the trials could not time is timed by the study
+            timed[fingerprint(config)] = chosen[config.method] = entry
+    record.update(by_fingerprint=timed, methods=chosen)
+    final.mkdir(parents=True, exist_ok=True)
+    rundir.atomic_write(final / CALIBRATION_FILE, json.dumps(record, indent=2, default=str) + "\n")
+    write_csv(final / CALIBRATION_CSV, csv_rows(Calibration(record), list(chosen)))
 
 
 __all__ = ["NoPruning", "SuccessiveHalving", "TuneResult", "default_sampler", "open_storage", "tune"]

@@ -9,9 +9,10 @@ from pathlib import Path
 from .arguments import UsageError, budget_of, output_dir, run_settings
 
 
-def executor_of(args, default: int | None = 1):
-    """The executor of ``--workers N`` (absent: ``default``, None for the machine's cores;
-    1: in this process) and ``--scheduler ADDRESS`` (a running Dask scheduler)."""
+def executor_of(args, default: int | None = None):
+    """The executor of ``--workers N`` (absent: ``default``, None for
+    :func:`~physgrad.harness.workers.default_workers`, the machine's cores; 1: in this
+    process) and ``--scheduler ADDRESS`` (a running Dask scheduler)."""
     from .workers import executor_for
 
     workers = getattr(args, "workers", None) or default
@@ -46,7 +47,7 @@ def tune_command(args, console) -> int:
     pruning = SuccessiveHalving(args.eta, args.rungs) if args.prune else NoPruning()
     out = output_dir(args.out or f"studies/tune-{args.problem}")
     budget = budget_of(args)
-    executor = executor_of(args, default=None)
+    executor = executor_of(args)
     console.print(
         f"tuning {', '.join(methods)} on {args.problem}: {args.trials} trials each, budget {budget} per trial, "
         f"{'successive halving, ' if args.prune else ''}{executor.slots} worker(s) -> {out}"

@@ -38,12 +38,35 @@ from ..errors import ConfigError
 Job = Callable[[], Any]
 
 
+WORKERS_VARIABLE = "PHYSGRAD_WORKERS"
+# JAX's accelerator plugins: where one is installed (and JAX_PLATFORMS does not say cpu), the
+# runs would share the accelerator, and every worker process would claim most of its memory
+# (JAX preallocates 75% per process), so the default is one worker.
+ACCELERATOR_PLUGINS = ("jax_cuda12_plugin", "jax_cuda13_plugin", "jax_rocm60_plugin", "jax_rocm7_plugin", "libtpu")
+
+
 def default_workers() -> int:
-    """The machine's cores available to this process (``--workers`` default)."""
+    """The ``--workers`` default: ``$PHYSGRAD_WORKERS`` where it is set (the test suite sets
+    1: its runs are too short to pay for a cluster), else 1 where JAX has an accelerator
+    plugin (one device shared by every worker), else the machine's cores available to this
+    process (a process pinned with ``taskset -c 0`` gets 1, and no cluster)."""
+    given = os.environ.get(WORKERS_VARIABLE, "").strip()
+    if given:
+        if not given.isdigit() or int(given) < 1:
+            raise ConfigError(f"${WORKERS_VARIABLE} must be a number of workers of at least 1, got {given!r}")
+        return int(given)
+    if os.environ.get("JAX_PLATFORMS", "").strip().lower() != "cpu" and _accelerator_plugin():
+        return 1
     try:
         return max(1, len(os.sched_getaffinity(0)))
     except AttributeError:  # not Linux
         return max(1, os.cpu_count() or 1)
+
+
+def _accelerator_plugin() -> bool:
+    import importlib.util
+
+    return any(importlib.util.find_spec(name) is not None for name in ACCELERATOR_PLUGINS)
 
 
 class AbstractExecutor(abc.ABC):
@@ -137,6 +160,8 @@ class Dask(AbstractExecutor):
     def run(self, jobs):
         from distributed import as_completed
 
+        if not jobs:  # nothing to do (a resumed study whose runs are finished): no cluster started
+            return
         futures = {self.client.submit(_call, job, self.threads, pure=False, retries=self.retries): i
                    for i, job in enumerate(jobs)}  # fmt: skip
         for future in as_completed(list(futures)):

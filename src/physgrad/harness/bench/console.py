@@ -49,7 +49,10 @@ def choices(options: BenchOptions) -> BenchChoices:
         problems = bench.choose_problems(options.problems)
         methods = bench.choose_methods(options.methods)
         budget, seeds, budgets = options.budget or Seconds(DEFAULT_SECONDS), options.seeds or 1, {}
-    out = output_dir(options.out if options.out is not None else (f"bench-{name}" if name else "bench"))
+    if options.tuned and not options.seeds:  # the chosen configuration on at least 3 seeds (AlgoPerf: 3 studies)
+        seeds = max(seeds, 3)
+    default = (f"bench-{name}" if name else "bench") + ("-tuned" if options.tuned else "")
+    out = output_dir(options.out if options.out is not None else default)
     return BenchChoices(problems, methods, range(seeds), budget, budgets, settings, out)
 
 
@@ -68,11 +71,24 @@ def bench_command(console, options: BenchOptions) -> int:
         + f", seeds {list(run.seeds)}, "
         f"settings {settings or 'paper defaults'} -> {run.out}"
     )
+    if options.tuned:
+        console.print(f"tuned: {options.trials} trials per method and problem, chosen on validation (holdout "
+                      f"{options.holdout:g} where a problem has no val split), then {len(run.seeds)} seeds on test")  # fmt: skip
     if options.plan or options.calibrate_only:
         return print_plan(console, options, run)
     console.print("deciding which methods apply to which problem (from shapes; no data, no training)")
     from ...engine.progress import RichProgressMeter
     from ..tune_cli import executor_of  # --workers / --scheduler (harness/workers.py)
+
+    if options.tuned:
+        from .tuned import tuned_bench
+
+        with executor_of(options) as executor:
+            tuned = tuned_bench(run.problems, run.methods, budget, run.out, trials=options.trials,
+                                seeds=len(run.seeds), settings=settings, budgets=budgets, holdout=options.holdout,
+                                profile=name, executor=executor, echo=console.print)  # fmt: skip
+        print_tuned(console, tuned)
+        return 0
 
     meter = None if options.quiet or not console.is_terminal else RichProgressMeter
     with executor_of(options) as executor:
@@ -116,6 +132,27 @@ def print_bench(console, result) -> None:
     console.print(f"wrote {written} and per problem {out}/PROBLEM/bench_table.csv")
 
 
+def print_tuned(console, result) -> None:
+    """A tuned bench's tables per problem (the chosen configurations on test), its tuned
+    hyperparameters and its leaderboard at both budgets
+    (:class:`physgrad.harness.bench.tuned_report.TunedReport`)."""
+    from .. import bench
+    from .tuned_report import CAP, hyper_lines
+
+    for problem, table in result.tables.items():
+        print_table(console, bench.table_lines(table, inapplicable=False),
+                    title=f"{problem}: the tuned configurations on test")  # fmt: skip
+    if result.hyperparameters:
+        print_table(console, hyper_lines(result.hyperparameters), title="tuned hyperparameters (chosen on validation)")
+    print_table(console, result.lines, title="leaderboard (tuned): time to target at the full and at half the budget",
+                caption=f"integrated performance profile: 1/({CAP:g}-1) x the integral of rho(tau) over tau in "
+                        f"[1, {CAP:g}] (1: fastest on every problem); geo-mean time ratio over the problems run "
+                        "(unsolved: 2x the budget)")  # fmt: skip
+    written = files(*(result.files[k] for k in ("markdown", "leaderboard", "hyperparameters", "table",
+                                                "profile_full", "profile_half")))  # fmt: skip
+    console.print(f"wrote {written}; per problem its tune (trials.csv, best.json) and final/ study")
+
+
 def print_plan(console, options: BenchOptions, run: BenchChoices) -> int:
     """``--plan`` (and ``--calibrate-only``, which calibrates first): the runs per problem
     and their estimated time from the calibration (:mod:`physgrad.harness.bench.estimate`);
@@ -130,8 +167,14 @@ def print_plan(console, options: BenchOptions, run: BenchChoices) -> int:
             raise UsageError("--calibrate-only needs a calibrated --seconds budget")
         bench.calibrate_only(problems, verdicts, budget, out, settings=run.settings, echo=console.print,
                              devices=options.devices, budgets=budgets)  # fmt: skip
-    rows = bench.estimate(problems, verdicts, seeds, budget, out, budgets)
-    print_table(console, bench.plan_lines(rows), title=f"plan: {budget} per run, {len(seeds)} seeds -> {out}",
+    if options.tuned:  # trials and test runs per method, and the test study's calibration
+        from .tuned import tuned_estimate
+
+        rows = tuned_estimate(problems, verdicts, options.trials, len(seeds), budget, out, budgets)
+    else:
+        rows = bench.estimate(problems, verdicts, seeds, budget, out, budgets)
+    runs_text = f"{options.trials} trials + {len(seeds)} seeds" if options.tuned else f"{len(seeds)} seeds"
+    print_table(console, bench.plan_lines(rows), title=f"plan: {budget} per run, {runs_text} -> {out}",
                 caption=f"a calibrated method: steps x (calibrated s/step + {1e6 * LOOP_SECONDS_PER_STEP:g} us of "
                         f"loop per step) + {RUN_OVERHEAD_SECONDS:g} s per run; not calibrated: its budget + "
                         f"{RUN_OVERHEAD_SECONDS:g} s per run and {UNCALIBRATED_COMPILE_SECONDS:g} s to calibrate it; "
