@@ -171,7 +171,8 @@ def cmd_report(args, console):
         from . import bench
         from .bench.console import print_bench
 
-        if json.loads((Path(options.dir) / "bench.json").read_text()).get("tuned"):  # bench --tuned
+        info = json.loads((Path(options.dir) / "bench.json").read_text())
+        if isinstance(info, dict) and info.get("tuned"):  # bench --tuned (a foreign file: bench.report's line)
             from .bench.console import print_tuned
             from .bench.tuned_report import tuned_report
 
