@@ -147,6 +147,37 @@ def test_calibrated_budgets_are_seconds_over_the_calibrated_step_time():
     assert steps_for(0.5, [one]) == 1 and time_at(3, [one]) == 6.0  # a budget below one step still trains one
 
 
+def test_the_cpu_clock_does_not_count_a_wait_and_the_record_names_its_clock(monkeypatch):
+    """$PHYSGRAD_CALIBRATION_CLOCK=cpu times a step in the process's CPU seconds: a step that
+    waits 20 ms (as a step does while a busy neighbour holds the core) costs ~0 on it and
+    ≥ 20 ms on the wall clock; a step that computes costs about the same on both. The
+    record names its clock; an unknown clock is one line naming the valid ones."""
+    import time
+
+    from physgrad.errors import ConfigError
+
+    def busy():  # ~20 ms of Python arithmetic
+        t0, x = time.perf_counter(), 0
+        while time.perf_counter() - t0 < 0.02:
+            x += 1
+
+    def programs(config):
+        return [busy if config.phases[0].method == "adam" else (lambda: time.sleep(0.02))], [0.0], []
+
+    records = {}
+    for name in ("wall", "cpu"):
+        monkeypatch.setenv("PHYSGRAD_CALIBRATION_CLOCK", name)
+        records[name] = calibrate(configs("hig_toy", ["adam", "hig"]), repeats=3, programs=programs,
+                                  echo=lambda line: None)  # fmt: skip
+    cost = {name: {m: r["methods"][m]["stages"][0]["seconds"] for m in ("adam", "hig")} for name, r in records.items()}
+    assert records["cpu"]["clock"] == "cpu" and records["wall"]["clock"] == "wall"
+    assert cost["wall"]["hig"] >= 0.02 and cost["cpu"]["hig"] < 0.005  # the wait is not the step's work
+    assert cost["wall"]["adam"] >= 0.02 and cost["cpu"]["adam"] > 0.005  # the work is (a loaded core: less of it)
+    monkeypatch.setenv("PHYSGRAD_CALIBRATION_CLOCK", "sundial")
+    with pytest.raises(ConfigError, match="choose one of wall, cpu"):
+        calibrate(configs("hig_toy", ["adam"]), repeats=1, programs=programs, echo=lambda line: None)
+
+
 def test_a_seconds_study_runs_calibrated_step_budgets_and_a_resume_does_not_time_again(tmp_path):
     machine = FakeMachine({"adam": 0.004, "hig": 0.01})
     out, lines = tmp_path / "study", []

@@ -63,6 +63,25 @@ CALL_SECONDS = 0.01  # a timed call takes at least this many steps' worth (chunk
 VERSION = 3
 MIN_REPEATS = 3  # every method gets at least this many rounds
 MAX_SECONDS = 10.0  # a method leaves the rounds once its timed steps add up to this (after MIN_REPEATS)
+# The timer of a calibration (``$PHYSGRAD_CALIBRATION_CLOCK``, recorded as the record's "clock").
+# "wall" (default): the step's wall-clock, what a user on an idle machine waits. "cpu": the
+# process's CPU seconds (time.process_time: every thread of the process, XLA's included), which
+# a busy neighbour on the same cores barely changes: it takes turns with the step instead of
+# stretching its work, so a study calibrated on a loaded machine gets the step budgets it would
+# get idle (a run's steps are one thread's work: --threads 1, the default of a study).
+CLOCKS: dict[str, Callable[[], float]] = {"wall": time.perf_counter, "cpu": time.process_time}
+CLOCK_VARIABLE = "PHYSGRAD_CALIBRATION_CLOCK"
+
+
+def clock_name() -> str:
+    """The calibration's timer by name (:data:`CLOCKS`), from ``$PHYSGRAD_CALIBRATION_CLOCK``
+    (default "wall"); a one-line error naming the valid ones otherwise."""
+    name = os.environ.get(CLOCK_VARIABLE, "wall").strip().lower() or "wall"
+    if name not in CLOCKS:
+        raise ConfigError(f"${CLOCK_VARIABLE}={name!r} is not a calibration clock; choose one of {', '.join(CLOCKS)}")
+    return name
+
+
 RULE = ("median over interleaved rounds (one call of every method per round) of the compiled step's wall-clock per "
         "step, each call the run's own chunks between evaluations (dispatch to read-back, each epoch's order drawn "
         "between chunks) adding up to about 10 ms; compilation and the first call excluded; seed 0's data and network")  # fmt: skip
@@ -168,7 +187,9 @@ def fingerprint(config: RunConfig) -> str:
     return dataclasses.replace(config, seed=0, budget=Steps(1), settings=untimed).digest()
 
 
-def step_programs(config: RunConfig, devices: int | str | None = 1) -> tuple[list[Program], list[float], list[Any]]:
+def step_programs(
+    config: RunConfig, devices: int | str | None = 1, clock: Callable[[], float] = time.perf_counter
+) -> tuple[list[Program], list[float], list[Any]]:
     """Each stage's compiled training step of ``config`` as a no-argument program, the
     seconds spent compiling and warming up each, and the stages (the engine's
     :class:`~physgrad.engine.types.Stage`). Built with the engine's
@@ -218,7 +239,7 @@ def step_programs(config: RunConfig, devices: int | str | None = 1) -> tuple[lis
             lambda p, s, d, o, b, c, compiled=compiled: compiled(p, s, d, o, np.int32(b), np.int32(c)),
             lambda result: jax.device_get(distributed.to_host(result)),
             lambda epoch, i=i: epoch_inputs(steps, setup, i, epoch), (params, opt_state), chunks,
-            same_every_epoch=steps.same_every_epoch, call_seconds=CALL_SECONDS))  # fmt: skip
+            same_every_epoch=steps.same_every_epoch, call_seconds=CALL_SECONDS, clock=clock))  # fmt: skip
     return programs, warmups, list(setup.stages)
 
 
@@ -301,7 +322,7 @@ def calibrate(
     max_seconds: float = MAX_SECONDS,
     devices: int | str | None = 1,
     echo: Callable[[str], None] = print,
-    clock: Callable[[], float] = time.perf_counter,
+    clock: Callable[[], float] | None = None,
     programs: Callable[[RunConfig], tuple[list[Program], list[float], list[Any]]] | None = None,
     record_failures: bool = False,
 ) -> dict[str, Any]:
@@ -311,14 +332,17 @@ def calibrate(
     ``programs`` builds a configuration's step programs (default :func:`step_programs`; a
     test passes fakes with a fake ``clock``). With ``record_failures`` a method whose step
     cannot be built (the memory guard's refusal, a crash) is recorded with its error and
-    the others are timed; otherwise the error stops the calibration."""
+    the others are timed; otherwise the error stops the calibration. ``clock``: the timer
+    (None: :data:`CLOCKS`' entry named by ``$PHYSGRAD_CALIBRATION_CLOCK``, default wall-clock)."""
     rundir.fault("calibrating")  # test hook: a signal while a study calibrates
     from ..cpu import report
     from ..precision import float64_scope
     from .failures import recordable
     from .train import problem_of
 
-    build = programs or (lambda c: step_programs(c, devices))
+    name = "custom" if clock is not None else clock_name()
+    timer = clock if clock is not None else CLOCKS[name]
+    build = programs or (lambda c: step_programs(c, devices, clock=timer))
     entries: dict[str, dict[str, Any]] = {}
     built: dict[str, tuple[list[Program], list[float], list[Any]]] = {}
     before = load()
@@ -334,7 +358,7 @@ def calibrate(
                 entries[spec] = {"fingerprint": fingerprint(config), "stages": [], "error": f"{type(e).__name__}: {e}"}
                 echo(f"calibration: {spec}: could not build its step ({entries[spec]['error']})")
         times = time_programs({k: v[0] for k, v in built.items()}, repeats=repeats, max_seconds=max_seconds,
-                              clock=clock)  # fmt: skip
+                              clock=timer)  # fmt: skip
     for spec, (programs_of_spec, warmups, stages) in built.items():
         config = configs[spec]
         costs = []
@@ -360,6 +384,7 @@ def calibrate(
         "thread_pools": threads,
         "devices": devices,
         "rule": RULE,
+        "clock": name,
         "repeats": repeats,
         "max_seconds": max_seconds,
         "methods": entries,
@@ -440,7 +465,16 @@ def study_calibration(
         return Calibration(view)
     echo(f"calibration: timing the compiled step of {', '.join(missing)} (interleaved rounds, median; "
          "compilation excluded)")  # fmt: skip
+    if record is not None and "clock" not in options:
+        # a study keeps one timer: the methods it adds are timed with its record's clock
+        kept = record.get("clock", "wall")
+        options["clock"] = CLOCKS.get(kept, time.perf_counter)
+        if kept != clock_name():
+            echo(f"calibration: {out / CALIBRATION_FILE} was timed with the {kept} clock; {', '.join(missing)} "
+                 f"are timed with it too (${CLOCK_VARIABLE} applies to a new study)")  # fmt: skip
     fresh = calibrate(missing, echo=echo, devices=devices, record_failures=record_failures, **options)
+    if record is not None and fresh.get("clock") == "custom":
+        fresh["clock"] = record.get("clock", "wall")
     if record is not None:  # keep the earlier measurements, with their own conditions
         if record.get("version", 1) != VERSION:
             echo(f"calibration: {out / CALIBRATION_FILE} was timed by an earlier rule (version {record.get('version', 1)}); "
