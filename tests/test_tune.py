@@ -72,6 +72,19 @@ def test_validation_holds_out_the_end_of_train_or_takes_the_val_split_and_never_
         held_out_count(10, 1.5)
 
 
+def test_a_direct_optimisation_problem_is_validated_on_its_objective():
+    """toy2d optimises its one sample directly (the same split object is train and test):
+    there is nothing unseen to hold out, so a trial's validation data is that sample and
+    its trials finish (a hold-out of one sample would be refused)."""
+    from physgrad.precision import float64_scope
+
+    with float64_scope(True):
+        held = Validation(PROBLEMS["toy2d"](), 0.2).make_data(jax.random.key(0))
+    assert held["train"] is held["test"]
+    with pytest.raises(ValueError, match="cannot hold out"):
+        held_out_count(1, 0.2)
+
+
 def test_successive_halving_rungs():
     assert SuccessiveHalving(3, 3).rungs(90) == [10, 30, 90]
     assert SuccessiveHalving(2, 2).rungs(40) == [20, 40]
