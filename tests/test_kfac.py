@@ -107,6 +107,19 @@ def test_complex_simulator_output_is_refused_in_one_line():
     )
 
 
+def test_a_closed_loop_rollout_is_not_applicable_from_shapes():
+    """cartpole's predict returns its trajectory (a tuple) from a controller applied every
+    time step: the bench lists kfac as not applicable there, with the reason, instead of a
+    crash inside kfac-jax's tracer when the step is built."""
+    from physgrad.harness.bench.applicability import applicability
+
+    verdicts = {v.method: v for v in applicability("cartpole", ["kfac", "adam"])}
+    assert verdicts["adam"].status == "applicable" and verdicts["kfac"].status == "not applicable"
+    assert (
+        verdicts["kfac"].reason.startswith("kfac: predict returns a tuple of") and "\n" not in verdicts["kfac"].reason
+    )
+
+
 @pytest.mark.slow  # ~8 s: the dipole's abstract setup, twice
 def test_complex_simulator_output_is_refused_from_shapes_by_the_bench_and_the_preflight():
     """Before any data exist: the bench lists kfac as not applicable on the dipole (not as

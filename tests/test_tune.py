@@ -156,6 +156,28 @@ def test_tune_again_keeps_its_trials_and_report_redraws_it(tuned, capsys):
     assert (tuned / "trials.png").exists()
 
 
+@pytest.mark.slow  # ~6 s of CPU: a seconds budget calibrates a real step first
+def test_a_method_whose_step_cannot_be_built_is_left_out_and_the_others_are_tuned(tmp_path, monkeypatch):
+    """A seconds budget calibrates first; where one method's step cannot be built (here a
+    RuntimeError from its build), the tuning says so in one line and tunes the rest,
+    as a bench over many methods must."""
+    from physgrad.harness import calibration
+
+    real = calibration.step_programs
+
+    def building(config, *args, **kwargs):
+        if config.method == "gn":
+            raise RuntimeError("no step for you")
+        return real(config, *args, **kwargs)
+
+    monkeypatch.setattr(calibration, "step_programs", building)
+    main_args = ["tune", "hig_toy", "--methods", "adam,gn", "--trials", "1", "--seconds", "0.05", "--seeds", "1",
+                 "--workers", "1", "--set", "batch_size=64", "--out", str(tmp_path), "--quiet"]  # fmt: skip
+    assert main(main_args) == 0
+    assert [r["method"] for r in _rows(tmp_path / "trials.csv")] == ["adam"]
+    assert json.loads((tmp_path / "tune.json").read_text())["methods"] == ["adam"]
+
+
 def test_tune_refuses_bad_input_in_one_line(tmp_path, capsys):
     assert main(["tune", "nope", "--steps", "5", "--out", str(tmp_path / "a")]) == 2
     assert main(["tune", "hig_toy", "--methods", "adam", "--trials", "0", "--steps", "5"]) == 2

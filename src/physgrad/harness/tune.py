@@ -225,7 +225,13 @@ def _plan_registered(problem, methods, budget, out, settings, spaces, holdout, s
     configs = plan(problem, methods, [seed], budget, settings)  # every name and setting checked first
     calibration = None
     if isinstance(budget, Seconds):
-        calibration = study_calibration(out, {c.method: c for c in configs}, echo=echo)
+        # a method whose step cannot be built (a crash, the memory guard) is left out with its
+        # reason, and the others are tuned: a bench over many methods goes on (failures.recordable)
+        calibration = study_calibration(out, {c.method: c for c in configs}, echo=echo, record_failures=True)
+        for config in configs:
+            if (error := calibration.error(config.method)) is not None:
+                echo(f"{config.method}: left out of the tuning, its step could not be built ({error})")
+        configs = [c for c in configs if calibration.error(c.method) is None]
     plans = []
     for config in configs:
         defaults = dict(config.phases[0].hyperparameters)

@@ -286,6 +286,10 @@ def _refuse_complex(objective, params, batch) -> None:
     predict = required(objective.predict, "predict")
     sample = jax.tree.map(lambda a: jax.ShapeDtypeStruct(a.shape[1:], a.dtype), batch)
     y = jax.eval_shape(predict, params, sample)
+    if not isinstance(y, jax.ShapeDtypeStruct):  # a closed loop's trajectory: the controller runs every step
+        raise ValueError(f"kfac: predict returns a {type(y).__name__} of {len(jax.tree.leaves(y))} arrays (a "
+                         "rollout), and kfac-jax's registered loss and dense blocks need one array per sample from "
+                         "layers applied once; use a rollout method")  # fmt: skip
     complex_outputs = [leaf.dtype for leaf in jax.tree.leaves(y) if jnp.issubdtype(leaf.dtype, jnp.complexfloating)]
     if complex_outputs:
         raise ValueError(f"kfac: the simulator output is complex ({complex_outputs[0]}) and kfac-jax's losses are "
