@@ -1,0 +1,62 @@
+#!/bin/bash
+# The tuned profile over every problem family (issue 50, item 5): physgrad bench --tuned, i.e.
+# every applicable candidate gets the same 5 quasi-random trials from its declared search space
+# (physgrad.harness.spaces), is chosen on a validation split, and the chosen configuration runs
+# on 3 seeds on test. One bench directory per lane under docs/benchmark/tuned/, committed as it
+# grows; the same command again resumes (finished trials and runs are kept).
+#
+# CPU-sized: the U-Net problems at 32x32 with 1,024 training samples and batch 16 (an Adam step
+# ~80 ms on one core; at the paper's 64x64 and batch 64-128 a step costs seconds); every other
+# problem at its shipped settings; the dense open-loop problems are the quick profile's.
+# Exact HIG, GN and LM are left out of the U-Nets and ks (one step costs thousands of Adam steps
+# there: docs/benchmark.md) and kept where they are affordable (advection_1d, the dense lane).
+#
+# Calibrated on the CPU clock ($PHYSGRAD_CALIBRATION_CLOCK=cpu): a step's budget counts its
+# process's CPU seconds, so the lanes can share a loaded machine without the neighbours'
+# load changing any run's number of steps. One core, niced, one run at a time by default
+# (WORKERS=2 on an idle 2-core machine: the numbers do not change).
+#   bash docs/benchmark/tuned/lanes.sh                 # every lane in order, on core $CORE (default 0)
+#   bash docs/benchmark/tuned/lanes.sh closed_loop     # one lane; extra arguments go to physgrad bench
+#   bash docs/benchmark/tuned/lanes.sh unets --plan    # its plan (estimated time), nothing run
+# physgrad report docs/benchmark/tuned/<lane> redraws a lane's leaderboard from a clone.
+set -euo pipefail
+ROOT="$(cd "$(dirname "$0")/../../.." && pwd)"
+CODE="${CODE:-$ROOT/../studycode-tuned}"
+TUNED_COMMIT="${TUNED_COMMIT:-b8150ef}"
+CORE="${CORE:-0}"
+WORKERS="${WORKERS:-1}"
+PY="${PY:-$ROOT/.venv/bin/python}"
+if [ ! -d "$CODE/src/physgrad" ]; then git -C "$ROOT" worktree add --detach "$CODE" "$TUNED_COMMIT"; fi
+[ "$(git -C "$CODE" rev-parse --short=7 HEAD)" = "${TUNED_COMMIT:0:7}" ] || { echo "worktree $CODE is not at $TUNED_COMMIT" >&2; exit 2; }
+export PHYSGRAD_CALIBRATION_CLOCK=cpu
+
+lane() {  # lane NAME ARGS...: one bench directory
+  local name=$1; shift
+  echo "== tuned lane $name ($(date -u +%FT%TZ))"
+  PYTHONPATH="$CODE/src" nice -n 19 taskset -c "$CORE" "$PY" -m physgrad bench --tuned --trials 5 --seeds 3 \
+    --workers "$WORKERS" --quiet --out "$ROOT/docs/benchmark/tuned/$name" "$@"
+}
+
+UNET="--set poisson.resolution=32 --set heat.resolution=32 --set navier_stokes.resolution=32"
+UNET="$UNET --set n_train=1024 --set n_test=64 --set batch_size=16"
+run() {
+  local which=$1; shift
+  case "$which" in
+    closed_loop) lane closed_loop --problems cartpole,guidance,quantum_control --seconds 60 \
+        --methods adam,rmsprop,optax:adamw,optax.contrib:muon,kfac,bptt,sbptt_m,sbptt_c,no_temporal "$@" ;;
+    advection_1d) lane advection_1d --problems advection_1d --seconds 20 \
+        --methods one,nog,wig,bptt,sbptt_c,no_temporal,adam,optax:adamw,optax.contrib:muon,kfac,hig,gn,lm,khig "$@" ;;
+    ks) lane ks --problems ks --seconds 120 --methods one,nog,wig,sbptt_c,optax:adamw,optax.contrib:muon "$@" ;;
+    # shellcheck disable=SC2086
+    unets) lane unets --problems poisson,heat,navier_stokes --seconds 120 $UNET \
+        --methods adam,rmsprop,optax:adamw,optax.contrib:muon,sip,khig "$@" ;;
+    dense) lane dense --quick "$@" ;;
+    *) echo "unknown lane $which: closed_loop, advection_1d, ks, unets or dense" >&2; exit 2 ;;
+  esac
+}
+
+if [ $# -eq 0 ]; then
+  for which in closed_loop advection_1d ks unets dense; do run "$which"; done
+else
+  run "$@"
+fi
