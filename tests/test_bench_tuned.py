@@ -231,3 +231,17 @@ def test_an_interrupted_tuned_bench_resumes_to_the_same_tables(tmp_path, monkeyp
                                                            "ms_per_step", "run_dir", "time")]:  # fmt: skip
                 r.pop(k)
         assert a == b, name
+
+
+@pytest.mark.slow  # ~10 s of CPU: two methods tuned and run on test, compiled twice (trial, then test)
+def test_a_tuned_run_reaches_the_problems_own_target(tmp_path):
+    """On toy2d, a problem optimised directly (validation is its objective), SIP reaches
+    the problem's own target (1e-6, not one set for the test) within 30 steps and Adam does
+    not: the leaderboard's integrated profile is 1 for SIP and 0 for Adam at the full budget."""
+    out = tmp_path / "bench"
+    assert main(["bench", "--tuned", "--problems", "toy2d", "--methods", "sip,adam", "--trials", "1", "--seeds", "1",
+                 "--steps", "30", "--set", "eval_every=5", "--workers", "1", "--quiet", "--out", str(out)]) == 0  # fmt: skip
+    assert targets.target_of("toy2d").loss == 1e-6
+    full = {r["method"]: r for r in rows(out / "leaderboard.csv") if r["budget"] == "full"}
+    assert float(full["sip"]["integrated"]) == 1.0 and full["sip"]["solved"] == "1"
+    assert float(full["adam"]["integrated"]) == 0.0 and full["adam"]["solved"] == "0"
