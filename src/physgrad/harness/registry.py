@@ -36,6 +36,7 @@ from ..methods import (
     UnrolledGradient,
 )
 from ..methods.averaged_kronecker import AveragedKronecker
+from ..methods.eigen_kronecker import EigenCorrectedKronecker
 from ..methods.kfac import kfac
 from ..methods.kronecker_hig import KroneckerPower
 from ..methods.sip import L1Proxy, L2Proxy
@@ -147,6 +148,19 @@ def _khig(*, lr: float = 1.0, power: float = -0.75, truncation: float = 1e-6, da
     if curvature_ema == 0.0 and inverse_every == 1:
         return Method(rule, optax.sgd(lr))
     return AveragedKronecker(rule, optax.sgd(lr), curvature_ema=curvature_ema, inverse_every=inverse_every)  # pyright: ignore[reportCallIssue]  (control is a property)
+
+
+def _ekhig(*, lr: float = 1.0, power: float = -0.75, truncation: float = 1e-6, damping: float = 1e-4,
+           explicit_max: int = 1024, basis_every: int = 1):  # fmt: skip
+    """Eigenvalue-corrected KHIG: KHIG's Kronecker eigenbasis per dense layer, its eigenvalues replaced by the exact Gauss–Newton diagonal there, by SGD.
+
+    Per dense layer −η U [φ(Λ) ⊙ Uᵀ∇W̄], U = U_G ⊗ U_A the eigenvectors of KHIG's factors,
+    Λ_ij = Σ_{s,k} (U_Gᵀ g_{s,k})_i² (U_Aᵀ ā_s)_j² the diagonal of the layer's exact block in
+    that basis (EKFAC's correction), φ(λ) = (λ + damping·λ_max)^power for λ > truncation²·λ_max;
+    the bases are recomputed every ``basis_every`` steps. ``power``, ``truncation``, ``damping``
+    and ``explicit_max`` as ``khig``."""
+    rule = KroneckerPower(power, truncation, damping, explicit_max)
+    return EigenCorrectedKronecker(rule, optax.sgd(lr), basis_every=basis_every)  # pyright: ignore[reportCallIssue]  (control is a property)
 
 
 def _check_route_sizes(blocks, lanczos_steps):
@@ -423,7 +437,7 @@ PROBLEMS: dict[str, type[AbstractProblem]] = {
 # The command line's method names and their factories: the one table of them. The factories
 # are private (`_hig`), so `hig` means the library's estimator (physgrad.hig) alone.
 METHODS: dict[str, Callable[..., AbstractMethod]] = _Methods({
-    **_DP, "gn": _gn, "hig": _hig, "khig": _khig, "lm": _lm, "kfac": kfac, "sip": _sip, "newton": _newton,
+    **_DP, "gn": _gn, "hig": _hig, "khig": _khig, "ekhig": _ekhig, "lm": _lm, "kfac": kfac, "sip": _sip, "newton": _newton,
     "bptt": _bptt, "sbptt_m": _sbptt_m, "sbptt_c": _sbptt_c, "no_temporal": _no_temporal, "one": _one, "nog": _nog,
     "wig": _wig,
 })  # fmt: skip
@@ -441,7 +455,7 @@ def paper_defaults(problem: type[AbstractProblem], method: str) -> dict[str, Any
 
     if method == "lm" and method not in table:  # damped GN: GN's η, batch and τ
         return defaults_for("gn")
-    if method == "khig" and method not in table:  # HIG's η, batch and τ (the same meaning)
+    if method in ("khig", "ekhig") and method not in table:  # HIG's η, batch and τ (the same meaning)
         return defaults_for("hig")
     if method == "kfac" and method not in table:  # its own adaptive step; Adam's batch
         return {"batch_size": defaults_for("adam")["batch_size"]}
