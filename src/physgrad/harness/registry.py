@@ -154,11 +154,8 @@ def _ekhig(*, lr: float = 1.0, power: float = -0.75, truncation: float = 1e-6, d
            explicit_max: int = 1024, basis_every: int = 1):  # fmt: skip
     """Eigenvalue-corrected KHIG: KHIG's Kronecker eigenbasis per dense layer, its eigenvalues replaced by the exact Gauss–Newton diagonal there, by SGD.
 
-    Per dense layer −η U [φ(Λ) ⊙ Uᵀ∇W̄], U = U_G ⊗ U_A the eigenvectors of KHIG's factors,
-    Λ_ij = Σ_{s,k} (U_Gᵀ g_{s,k})_i² (U_Aᵀ ā_s)_j² the diagonal of the layer's exact block in
-    that basis (EKFAC's correction), φ(λ) = (λ + damping·λ_max)^power for λ > truncation²·λ_max;
-    the bases are recomputed every ``basis_every`` steps. ``power``, ``truncation``, ``damping``
-    and ``explicit_max`` as ``khig``."""
+    Λ_ij = Σ_{s,k} (U_Gᵀ g_{s,k})_i² (U_Aᵀ ā_s)_j² raised to ``power`` with KHIG's ``truncation``
+    and ``damping``; the bases are recomputed every ``basis_every`` steps (EKFAC's correction)."""
     rule = KroneckerPower(power, truncation, damping, explicit_max)
     return EigenCorrectedKronecker(rule, optax.sgd(lr), basis_every=basis_every)  # pyright: ignore[reportCallIssue]  (control is a property)
 
@@ -168,12 +165,8 @@ def _kfac_hig(*, adaptive: bool = True, lr: float = 1e-3, momentum: float = 0.9,
               estimation: str = "ggn_exact", loss_hessian: str = "auto", precon_power: float = -0.75, seed: int = 0):  # fmt: skip
     """K-FAC (kfac-jax) at HIG's power: (Ĝ + λI)^{−3/4} ∇L on the exact Gauss–Newton Kronecker blocks, inverted exactly.
 
-    kfac-jax's own ``precon_power`` (since 2024-08) with exact inverses and
-    ``estimation_mode="ggn_exact"``: what kfac-jax already computes of KHIG, with its running
-    factors, adaptive step, momentum and damping (``kfac``'s settings). With
-    ``curvature_ema=0``, ``inverse_every=1``, a fixed negligible ``damping`` and
-    ``adaptive=false, lr=1, momentum=0`` its step is KHIG's direction (truncation and damping
-    off) times b^{3/4} (tests/test_kfac.py)."""
+    kfac-jax's ``precon_power`` (since 2024-08) with ``ggn_exact`` estimation: what kfac-jax
+    had of KHIG (fresh, undamped, lr 1: KHIG's direction times b^{3/4}); settings as ``kfac``."""
     return kfac(adaptive=adaptive, lr=lr, momentum=momentum, damping=damping, adaptive_damping=adaptive_damping,
                 curvature_ema=curvature_ema, inverse_every=inverse_every, estimation=estimation,
                 loss_hessian=loss_hessian, exact_inverses=True, precon_power=precon_power, seed=seed)  # fmt: skip

@@ -331,11 +331,8 @@ class KFAC(AbstractMethod):
             raise ValueError("kfac needs damping > 0, min_damping >= 0, damping_interval >= 1 and inverse_every >= 1")
         if not (0 < self.damping_decay < 1 and 0 <= self.curvature_ema < 1):
             raise ValueError("kfac needs 0 < damping_decay < 1 and 0 <= curvature_ema < 1")
-        if not self.precon_power < 0:
-            raise ValueError(f"kfac needs precon_power < 0 (-1: K-FAC, -0.75: HIG's power), got {self.precon_power}")
-        if self.precon_power != -1 and not self.exact_inverses:
-            # kfac-jax's factored (pi-adjusted) damping approximates the power -1 only
-            raise ValueError(f"kfac: precon_power={self.precon_power} needs exact_inverses=true")
+        if not self.precon_power < 0 or (self.precon_power != -1 and not self.exact_inverses):
+            raise ValueError(f"kfac needs precon_power < 0, and exact_inverses=true unless -1; got {self.precon_power}")
 
     def check(self, objective):
         objective.require(OPEN_LOOP, "kfac")
@@ -494,11 +491,7 @@ def kfac(
             instead of kfac-jax's factored damping.
         l2_reg: weight decay coefficient known to the curvature (not added to the loss).
         seed: the PRNG seed of kfac-jax's curvature sampling.
-        precon_power: the power p of the damped curvature blocks applied to the gradient,
-            ``(Ĝ + λI)^p ∇L`` (kfac-jax's ``precon_power``): −1 is K-FAC; −0.75 is HIG's power
-            (with ``estimation="ggn_exact"``, ``curvature_ema=0``, ``inverse_every=1`` and a
-            negligible fixed damping, KHIG's direction ``b^{−p}`` times smaller, KHIG's factors
-            being sums where kfac-jax's are means); other than −1 it needs ``exact_inverses``.
+        precon_power: p in ``(Ĝ + λI)^p ∇L`` (−0.75: HIG's, ``kfac_hig``); ≠ −1 needs ``exact_inverses``.
     """
     from ..extras import require
 
