@@ -191,6 +191,10 @@ def test_settings_are_checked_in_one_line():
     with pytest.raises(ValueError, match=r"^basis_every must be >= 1, got 0$"):
         _method(KroneckerPower(), basis_every=0)
     params, batch, objective = _linear_problem(False)
+    rule = KroneckerPower()
+    # the projected signals and inputs and the kept bases come on top of KHIG's signals and factors
+    extra = (7 * 3 * 4 + 7 * 6 + 4**2 + 6**2) * 8  # rows·d_out + b·d_in' projections, d_out² + d_in'² bases
+    assert _method(rule).footprint(objective, params, batch) == rule.footprint(objective, params, batch) + extra
     control = KeptEigenbasis()
     with pytest.raises(ValueError, match=r"^a kept Kronecker eigenbasis needs a KroneckerPower rule, got Gradient$"):
         control.direct(physgrad.methods.Gradient(), objective, params, batch, control.init(params), None)
