@@ -72,7 +72,7 @@ def test_core_install_trains_and_names_the_missing_extras(tmp_path):
     out = json.loads(result.stdout.strip().splitlines()[-1])
     assert out["imported"] == []
     assert out["runs"] == {"hig_toy/hig": 0, "hig_toy/adam": 0, "sine/sip": 0}
-    assert sorted(out["marked"]) == ["advection_1d", "kfac", "kolmogorov", "ks"]
+    assert sorted(out["marked"]) == ["advection_1d", "kfac", "kfac_hig", "kolmogorov", "ks"]
     assert out["errors"]["kfac"] == ["ConfigError", True, "kfac needs the kfac extra: pip install 'physgrad[kfac]'"]
     assert out["errors"]["ks"] == [
         "ConfigError",

@@ -149,3 +149,61 @@ def test_settings_are_checked_and_the_factory_is_command_line_ready():
         kfac(loss_hessian="fisher")
     with pytest.raises(ValueError, match="not differentiable"):
         kfac().check(Objective(predict=lambda p, s: p, loss=lambda y, s: y, differentiable=False))
+
+
+# --- kfac-jax's precon_power = −¾ is KHIG's direction (issue 51: what kfac-jax already had) -----
+def _mlp_through_nonlinear_physics():
+    """A 2-layer tanh MLP of physgrad Dense layers through a nonlinear, sample-dependent
+    simulator; the loss ½‖y − t‖² has the Hessian I, so kfac-jax's Gauss–Newton is (1/b) JᵀJ."""
+    keys = jax.random.split(jax.random.key(7), 6)
+    params = (Dense(3, 5, key=keys[0], dtype=jnp.float64), Dense(5, 4, key=keys[1], dtype=jnp.float64))
+    P = jax.random.normal(keys[2], (6, 4)) / 2
+
+    def predict(p, s):
+        z = P @ p[1](jnp.tanh(p[0](s["x"])))
+        return jnp.sin(z) * (1.0 + s["x"][0] ** 2) + 0.1 * z**3
+
+    def batch(key):
+        kx, kt = jax.random.split(key)
+        return {"x": jax.random.normal(kx, (9, 3)), "t": jax.random.normal(kt, (9, 6))}
+
+    return params, batch(keys[3]), batch(keys[4]), Objective(predict, lambda y, s: 0.5 * jnp.sum((y - s["t"]) ** 2))
+
+
+@pytest.mark.costly("the credit test of issue 51: kfac-jax's optimizer traced end to end, once")
+def test_kfac_jax_at_precon_power_three_quarters_is_khig_without_truncation_or_damping():
+    """kfac-jax driven end to end (its Optimizer inside physgrad's kfac) with precon_power −¾,
+    exact inverses of ggn_exact Kronecker blocks, fresh factors (curvature_ema 0, inverse
+    every step), lr 1, no momentum and a fixed damping of 1e-12 (kfac needs one > 0): the
+    step is KHIG's direction with truncation and damping 0 on both of two batches, times
+    b^{3/4}: kfac-jax's factors are batch means (the curvature of the mean loss, (1/b²) G ⊗ A)
+    where KHIG's are sums ((1/b) G ⊗ A, the curvature JᵀJ of HIG), a scalar on the step."""
+    import physgrad
+
+    params, first, second, objective = _mlp_through_nonlinear_physics()
+    method = kfac(adaptive=False, lr=1.0, momentum=0.0, damping=1e-12, adaptive_damping=False, curvature_ema=0.0,
+                  inverse_every=1, estimation="ggn_exact", exact_inverses=True, precon_power=-0.75)  # fmt: skip
+    step = eqx.filter_jit(lambda p, s, b: method.step(objective, p, s, b))
+    khig = eqx.filter_jit(physgrad.kronecker_hig(objective.predict, objective.loss, truncation=0.0, damping=0.0))
+    state = method.init(params)
+    for batch in (first, second):
+        new, state, _ = step(params, state, batch)
+        want, _ = khig(params, batch)
+        for got, w in zip(jax.tree.leaves(jax.tree.map(lambda a, b: a - b, params, new)), jax.tree.leaves(want)):
+            np.testing.assert_allclose(np.asarray(got), 9**0.75 * np.asarray(w), rtol=1e-8, atol=1e-10)
+        params = new
+
+
+def test_precon_power_is_checked_and_registered_as_kfac_hig():
+    from physgrad.harness.registry import METHODS, describe, paper_defaults
+
+    with pytest.raises(
+        ValueError, match=r"^kfac needs precon_power < 0, and exact_inverses=true unless -1; got -0.75$"
+    ):
+        kfac(precon_power=-0.75)
+    with pytest.raises(ValueError, match=r"^kfac needs precon_power < 0, .* got 0.5$"):
+        kfac(precon_power=0.5, exact_inverses=True)
+    method = METHODS["kfac_hig"]()
+    assert (method.precon_power, method.exact_inverses, method.estimation) == (-0.75, True, "ggn_exact")  # pyright: ignore[reportAttributeAccessIssue]
+    assert describe("kfac_hig").startswith("K-FAC (kfac-jax) at HIG's power")
+    assert paper_defaults(PROBLEMS["oscillators"], "kfac_hig") == paper_defaults(PROBLEMS["oscillators"], "kfac")

@@ -32,7 +32,7 @@ EXTRAS: dict[str, tuple[str, ...]] = {
 }
 
 # registered methods that need an extra (problems declare theirs as the class variable ``extra``)
-METHOD_EXTRAS: dict[str, str] = {"kfac": "kfac"}
+METHOD_EXTRAS: dict[str, str] = {"kfac": "kfac", "kfac_hig": "kfac"}
 
 
 class MissingExtra(ConfigError, ImportError):

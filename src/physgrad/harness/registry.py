@@ -36,6 +36,7 @@ from ..methods import (
     UnrolledGradient,
 )
 from ..methods.averaged_kronecker import AveragedKronecker
+from ..methods.eigen_kronecker import EigenCorrectedKronecker
 from ..methods.kfac import kfac
 from ..methods.kronecker_hig import KroneckerPower
 from ..methods.sip import L1Proxy, L2Proxy
@@ -147,6 +148,28 @@ def _khig(*, lr: float = 1.0, power: float = -0.75, truncation: float = 1e-6, da
     if curvature_ema == 0.0 and inverse_every == 1:
         return Method(rule, optax.sgd(lr))
     return AveragedKronecker(rule, optax.sgd(lr), curvature_ema=curvature_ema, inverse_every=inverse_every)  # pyright: ignore[reportCallIssue]  (control is a property)
+
+
+def _ekhig(*, lr: float = 1.0, power: float = -0.75, truncation: float = 1e-6, damping: float = 1e-4,
+           explicit_max: int = 1024, basis_every: int = 1):  # fmt: skip
+    """Eigenvalue-corrected KHIG: KHIG's Kronecker eigenbasis per dense layer, its eigenvalues replaced by the exact Gauss–Newton diagonal there, by SGD.
+
+    Λ_ij = Σ_{s,k} (U_Gᵀ g_{s,k})_i² (U_Aᵀ ā_s)_j² raised to ``power`` with KHIG's ``truncation``
+    and ``damping``; the bases are recomputed every ``basis_every`` steps (EKFAC's correction)."""
+    rule = KroneckerPower(power, truncation, damping, explicit_max)
+    return EigenCorrectedKronecker(rule, optax.sgd(lr), basis_every=basis_every)  # pyright: ignore[reportCallIssue]  (control is a property)
+
+
+def _kfac_hig(*, adaptive: bool = True, lr: float = 1e-3, momentum: float = 0.9, damping: float = 1e-3,
+              adaptive_damping: bool = True, curvature_ema: float = 0.95, inverse_every: int = 5,
+              estimation: str = "ggn_exact", loss_hessian: str = "auto", precon_power: float = -0.75, seed: int = 0):  # fmt: skip
+    """K-FAC (kfac-jax) at HIG's power: (Ĝ + λI)^{−3/4} ∇L on the exact Gauss–Newton Kronecker blocks, inverted exactly.
+
+    kfac-jax's ``precon_power`` (since 2024-08) with ``ggn_exact`` estimation: what kfac-jax
+    had of KHIG (fresh, undamped, lr 1: KHIG's direction times b^{3/4}); settings as ``kfac``."""
+    return kfac(adaptive=adaptive, lr=lr, momentum=momentum, damping=damping, adaptive_damping=adaptive_damping,
+                curvature_ema=curvature_ema, inverse_every=inverse_every, estimation=estimation,
+                loss_hessian=loss_hessian, exact_inverses=True, precon_power=precon_power, seed=seed)  # fmt: skip
 
 
 def _check_route_sizes(blocks, lanczos_steps):
@@ -423,17 +446,17 @@ PROBLEMS: dict[str, type[AbstractProblem]] = {
 # The command line's method names and their factories: the one table of them. The factories
 # are private (`_hig`), so `hig` means the library's estimator (physgrad.hig) alone.
 METHODS: dict[str, Callable[..., AbstractMethod]] = _Methods({
-    **_DP, "gn": _gn, "hig": _hig, "khig": _khig, "lm": _lm, "kfac": kfac, "sip": _sip, "newton": _newton,
-    "bptt": _bptt, "sbptt_m": _sbptt_m, "sbptt_c": _sbptt_c, "no_temporal": _no_temporal, "one": _one, "nog": _nog,
-    "wig": _wig,
+    **_DP, "gn": _gn, "hig": _hig, "khig": _khig, "ekhig": _ekhig, "lm": _lm, "kfac": kfac, "kfac_hig": _kfac_hig,
+    "sip": _sip, "newton": _newton, "bptt": _bptt, "sbptt_m": _sbptt_m, "sbptt_c": _sbptt_c,
+    "no_temporal": _no_temporal, "one": _one, "nog": _nog, "wig": _wig,
 })  # fmt: skip
 
 
 def paper_defaults(problem: type[AbstractProblem], method: str) -> dict[str, Any]:
     """The paper's hyperparameters for ``method`` on ``problem`` (batch size included; the
     table is :data:`physgrad.harness.papers.PROTOCOLS`); ``lm`` takes Gauss–Newton's where
-    the problem has none of its own, ``khig`` HIG's, ``kfac`` Adam's batch size; an optax zoo
-    entry takes Adam's batch size, and Adam's learning rate when optax asks for one."""
+    the problem has none of its own, ``khig`` and ``ekhig`` HIG's, ``kfac`` and ``kfac_hig``
+    Adam's batch size; an optax zoo entry takes Adam's batch size, and Adam's learning rate when optax asks for one."""
     table = protocol(problem.name).defaults
 
     def defaults_for(name: str) -> dict[str, Any]:
@@ -441,9 +464,9 @@ def paper_defaults(problem: type[AbstractProblem], method: str) -> dict[str, Any
 
     if method == "lm" and method not in table:  # damped GN: GN's η, batch and τ
         return defaults_for("gn")
-    if method == "khig" and method not in table:  # HIG's η, batch and τ (the same meaning)
+    if method in ("khig", "ekhig") and method not in table:  # HIG's η, batch and τ (the same meaning)
         return defaults_for("hig")
-    if method == "kfac" and method not in table:  # its own adaptive step; Adam's batch
+    if method in ("kfac", "kfac_hig") and method not in table:  # its own adaptive step; Adam's batch
         return {"batch_size": defaults_for("adam")["batch_size"]}
     if not is_optax_name(method):
         return defaults_for(method)

@@ -11,8 +11,8 @@ method                       searched besides ``lr``
 ===========================  ==============================================================
 ``hig``, ``gn``              ``truncation`` τ (singular values σ ≤ τ σ_max dropped)
 ``lm``                       ``damping`` μ₀ (initial λ = μ σ_max², then Nielsen's rule)
-``khig``                     ``damping`` (added as damping·λ_max before the power)
-``kfac``                     ``damping`` λ (initial value of K-FAC's adaptive damping); its
+``khig``, ``ekhig``          ``damping`` (added as damping·λ_max before the power)
+``kfac``, ``kfac_hig``       ``damping`` λ (initial value of K-FAC's adaptive damping); its
                              ``lr`` only with ``adaptive=false`` (the adaptive step sets its own)
 ``sip``                      ``eta`` η (the step towards y* in y) and the inner lr
 ``bptt``, ``sbptt_m``,       ``clip_threshold`` (the StableBPTT clip, value or norm)
@@ -100,13 +100,18 @@ SPACES: dict[str, Space] = {
     "gn": {"lr": LEARNING_RATE, "truncation": TRUNCATION},
     "lm": {"lr": LEARNING_RATE, "damping": LogUniform(1e-6, 1.0)},
     "khig": {"lr": LEARNING_RATE, "damping": LogUniform(1e-8, 1e-1)},
+    "ekhig": {"lr": LEARNING_RATE, "damping": LogUniform(1e-8, 1e-1)},
     "kfac": {"lr": LEARNING_RATE, "damping": LogUniform(1e-6, 1.0)},
+    "kfac_hig": {"lr": LEARNING_RATE, "damping": LogUniform(1e-6, 1.0)},
     "sip": {"lr": LEARNING_RATE, "eta": LogUniform(1e-2, 1.0)},
     **{m: {"lr": LEARNING_RATE, "clip_threshold": CLIP} for m in ("bptt", "sbptt_m", "sbptt_c", "no_temporal")},
 }
 # (method, hyperparameter) -> (setting, value): the dimension is searched only while the run's
 # setting has that value. K-FAC's adaptive step (the default) sets its own rate: lr is unused.
-ONLY_WHEN: dict[tuple[str, str], tuple[str, Any]] = {("kfac", "lr"): ("adaptive", False)}
+ONLY_WHEN: dict[tuple[str, str], tuple[str, Any]] = {
+    ("kfac", "lr"): ("adaptive", False),
+    ("kfac_hig", "lr"): ("adaptive", False),
+}
 
 
 def space_of(method: str, spaces: Mapping[str, Space] | None = None) -> Space:

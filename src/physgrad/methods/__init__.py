@@ -26,8 +26,9 @@ What the engine runs is a rule with an optax transformation, optionally an accep
 that may refuse a step (:mod:`physgrad.acceptance`) and a control that hands the rule a
 value from the state (:class:`AbstractControl`): :class:`AbstractOptaxMethod` implements
 it once, and :class:`Method`, :class:`LevenbergMarquardt` (:class:`GainRatio` with the
-:class:`Damping` control), :class:`Unrolled` and :class:`AveragedKronecker` (KHIG with
-K-FAC's running factors, :class:`RunningFactors`) are its final classes, which only fill
+:class:`Damping` control), :class:`Unrolled`, :class:`AveragedKronecker` (KHIG with
+K-FAC's running factors, :class:`RunningFactors`) and :class:`EigenCorrectedKronecker` (KHIG's
+eigenbasis with the exact Gauss–Newton diagonal, :class:`KeptEigenbasis`) are its final classes, which only fill
 its fields; :func:`LossAwareDP` is a constructor of a :class:`Method`. The registry of names for the
 command line is :mod:`physgrad.harness.registry`.
 """
@@ -48,6 +49,7 @@ from .base import (
     trainable,
 )
 from .dp import Gradient, LossAwareDP, dp
+from .eigen_kronecker import EigenCorrectedKronecker, KeptEigenbasis
 from .hig import JacobianPower, gauss_newton, hig
 from .kronecker_hig import KroneckerPower, kronecker_hig
 from .lm import Damping, GainRatio, LevenbergMarquardt, adapt_damping, levenberg_marquardt, predicted_decrease
@@ -66,10 +68,12 @@ __all__ = [
     "AbstractRule",
     "AveragedKronecker",
     "Damping",
+    "EigenCorrectedKronecker",
     "Estimator",
     "GainRatio",
     "Gradient",
     "JacobianPower",
+    "KeptEigenbasis",
     "KroneckerPower",
     "L1Proxy",
     "L2Proxy",

@@ -328,12 +328,15 @@ class KFAC(AbstractMethod):
     exact_inverses: bool = eqx.field(static=True, default=False)
     l2_reg: float = eqx.field(static=True, default=0.0)
     seed: int = eqx.field(static=True, default=0)
+    precon_power: float = eqx.field(static=True, default=-1.0)
 
     def __check_init__(self):
         if not (self.damping > 0 and self.min_damping >= 0 and self.damping_interval >= 1 and self.inverse_every >= 1):
             raise ValueError("kfac needs damping > 0, min_damping >= 0, damping_interval >= 1 and inverse_every >= 1")
         if not (0 < self.damping_decay < 1 and 0 <= self.curvature_ema < 1):
             raise ValueError("kfac needs 0 < damping_decay < 1 and 0 <= curvature_ema < 1")
+        if not self.precon_power < 0 or (self.precon_power != -1 and not self.exact_inverses):
+            raise ValueError(f"kfac needs precon_power < 0, and exact_inverses=true unless -1; got {self.precon_power}")
 
     def check(self, objective):
         objective.require(OPEN_LOOP, "kfac")
@@ -366,6 +369,7 @@ class KFAC(AbstractMethod):
             curvature_update_period=1,  # every step: keeps kfac-jax's static step logic step-independent
             inverse_update_period=self.inverse_every,
             use_exact_inverses=self.exact_inverses,
+            precon_power=self.precon_power,
             layer_tag_to_block_ctor=full,
             auto_register_kwargs=dict(graph_patterns=_graph_patterns()),
             multi_device=False,
@@ -472,6 +476,7 @@ def kfac(
     exact_inverses: bool = False,
     l2_reg: float = 0.0,
     seed: int = 0,
+    precon_power: float = -1.0,
 ) -> AbstractMethod:
     """K-FAC (Martens & Grosse 2015) through the simulator with kfac-jax: Kronecker-factored Gauss–Newton of network and physics, adaptive step, momentum and damping.
 
@@ -490,6 +495,7 @@ def kfac(
             instead of kfac-jax's factored damping.
         l2_reg: weight decay coefficient known to the curvature (not added to the loss).
         seed: the PRNG seed of kfac-jax's curvature sampling.
+        precon_power: p in ``(Ĝ + λI)^p ∇L`` (−0.75: HIG's, ``kfac_hig``); ≠ −1 needs ``exact_inverses``.
     """
     from ..extras import require
 
