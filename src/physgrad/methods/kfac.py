@@ -276,9 +276,8 @@ def _curvature_output(objective, y, batch, loss_hessian: LossHessian):
 
 
 def _refuse_complex(objective, params, batch) -> None:
-    """Raise the one-line ValueError for complex parameters or a complex simulator output,
-    which kfac-jax's real losses and curvature blocks do not support; from shapes alone
-    (``params`` and ``batch`` may be ``jax.ShapeDtypeStruct`` stand-ins)."""
+    """The one-line ValueError for what kfac-jax cannot take (complex parameters or outputs, a
+    rollout), from shapes alone (``params``, ``batch`` may be ``jax.ShapeDtypeStruct``)."""
     if any(jnp.issubdtype(leaf.dtype, jnp.complexfloating) for leaf in jax.tree.leaves(params)):
         raise ValueError(
             "kfac: the network has complex parameters, which kfac-jax does not support; use gn, hig or adam"
@@ -287,9 +286,7 @@ def _refuse_complex(objective, params, batch) -> None:
     sample = jax.tree.map(lambda a: jax.ShapeDtypeStruct(a.shape[1:], a.dtype), batch)
     y = jax.eval_shape(predict, params, sample)
     if not isinstance(y, jax.ShapeDtypeStruct):  # a closed loop's trajectory: the controller runs every step
-        raise ValueError(f"kfac: predict returns a {type(y).__name__} of {len(jax.tree.leaves(y))} arrays (a "
-                         "rollout), and kfac-jax's registered loss and dense blocks need one array per sample from "
-                         "layers applied once; use a rollout method")  # fmt: skip
+        raise ValueError(f"kfac: predict returns a {type(y).__name__} of {len(jax.tree.leaves(y))} arrays (a rollout), and kfac-jax's loss and dense blocks need one array per sample from layers applied once; use a rollout method")  # fmt: skip  # noqa: E501
     complex_outputs = [leaf.dtype for leaf in jax.tree.leaves(y) if jnp.issubdtype(leaf.dtype, jnp.complexfloating)]
     if complex_outputs:
         raise ValueError(f"kfac: the simulator output is complex ({complex_outputs[0]}) and kfac-jax's losses are "
@@ -342,9 +339,8 @@ class KFAC(AbstractMethod):
         objective.require(OPEN_LOOP, "kfac")
 
     def footprint(self, objective, params, batch, devices: int = 1) -> int:
-        """0 (kfac-jax's curvature blocks are not counted); refuses, from shapes alone, the
-        complex parameters or simulator outputs that :meth:`step` would refuse, so that a
-        run or a bench says so before any data exist."""
+        """0 (kfac-jax's curvature blocks are not counted); refuses from shapes alone what
+        :meth:`step` would refuse, so a run or a bench says so before any data exist."""
         params, static = trainable(params)
         _refuse_complex(objective.bind_static(static), params, batch)
         return 0
