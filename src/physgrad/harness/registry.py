@@ -43,6 +43,7 @@ from ..methods.unrolling import Plateau
 from ..rollout import Combined, M, R, S
 from . import objects
 from .papers import protocol
+from .plugins import METHOD_GROUP, PROBLEM_GROUP, Registry, method_factory, problem_class
 
 # `# isort: skip`: isort would split this compact `# fmt: skip` import into one name a line
 from ..problems import (  # isort: skip
@@ -384,20 +385,26 @@ def optax_method(name: str) -> Callable[..., AbstractMethod]:
     return factory
 
 
-class _Methods(dict):
-    """The registered methods, plus every optax zoo name looked up on demand (iteration
-    gives the registered ones only)."""
+class _Methods(Registry[Callable[..., AbstractMethod]]):
+    """The registered methods and the ``physgrad.methods`` plugins, plus every optax zoo
+    name and import path looked up on demand (iteration gives the registered ones and the
+    plugins only)."""
 
     def __contains__(self, name):
-        return super().__contains__(name) or (isinstance(name, str) and is_optax_name(name) and name in optax_names())
+        if isinstance(name, str) and is_optax_name(name):
+            return name in optax_names()
+        return super().__contains__(name)
 
     def __missing__(self, name):
         if isinstance(name, str) and is_optax_name(name):
             return optax_method(name)
-        raise KeyError(name)
+        return super().__missing__(name)
 
 
-PROBLEMS: dict[str, type[AbstractProblem]] = {
+# The command line's problem names and their classes: the built-in problems, the problems of
+# installed packages' ``physgrad.problems`` entry points, and any ``module:Class`` import path
+# (physgrad.harness.plugins).
+_BUILT_IN_PROBLEMS: dict[str, type[AbstractProblem]] = {
     cls.name: cls
     for cls in (
         HigToy,
@@ -419,14 +426,16 @@ PROBLEMS: dict[str, type[AbstractProblem]] = {
         Advection1d,
     )  # fmt: skip
 }
+PROBLEMS: Registry[type[AbstractProblem]] = Registry("problem", _BUILT_IN_PROBLEMS, PROBLEM_GROUP, problem_class)
 
-# The command line's method names and their factories: the one table of them. The factories
-# are private (`_hig`), so `hig` means the library's estimator (physgrad.hig) alone.
-METHODS: dict[str, Callable[..., AbstractMethod]] = _Methods({
+# The command line's method names and their factories: the one table of them, with the
+# ``physgrad.methods`` entry points' and import paths' factories (physgrad.harness.plugins).
+# The factories are private (`_hig`), so `hig` means the library's estimator (physgrad.hig) alone.
+METHODS: Registry[Callable[..., AbstractMethod]] = _Methods("method", {
     **_DP, "gn": _gn, "hig": _hig, "khig": _khig, "lm": _lm, "kfac": kfac, "sip": _sip, "newton": _newton,
     "bptt": _bptt, "sbptt_m": _sbptt_m, "sbptt_c": _sbptt_c, "no_temporal": _no_temporal, "one": _one, "nog": _nog,
     "wig": _wig,
-})  # fmt: skip
+}, METHOD_GROUP, method_factory)  # fmt: skip
 
 
 def paper_defaults(problem: type[AbstractProblem], method: str) -> dict[str, Any]:
@@ -434,7 +443,7 @@ def paper_defaults(problem: type[AbstractProblem], method: str) -> dict[str, Any
     table is :data:`physgrad.harness.papers.PROTOCOLS`); ``lm`` takes Gauss–Newton's where
     the problem has none of its own, ``khig`` HIG's, ``kfac`` Adam's batch size; an optax zoo
     entry takes Adam's batch size, and Adam's learning rate when optax asks for one."""
-    table = protocol(problem.name).defaults
+    table = protocol(getattr(problem, "name", "")).defaults
 
     def defaults_for(name: str) -> dict[str, Any]:
         return {"batch_size": problem.default_batch_size, **table.get(name, {})}
