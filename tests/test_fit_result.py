@@ -11,24 +11,26 @@ import numpy as np
 import pytest
 
 import physgrad
-from physgrad.harness.registry import METHODS, PROBLEMS
+from physgrad.engine.types import Steps
+from physgrad.harness.registry import METHODS
+from physgrad.problems import HigToy
 
 
 @pytest.fixture(scope="module")
 def result(tmp_path_factory):
-    problem = PROBLEMS["hig_toy"](n_train=32, n_test=8)
+    problem = HigToy(n_train=32, n_test=8)
     out = tmp_path_factory.mktemp("fit") / "run"
-    return physgrad.fit(problem, METHODS["adam"](), budget=physgrad.Budget(steps=3), out=out, batch_size=16,
+    return physgrad.fit(problem, METHODS["adam"](), budget=Steps(3), out=out, batch_size=16,
                         settings=physgrad.TrainSettings(eval_every=2))  # fmt: skip
 
 
-def test_json_dumps_writes_the_summary(result):
-    assert isinstance(result, dict) and result == result.summary
+def test_json_dumps_writes_the_summary(result: physgrad.FitResult):
+    assert isinstance(result, dict) and result == result.summary  # pyright: ignore[reportUnnecessaryIsInstance]
     assert json.loads(json.dumps(result)) == json.loads(json.dumps(result.summary))
     assert json.loads(json.dumps(result))["steps"] == 3
 
 
-def test_to_dict_holds_the_history_as_lists(result):
+def test_to_dict_holds_the_history_as_lists(result: physgrad.FitResult):
     data = json.loads(json.dumps(result.to_dict()))
     assert set(data) == {"summary", "history", "run_dir"}
     assert data["run_dir"] == str(result.run_dir) and data["summary"]["status"] == result["status"]
@@ -40,7 +42,7 @@ def test_to_dict_holds_the_history_as_lists(result):
     assert result["steps"] == 3
 
 
-def test_read_only_and_copies(result):
+def test_read_only_and_copies(result: physgrad.FitResult):
     with pytest.raises(TypeError, match="read-only"):
         result["steps"] = 4
     with pytest.raises(TypeError, match="read-only"):
