@@ -44,7 +44,9 @@ def choose(kind: str, name: str, choices, *, also: tuple[str, ...] = ()) -> str:
     or the valid choices (and the spellings ``also`` lists)."""
     if name not in choices:
         why = choices.why_not(name) if isinstance(choices, Registry) else None
-        raise ConfigError(why or f"unknown {kind} {name!r}; valid choices: {', '.join(sorted([*choices, *also]))}")
+        # a table of problems or methods also takes your own, by import path (docs/own-problem.md)
+        own = f"; or your own: module:{'Class' if choices.kind == 'problem' else 'factory'}" if isinstance(choices, Registry) else ""  # fmt: skip
+        raise ConfigError(why or f"unknown {kind} {name!r}; valid choices: {', '.join(sorted([*choices, *also]))}{own}")
     return name
 
 
@@ -102,7 +104,7 @@ def parse_method(spec: str) -> list[tuple[str, int | None]]:
             except ValueError as e:
                 raise ConfigError(str(e)) from None
         else:
-            choose("method", name, METHODS, also=("optax:NAME", "optax.contrib:NAME", "module:factory"))
+            choose("method", name, METHODS, also=("optax:NAME", "optax.contrib:NAME"))
         last = i == len(parts) - 1
         if sep:
             if last:
