@@ -6,9 +6,10 @@ rows (:func:`history_of`) or read back from a run directory's ``metrics.csv``
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import math
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -58,7 +59,7 @@ def history_from_metrics(path: str | Path) -> dict[str, np.ndarray]:
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
-class FitResult(Mapping[str, Any]):
+class FitResult(dict[str, Any]):
     """What :func:`physgrad.fit` returns.
 
     Fields:
@@ -76,7 +77,10 @@ class FitResult(Mapping[str, Any]):
         run_dir: the run directory, or None for a run in memory (``out=None``).
 
     The result also reads as the summary, as ``fit`` returned it before the result had a
-    history: ``result["status"]``, ``dict(result)`` and ``result == summary`` work.
+    history: ``result["status"]``, ``dict(result)`` and ``result == summary`` work, and
+    ``json.dumps(result)`` writes the summary (a read-only ``dict`` of it: changing an entry
+    is refused, so the two never disagree). :meth:`to_dict` adds the history and the run
+    directory, as plain lists and strings that ``json.dumps`` takes.
     """
 
     summary: dict[str, Any]
@@ -85,14 +89,27 @@ class FitResult(Mapping[str, Any]):
     state: Any = None
     run_dir: Path | None = None
 
-    def __getitem__(self, key: str) -> Any:
-        return self.summary[key]
+    def __post_init__(self):
+        dict.update(self, self.summary)
 
-    def __iter__(self) -> Iterator[str]:
-        return iter(self.summary)
+    def to_dict(self) -> dict[str, Any]:
+        """``{"summary": ..., "history": {name: [E values]}, "run_dir": str | None}``: the
+        result without its arrays' types (the network and the state stay out: they are
+        arrays; ``params.eqx`` holds the network of a run with a directory)."""
+        return {
+            "summary": copy.deepcopy(self.summary),
+            "history": {name: np.asarray(column).tolist() for name, column in self.history.items()},
+            "run_dir": None if self.run_dir is None else str(self.run_dir),
+        }
 
-    def __len__(self) -> int:
-        return len(self.summary)
+    def _read_only(self, *args, **kwargs):
+        raise TypeError("a FitResult is read-only (it reads as its summary); copy it first: dict(result)")
+
+    __setitem__ = __delitem__ = __ior__ = _read_only  # pyright: ignore[reportAssignmentType]
+    clear = pop = popitem = setdefault = update = _read_only  # pyright: ignore[reportAssignmentType]
+
+    def __reduce__(self):  # pickle and copy rebuild it from its fields, not item by item
+        return (type(self), (self.summary, self.history, self.network, self.state, self.run_dir))
 
     def __repr__(self) -> str:
         where = "in memory" if self.run_dir is None else str(self.run_dir)

@@ -205,7 +205,12 @@ def one_writer(directory: str | Path, what: str = "run", enabled: bool = True) -
 
 
 def _acquire(path: Path, directory: Path, what: str) -> int:
-    import fcntl
+    try:  # POSIX only (the package's classifier says so): elsewhere one line, not an ImportError
+        import fcntl
+    except ImportError:
+        raise ConfigError(f"cannot lock {directory}: run and study directories are locked with fcntl.flock, which "
+                          f"this system ({sys.platform}) lacks; physgrad's run directories need Linux or macOS "
+                          "(on Windows: WSL), or train in memory (physgrad.fit with out=None)") from None  # fmt: skip
 
     while True:
         if path.is_symlink():  # never write through a link someone left in our place

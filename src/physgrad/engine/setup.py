@@ -23,6 +23,7 @@ import numpy as np
 from .. import distributed
 from ..errors import ConfigError
 from ..methods import AbstractMethod, Objective
+from ..methods.base import check_batch
 from ..problems import AbstractProblem
 from . import memory
 from .types import Phase, Setup, Stage
@@ -77,6 +78,7 @@ def _check_data(problem: AbstractProblem, data: Any) -> None:
     for split, samples in data.items():
         if samples is None and split not in ("train", "test"):
             continue
+        check_batch(samples, f"{problem.name}: make_data's {split!r} split")
         lengths = {np.shape(x)[0] if np.ndim(x) else None for x in jax.tree.leaves(samples)}
         if not lengths or lengths == {0}:
             raise ConfigError(f"{problem.name}: make_data's {split!r} split is empty (0 samples); every split needs "

@@ -210,7 +210,7 @@ def build_parser() -> Parser:
     sub.add_parser("list", help="problems and methods")
 
     p = sub.add_parser("train", help="train one method on one problem")
-    p.add_argument("problem")
+    p.add_argument("problem", help="a problem of physgrad list, or your own by import path: module:Class")
     p.add_argument(
         "--method", required=True, help="a method, or a sequence such as adam:2000,hig (Adam for 2000 steps, then HIG)"
     )

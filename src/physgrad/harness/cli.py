@@ -43,20 +43,28 @@ from .words import command_line_words
 def cmd_list(args, console):
     from ..extras import method_extra, missing_note
     from .papers import protocol
+    from .plugins import PluginWarning
     from .registry import METHODS, PROBLEMS, describe
 
+    with warnings.catch_warnings():  # the plugins left out are listed at the end, not warned about too
+        warnings.simplefilter("ignore", PluginWarning)
+        PROBLEMS.load_plugins()
+        METHODS.load_plugins()
     console.print("[bold]problems[/bold]")
     for name, cls in PROBLEMS.items():
         note = missing_note(cls.extra)  # a problem whose optional extra is not installed
         paper = protocol(name)
-        console.print(f"  {name:<19} {paper.description}" + (f" {note}" if note else ""), markup=False)
+        # a plugin's problem (physgrad.harness.plugins): its docstring's first line and its package
+        text = paper.description if name in PROBLEMS.builtin else _plugin_line(cls)
+        console.print(f"  {name:<19} {text}" + (f" {note}" if note else ""), markup=False)
         console.print(f"  {'':<19} paper comparison: {', '.join(paper.methods)}", markup=False)
         if paper.target is not None:
             console.print(f"  {'':<19} target test loss: {paper.target.loss:g} ({paper.target.origin})", markup=False)
     console.print("[bold]methods[/bold]")
     for name in METHODS:
         note = missing_note(method_extra(name))
-        console.print(f"  {name:<19} {describe(name)}" + (f" {note}" if note else ""), markup=False)
+        plugin = "" if name in METHODS.builtin else f" (plugin: {_plugin_module(METHODS[name])})"
+        console.print(f"  {name:<19} {describe(name)}{plugin}" + (f" {note}" if note else ""), markup=False)
     from .registry import optax_names
 
     console.print("[bold]optax optimizers on DP gradients[/bold] (hyperparameters by --set, learning_rate as lr)")
@@ -69,7 +77,27 @@ def cmd_list(args, console):
     console.print("  --no-network optimises x itself for each test sample (direct optimisation)", markup=False)
     console.print("  a comma-separated --set value sweeps a grid in compare: --set poles=1,2,3,4 --set clip=value,norm,none",
                   markup=False)  # fmt: skip
+    console.print("[bold]your own[/bold] (docs/own-problem.md)")
+    console.print("  a problem or method by import path: physgrad train mypkg.problems:MyProblem --method mypkg.rules:my_rule",
+                  markup=False)  # fmt: skip
+    console.print("  an installed package's entry points (groups physgrad.problems, physgrad.methods) add names above",
+                  markup=False)  # fmt: skip
+    left_out = {**PROBLEMS.left_out, **METHODS.left_out}
+    if left_out:
+        console.print("[bold]plugins left out[/bold]")
+        for line in left_out.values():
+            console.print(f"  {line}", markup=False)
     return 0
+
+
+def _plugin_module(value) -> str:
+    return getattr(value, "__module__", None) or "?"
+
+
+def _plugin_line(cls) -> str:
+    """A plugin problem's line in ``physgrad list``: its docstring's first line, its module."""
+    doc = (cls.__doc__ or "").strip().splitlines()
+    return (f"{doc[0]} " if doc else "") + f"(plugin: {_plugin_module(cls)})"
 
 
 def _progress(args, console):
@@ -92,7 +120,7 @@ def _start_processes(args) -> str:
 
 
 def cmd_train(args, console):
-    from .config import make_config, method_slug
+    from .config import make_config, method_slug, problem_slug
     from .console import describe_run
     from .options import TrainOptions
     from .train import read_summary, train
@@ -104,7 +132,7 @@ def cmd_train(args, console):
     out = output_dir(
         options.out
         if options.out is not None
-        else f"runs/{options.problem}-{method_slug(options.method)}-seed{options.seed}"
+        else f"runs/{problem_slug(options.problem)}-{method_slug(options.method)}-seed{options.seed}"
     )
     stages = "; then ".join(
         f"{p.method}"
@@ -220,12 +248,14 @@ def cmd_demo(args, console):
 
 
 def _one_line_warnings(err: Console, show):
-    """``warnings.showwarning`` that prints a :class:`~physgrad.harness.plots.FigureWarning` as one
-    ``physgrad: warning:`` line (and leaves every other warning to ``show``)."""
+    """``warnings.showwarning`` that prints a :class:`~physgrad.harness.plots.FigureWarning` or a
+    :class:`~physgrad.harness.plugins.PluginWarning` as one ``physgrad: warning:`` line (and leaves
+    every other warning to ``show``)."""
     from .plots import FigureWarning
+    from .plugins import PluginWarning
 
     def showwarning(message, category, filename, lineno, file=None, line=None):
-        if issubclass(category, FigureWarning):
+        if issubclass(category, (FigureWarning, PluginWarning)):
             err.print(f"physgrad: warning: {message}", markup=False, highlight=False, soft_wrap=True)
         else:
             show(message, category, filename, lineno, file, line)

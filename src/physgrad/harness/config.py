@@ -15,6 +15,7 @@ from ..engine.record import CARRIED_OUT_SETTINGS, EVALUATION_CADENCE
 from ..errors import ConfigError
 from ..extras import MissingExtra, require
 from .objects import problem_defaults
+from .plugins import IMPORT_PATH, Registry
 from .registry import METHODS, PROBLEMS, hyperparameters, is_optax_name, optax_method, paper_defaults
 
 # Training-engine settings, settable with --set like problem and method settings: the batch
@@ -37,10 +38,15 @@ def split_scope(key: str) -> tuple[str | None, str]:
     return method or None, name
 
 
-def choose(kind: str, name: str, choices) -> str:
-    """Return ``name`` if it is one of ``choices``, else raise a one-line ConfigError."""
+def choose(kind: str, name: str, choices, *, also: tuple[str, ...] = ()) -> str:
+    """Return ``name`` if it is one of ``choices``, else raise a one-line ConfigError: an
+    import path's or a left-out plugin's own line (:class:`~physgrad.harness.plugins.Registry`),
+    or the valid choices (and the spellings ``also`` lists)."""
     if name not in choices:
-        raise ConfigError(f"unknown {kind} {name!r}; valid choices: {', '.join(sorted(choices))}")
+        why = choices.why_not(name) if isinstance(choices, Registry) else None
+        # a table of problems or methods also takes your own, by import path (docs/own-problem.md)
+        own = f"; or your own: module:{'Class' if choices.kind == 'problem' else 'factory'}" if isinstance(choices, Registry) else ""  # fmt: skip
+        raise ConfigError(why or f"unknown {kind} {name!r}; valid choices: {', '.join(sorted([*choices, *also]))}{own}")
     return name
 
 
@@ -98,7 +104,7 @@ def parse_method(spec: str) -> list[tuple[str, int | None]]:
             except ValueError as e:
                 raise ConfigError(str(e)) from None
         else:
-            choose("method", name, [*METHODS, "optax:NAME", "optax.contrib:NAME"])
+            choose("method", name, METHODS, also=("optax:NAME", "optax.contrib:NAME"))
         last = i == len(parts) - 1
         if sep:
             if last:
@@ -117,11 +123,17 @@ def parse_method(spec: str) -> list[tuple[str, int | None]]:
 
 def split_stage(part: str) -> tuple[str, str, str]:
     """``"adam:2000"`` → ``("adam", ":", "2000")``; an optax zoo name keeps its own colon:
-    ``"optax:lion:2000"`` → ``("optax:lion", ":", "2000")``, ``"optax:lion"`` → ``("optax:lion", "", "")``."""
+    ``"optax:lion:2000"`` → ``("optax:lion", ":", "2000")``, ``"optax:lion"`` → ``("optax:lion", "", "")``;
+    so does an import path: ``"mypkg.rules:my_rule:200"`` → ``("mypkg.rules:my_rule", ":", "200")``."""
     prefix = ""
     if is_optax_name(part):
         prefix, _, part = part.partition(":")
         prefix += ":"
+    elif (path := IMPORT_PATH.match(part)) and part.partition(":")[0] not in METHODS:
+        # an import path ``module:factory`` keeps its colon too (``adam:x`` stays Adam's count)
+        rest = part[path.end() :]
+        if not rest or rest.startswith(":"):
+            return path.group(), rest[:1], rest[1:]
     name, sep, count = part.partition(":")
     return prefix + name, sep, count
 
@@ -145,6 +157,12 @@ def split_methods(text: str) -> list[str]:
 def method_slug(spec: str) -> str:
     """A method spec as a file name: ``"adam:2000,hig"`` → ``"adam2000+hig"``."""
     return spec.replace(":", "").replace(",", "+")
+
+
+def problem_slug(problem: str) -> str:
+    """A problem name as a file name: an import path ``"mypkg.problems:Burgers"`` →
+    ``"mypkg.problems.Burgers"`` (a ``:`` is refused by some file systems and tools)."""
+    return problem.replace(":", ".")
 
 
 def phase_methods(spec: str) -> list[str]:

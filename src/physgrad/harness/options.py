@@ -66,7 +66,9 @@ class StudyOptions:
         methods = _methods(args.methods)
         if args.seeds < 1:
             raise UsageError("--seeds must be at least 1")
-        out = output_dir(args.out if args.out is not None else f"studies/{args.problem}")
+        from .config import problem_slug
+
+        out = output_dir(args.out if args.out is not None else f"studies/{problem_slug(args.problem)}")
         settings = run_settings(args)
         return cls(args.problem, methods, range(args.seeds), budget_of(args), settings, out, args.quiet,
                    args.devices, not args.no_calibrate, args.calibrate_only, args.workers, args.scheduler)  # fmt: skip

@@ -27,7 +27,6 @@ from ..methods import (
     Gradient,
     JacobianPower,
     LevenbergMarquardt,
-    LossAwareDP,
     Method,
     Newton,
     RolloutGradient,
@@ -44,6 +43,8 @@ from ..methods.unrolling import Plateau
 from ..rollout import Combined, M, R, S
 from . import objects
 from .papers import protocol
+from .plugins import METHOD_GROUP, PROBLEM_GROUP, Registry, method_factory, problem_class
+from .zoo import OPTAX_MODULES, is_optax_name, optax_method, optax_names  # noqa: F401  (their names here too)
 
 # `# isort: skip`: isort would split this compact `# fmt: skip` import into one name a line
 from ..problems import (  # isort: skip
@@ -343,84 +344,26 @@ def _wig(*, lr: float = 1e-3, lr_warmup: int = 0, decay: float = 1.0, decay_ever
                      plateau_cooldown=plateau_cooldown, plateau_every=plateau_every)  # fmt: skip
 
 
-# --- The optax zoo: any optax optimizer by name, on DP gradients ----------------------------
-# "optax:lion", "optax.contrib:muon": the function's hyperparameters with plain defaults
-# (numbers, flags, strings) become settings; learning_rate is `lr`. Names are looked up on
-# demand, so a new optax release brings its optimizers without a change here.
-OPTAX_MODULES = {"optax": optax, "optax.contrib": optax.contrib}
-# Not optimizers of a parameter vector from its gradient: per-example-gradient privacy
-# (dpsgd), bare scalings, and optax's deprecated aliases.
-_OPTAX_EXCLUDED = ("dpsgd", "scale_by_rprop", "scale_by_madgrad")
-# What an optimizer's update needs besides the gradient (physgrad.methods.LossAwareDP);
-# every other optimizer gets the batch loss as value= (used by momo, ignored by most).
-_OPTAX_EXTRAS = {"optax:lbfgs": ("value", "grad", "value_fn"), "optax.contrib:sophia": ("obj_fn",)}
-
-
-def optax_names() -> list[str]:
-    """Every ``module:function`` of :data:`OPTAX_MODULES` that builds an optimizer from a
-    ``learning_rate`` (its first parameter)."""
-    names = []
-    for module_name, module in OPTAX_MODULES.items():
-        for name in sorted(getattr(module, "__all__", None) or (n for n in vars(module) if not n.startswith("_"))):
-            fn = vars(module).get(name)  # vars: no deprecation warnings from module __getattr__
-            if name in _OPTAX_EXCLUDED or not inspect.isfunction(fn):
-                continue
-            first = next(iter(inspect.signature(fn).parameters), None)
-            if first == "learning_rate":
-                names.append(f"{module_name}:{name}")
-    return names
-
-
-def is_optax_name(name: str) -> bool:
-    """Whether ``name`` is spelled as an optax zoo entry (``optax:…``, ``optax.contrib:…``)."""
-    return any(name.startswith(f"{module}:") for module in OPTAX_MODULES)
-
-
-def optax_method(name: str) -> Callable[..., AbstractMethod]:
-    """The factory of an optax zoo entry: keyword-only ``lr`` plus the optimizer's own
-    hyperparameters with number, flag or string defaults; a one-line error listing the
-    valid names otherwise."""
-    valid = optax_names()
-    if name not in valid:
-        raise ValueError(f"unknown optax optimizer {name!r}; valid choices: {', '.join(valid)}")
-    module_name, _, function_name = name.partition(":")
-    fn = vars(OPTAX_MODULES[module_name])[function_name]
-    rate, *own = inspect.signature(fn).parameters.values()
-    plain = [p for p in own if type(p.default) in (bool, int, float, str)]
-    # Learning-rate-free and line-search methods (prodigy, dog, momo, lbfgs) default to 1.
-    lr = rate.default if type(rate.default) is float else 1.0 if rate.default is None else 1e-3
-    kw = inspect.Parameter.KEYWORD_ONLY
-    signature = inspect.Signature([inspect.Parameter("lr", kw, default=lr)] +
-                                  [inspect.Parameter(p.name, kw, default=p.default) for p in plain])  # fmt: skip
-
-    def factory(**hyperparameters):
-        values = signature.bind(**hyperparameters)
-        values.apply_defaults()
-        settings = dict(values.arguments)
-        return LossAwareDP(Gradient(), fn(settings.pop("lr"), **settings), _OPTAX_EXTRAS.get(name, ("value",)))
-
-    summary = (fn.__doc__ or "").strip().splitlines()
-    factory.__signature__ = signature
-    factory.lr_required = rate.default is inspect.Parameter.empty
-    factory.__name__ = factory.__qualname__ = name
-    factory.__doc__ = f"{name} on DP gradients: {summary[0].rstrip('.') if summary else function_name}."
-    return factory
-
-
-class _Methods(dict):
-    """The registered methods, plus every optax zoo name looked up on demand (iteration
-    gives the registered ones only)."""
+class _Methods(Registry[Callable[..., AbstractMethod]]):
+    """The registered methods and the ``physgrad.methods`` plugins, plus every optax zoo
+    name and import path looked up on demand (iteration gives the registered ones and the
+    plugins only)."""
 
     def __contains__(self, name):
-        return super().__contains__(name) or (isinstance(name, str) and is_optax_name(name) and name in optax_names())
+        if isinstance(name, str) and is_optax_name(name):
+            return name in optax_names()
+        return super().__contains__(name)
 
     def __missing__(self, name):
         if isinstance(name, str) and is_optax_name(name):
             return optax_method(name)
-        raise KeyError(name)
+        return super().__missing__(name)
 
 
-PROBLEMS: dict[str, type[AbstractProblem]] = {
+# The command line's problem names and their classes: the built-in problems, the problems of
+# installed packages' ``physgrad.problems`` entry points, and any ``module:Class`` import path
+# (physgrad.harness.plugins).
+_BUILT_IN_PROBLEMS: dict[str, type[AbstractProblem]] = {
     cls.name: cls
     for cls in (
         HigToy,
@@ -442,14 +385,16 @@ PROBLEMS: dict[str, type[AbstractProblem]] = {
         Advection1d,
     )  # fmt: skip
 }
+PROBLEMS: Registry[type[AbstractProblem]] = Registry("problem", _BUILT_IN_PROBLEMS, PROBLEM_GROUP, problem_class)
 
-# The command line's method names and their factories: the one table of them. The factories
-# are private (`_hig`), so `hig` means the library's estimator (physgrad.hig) alone.
-METHODS: dict[str, Callable[..., AbstractMethod]] = _Methods({
+# The command line's method names and their factories: the one table of them, with the
+# ``physgrad.methods`` entry points' and import paths' factories (physgrad.harness.plugins).
+# The factories are private (`_hig`), so `hig` means the library's estimator (physgrad.hig) alone.
+METHODS: Registry[Callable[..., AbstractMethod]] = _Methods("method", {
     **_DP, "gn": _gn, "hig": _hig, "khig": _khig, "ekhig": _ekhig, "lm": _lm, "kfac": kfac, "kfac_hig": _kfac_hig,
     "sip": _sip, "newton": _newton, "bptt": _bptt, "sbptt_m": _sbptt_m, "sbptt_c": _sbptt_c,
     "no_temporal": _no_temporal, "one": _one, "nog": _nog, "wig": _wig,
-})  # fmt: skip
+}, METHOD_GROUP, method_factory)  # fmt: skip
 
 
 def paper_defaults(problem: type[AbstractProblem], method: str) -> dict[str, Any]:
@@ -457,7 +402,7 @@ def paper_defaults(problem: type[AbstractProblem], method: str) -> dict[str, Any
     table is :data:`physgrad.harness.papers.PROTOCOLS`); ``lm`` takes Gauss–Newton's where
     the problem has none of its own, ``khig`` and ``ekhig`` HIG's, ``kfac`` and ``kfac_hig``
     Adam's batch size; an optax zoo entry takes Adam's batch size, and Adam's learning rate when optax asks for one."""
-    table = protocol(problem.name).defaults
+    table = protocol(getattr(problem, "name", "")).defaults
 
     def defaults_for(name: str) -> dict[str, Any]:
         return {"batch_size": problem.default_batch_size, **table.get(name, {})}

@@ -278,8 +278,8 @@ def _plan_object(problem, methods, budget, settings, spaces, holdout, seed) -> l
                           "from a registered problem's configuration): Steps(N)")  # fmt: skip
     plans = []
     for method in methods:
-        if method not in METHODS:
-            raise ConfigError(f"unknown method {method!r}; valid choices: {', '.join(METHODS)}")
+        if method not in METHODS:  # an import path's or a plugin's own line where it has one
+            raise ConfigError(METHODS.why_not(method) or f"unknown method {method!r}; valid choices: {', '.join(METHODS)}")  # fmt: skip
         defaults = hyperparameters(method)
         defaults.update({k.partition(".")[2]: v for k, v in settings.items() if k.startswith(f"{method}.")
                          and k.partition(".")[2] in defaults})  # fmt: skip

@@ -30,7 +30,7 @@ def _print(console, lines, title="", caption=""):
 def tune_command(args, console) -> int:
     """``physgrad tune PROBLEM --methods a,b --trials N [budget] [--seeds K] [--workers N]
     [--scheduler ADDRESS] [--storage URL] [--prune [--eta E --rungs R]] [--holdout F] [--set ...]``."""
-    from .config import split_methods
+    from .config import problem_slug, split_methods
     from .papers import protocol
     from .registry import PROBLEMS
     from .tune import NoPruning, SuccessiveHalving, tune
@@ -45,7 +45,7 @@ def tune_command(args, console) -> int:
     if args.no_calibrate:
         raise UsageError("tune's trials train calibrated step budgets; --no-calibrate would tie them to the load")
     pruning = SuccessiveHalving(args.eta, args.rungs) if args.prune else NoPruning()
-    out = output_dir(args.out or f"studies/tune-{args.problem}")
+    out = output_dir(args.out or f"studies/tune-{problem_slug(args.problem)}")
     budget = budget_of(args)
     executor = executor_of(args)
     console.print(

@@ -63,8 +63,34 @@ import jax.numpy as jnp
 import optax
 from jaxtyping import Array, PyTree
 
+from ..errors import ConfigError
+
 Stats = dict[str, Array]
 _T = TypeVar("_T")
+
+
+STACK_SAMPLES = "jax.tree.map(lambda *x: jnp.stack(x), *samples)"
+
+
+def check_batch(batch: PyTree, what: str = "the batch") -> None:
+    """Refuse, in one line naming the fix, a batch given as a Python list of samples.
+
+    A batch is one pytree whose arrays carry a leading sample axis, shape ``(B, ...)``
+    (``{"x": (B, d)}``); the rules ``vmap`` over that axis. A list of per-sample pytrees
+    (``[{"x": (d,)}, ...]``) is a pytree too, so ``vmap`` would hand the user's simulator
+    a list of slices and fail inside it. Refused: a list whose items are containers of one
+    structure (dicts, tuples, modules: samples), or numbers without an axis. A list of
+    arrays with an axis (``[x, y]``, each ``(B, d)``) is a valid batch and passes.
+    """
+    if not isinstance(batch, list) or not batch:
+        return
+    structures = {jax.tree.structure(item) for item in batch}
+    leaves_only = all(jax.tree_util.treedef_is_leaf(s) for s in structures)
+    scalars = leaves_only and all(jnp.ndim(item) == 0 for item in batch)
+    if (leaves_only and not scalars) or len(structures) > 1:
+        return
+    raise ConfigError(f"{what} is a list of {len(batch)} samples; stack them into one pytree with a leading sample "
+                      f"axis first: {STACK_SAMPLES}")  # fmt: skip
 
 
 def trainable(params: PyTree) -> tuple[PyTree, PyTree]:
@@ -299,12 +325,14 @@ class Estimator(eqx.Module):
     __eq__ = object.__eq__
 
     def __call__(self, params: PyTree, batch: PyTree) -> tuple[PyTree, Stats]:
+        check_batch(batch)  # before the user's simulator sees a list of slices
         arrays, static = trainable(params)
         return self.rule(self.objective.bind_static(static), arrays, batch)
 
     def describe(self, params: PyTree, batch: PyTree) -> dict[str, Any]:
         """The rule's choices for these shapes, without computing (:meth:`AbstractRule.describe`;
         for :func:`physgrad.hig`: the name of the route that runs and J's ``(rows, P)``)."""
+        check_batch(batch)
         arrays, static = trainable(params)
         return self.rule.describe(self.objective.bind_static(static), arrays, batch)
 
@@ -388,4 +416,5 @@ class Stepper(eqx.Module):
         return self.method.init(params)
 
     def step(self, params: PyTree, state: Any, batch: PyTree) -> tuple[PyTree, Any, Stats]:
+        check_batch(batch)
         return self.method.step(self.objective, params, state, batch)
