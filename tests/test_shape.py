@@ -117,9 +117,6 @@ def test_the_count_finds_a_default_overridden_twice():
 # later step). The list may only shrink: a new offender fails, and so does an entry that no
 # longer offends (delete it).
 KNOWN = {
-    # three rules add checks of their own (rollout systems, local inverses, unrolled windows);
-    # an abstract check would break users' rules that need none (test_engine's BrokenFootprint)
-    "physgrad.methods.base.AbstractRule.check",
     # AbstractProblem's optional hooks are the documented contract for a user's own problem
     # (README: five required methods, the rest defaulted); as abstract methods every user
     # problem would have to write them. Validation wraps a problem and forwards every hook.

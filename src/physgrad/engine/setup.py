@@ -21,7 +21,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import distributed
-from ..errors import ConfigError
+from ..errors import ConfigError, MethodRefused
 from ..methods import AbstractMethod, Objective
 from ..problems import AbstractProblem
 from . import memory
@@ -155,7 +155,7 @@ def build_stages(
                 phase.method.check(objective)
             phase.method.check_batch_size(batch_size)
         except ValueError as e:
-            raise ConfigError(f"{name} on {problem.name}: {e}") from None
+            raise MethodRefused(name, problem.name, e) from None
         per_epoch, phase_start = n_train // batch_size, start
         expanded = phase.method.stages()
         for stage_method, epochs in expanded:
@@ -281,7 +281,7 @@ def method_refusals(label: str, problem: AbstractProblem) -> Iterator[None]:
     except ConfigError:
         raise
     except ValueError as e:
-        raise ConfigError(f"{label} on {problem.name}: {e}") from None
+        raise MethodRefused(label, problem.name, e) from None
 
 
 def _optimizer_state_shape(method: AbstractMethod, params) -> Any:
