@@ -147,9 +147,30 @@ def test_declared_flags_stand_for_the_hooks_they_replaced():
 
     train = {"index": np.array([0, 1, 1])}
     ks = KuramotoSivashinsky()
-    assert ks.batch_groups(train).tolist() == Validation(ks).batch_groups(train).tolist() == [0, 1, 1]
+    assert list(ks.batch_groups(train)) == list(Validation(ks).batch_groups(train)) == [0, 1, 1]  # type: ignore[arg-type]
     assert HigToy().batch_groups(train) is None
     assert Toy2d().needs_float64 and Validation(Toy2d()).needs_float64
     assert HigToy(dtype="float64").needs_float64 and not HigToy().needs_float64
     assert not Validation(HigToy()).needs_float64
 
+
+# Packages whose implementation modules say they are internal (docs/architecture.md, "Private
+# modules"), and the modules not yet marked, with why. The list of exceptions may only shrink.
+INTERNAL_PACKAGES = ("engine", "routes", "inverse", "rollout")
+UNMARKED = {
+    "physgrad.engine.progress",  # the fit progress display is being reworked
+    "physgrad.engine.tensorboard",  # TensorBoard is public at its module path (an optional extra)
+}
+
+
+def test_implementation_modules_say_they_are_internal():
+    unmarked = set()
+    for package in INTERNAL_PACKAGES:
+        module = importlib.import_module(f"physgrad.{package}")
+        assert module.__all__, package
+        for info in pkgutil.iter_modules(module.__path__):
+            name = f"physgrad.{package}.{info.name}"
+            doc = importlib.import_module(name).__doc__ or ""
+            if f"Internal module: the public names are those :mod:`physgrad.{package}`" not in doc:
+                unmarked.add(name)
+    assert unmarked == UNMARKED

@@ -4,6 +4,9 @@
 the problem, with one-line errors. :func:`abstract_setup` makes the same from shapes alone
 (``eqx.filter_eval_shape``: nothing is generated or initialised); the memory guard's
 :func:`preflight` and the bench's applicability check (:mod:`physgrad.harness.bench`) use it.
+
+Internal module: the public names are those :mod:`physgrad.engine` and :mod:`physgrad`
+export (their ``__all__``); import them from there.
 """
 
 from __future__ import annotations
