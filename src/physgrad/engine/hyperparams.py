@@ -8,7 +8,7 @@ say. ``optax.inject_hyperparams(optax.adam)(learning_rate=1e-3)`` keeps them in 
 schedule shows there as its value at step 0, and is recorded as a schedule with that value
 (its form is not recorded). Where nothing can be read the record says so, and how to fix it.
 
-Internal module: the public names are those :mod:`physgrad.engine` and :mod:`physgrad`
+Internal module: the public names are those :mod:`physgrad.engine` and ``physgrad``
 export (their ``__all__``); import them from there.
 """
 

@@ -32,7 +32,7 @@ available memory: a batch size suggested then passes the footprint check once th
 exist (the compiled check that follows may still lower it). ``memory_guard=False``
 (:class:`physgrad.TrainSettings`, ``--set memory_guard=false``) turns the guard off.
 
-Internal module: the public names are those :mod:`physgrad.engine` and :mod:`physgrad`
+Internal module: the public names are those :mod:`physgrad.engine` and ``physgrad``
 export (their ``__all__``); import them from there.
 """
 

@@ -3,7 +3,7 @@ compressed) and reading them back whichever form they have: the one module that 
 recording (:mod:`physgrad.engine.recording`) and the result (:mod:`physgrad.engine.result`)
 read them through, so that neither imports the other for them.
 
-Internal module: the public names are those :mod:`physgrad.engine` and :mod:`physgrad`
+Internal module: the public names are those :mod:`physgrad.engine` and ``physgrad``
 export (their ``__all__``); import them from there.
 """
 

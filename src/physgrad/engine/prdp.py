@@ -16,7 +16,7 @@ The savings are PR (few iterations early) plus IC (the final K stays below full 
 The controller is a pure state machine over a JSON-able dict, so a resumed run continues
 its schedule.
 
-Internal module: the public names are those :mod:`physgrad.engine` and :mod:`physgrad`
+Internal module: the public names are those :mod:`physgrad.engine` and ``physgrad``
 export (their ``__all__``); import them from there.
 """
 

@@ -6,7 +6,7 @@ The record is readable JSON: the problem's and the phases' ``repr`` (memory addr
 removed), the method's name, each phase's optimizer hyperparameters where optax exposes them
 (:mod:`physgrad.engine.hyperparams`), the seed, the budget and the settings as resolved.
 
-Internal module: the public names are those :mod:`physgrad.engine` and :mod:`physgrad`
+Internal module: the public names are those :mod:`physgrad.engine` and ``physgrad``
 export (their ``__all__``); import them from there.
 """
 

@@ -10,7 +10,7 @@ A run directory holds ``config.json`` (what the caller says identifies the run),
 ``summary.json``, ``test_cases.json``, ``params.eqx`` (the final network) and
 ``checkpoint/`` for ``resume``.
 
-Internal module: the public names are those :mod:`physgrad.engine` and :mod:`physgrad`
+Internal module: the public names are those :mod:`physgrad.engine` and ``physgrad``
 export (their ``__all__``); import them from there.
 """
 

@@ -3,7 +3,7 @@ evaluation as arrays, the final network and state), and the history made from ev
 rows (:func:`history_of`) or read back from a run directory's ``metrics.csv``
 (:func:`history_from_metrics`).
 
-Internal module: the public names are those :mod:`physgrad.engine` and :mod:`physgrad`
+Internal module: the public names are those :mod:`physgrad.engine` and ``physgrad``
 export (their ``__all__``); import them from there.
 """
 

@@ -25,7 +25,7 @@ or corrupts a result (they are what people cite).
   ``params.eqx`` and ``summary.json`` not yet), ``evaluating`` (an evaluation begins), ``calibrating`` (a study's calibration begins). Action
   ``term`` sends the process SIGTERM, ``int`` SIGINT (Ctrl-C).
 
-Internal module: the public names are those :mod:`physgrad.engine` and :mod:`physgrad`
+Internal module: the public names are those :mod:`physgrad.engine` and ``physgrad``
 export (their ``__all__``); import them from there.
 """
 

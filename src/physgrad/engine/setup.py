@@ -5,7 +5,7 @@ the problem, with one-line errors. :func:`abstract_setup` makes the same from sh
 (``eqx.filter_eval_shape``: nothing is generated or initialised); the memory guard's
 :func:`preflight` and the bench's applicability check (:mod:`physgrad.harness.bench`) use it.
 
-Internal module: the public names are those :mod:`physgrad.engine` and :mod:`physgrad`
+Internal module: the public names are those :mod:`physgrad.engine` and ``physgrad``
 export (their ``__all__``); import them from there.
 """
 

@@ -4,7 +4,7 @@ steps one dispatch takes), :class:`Placement` (where arrays live: one device or 
 mesh over devices and processes) and :class:`Fidelity` (PRDP's solver refinement). The
 progress meter is :mod:`physgrad.engine.progress`'s.
 
-Internal module: the public names are those :mod:`physgrad.engine` and :mod:`physgrad`
+Internal module: the public names are those :mod:`physgrad.engine` and ``physgrad``
 export (their ``__all__``); import them from there.
 """
 

@@ -6,7 +6,7 @@
 :class:`TrainState` is the loop's state (and what a checkpoint holds); :class:`Ending` is
 how the loop ends.
 
-Internal module: the public names are those :mod:`physgrad.engine` and :mod:`physgrad`
+Internal module: the public names are those :mod:`physgrad.engine` and ``physgrad``
 export (their ``__all__``); import them from there.
 """
 
