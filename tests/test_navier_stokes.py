@@ -194,3 +194,55 @@ def test_default_network_keeps_its_channels_alive_under_sip(problem, samples):
         assert bool(jnp.all(jnp.any(features > 0, axis=(0, 2, 3)))), "a last-layer channel died"
         means = jax.vmap(network)(inputs).mean(axis=(2, 3))
         assert float(jnp.std(means, axis=0).max()) > 1e-3  # not collapsed to a constant output
+
+
+def test_strategies_are_objects_and_the_command_line_keeps_its_names():
+    """projection, limiter, simulator and activation are objects; the command line (and so
+    config.json) spells them as before, the old strings still build the same problem (with a
+    DeprecationWarning), and the data cache is keyed by the old words."""
+    import warnings
+
+    from physgrad.harness.objects import make_problem, problem_defaults
+    from physgrad.problems.navier_stokes import _cache_word
+    from physgrad.problems.sim.phiflow import PhiFlowFluid
+
+    defaults = problem_defaults(NavierStokes)
+    spelt = {k: defaults[k] for k in ("projection", "limiter", "simulator", "activation")}
+    assert spelt == {"projection": "fft", "limiter": "faces", "simulator": "jax", "activation": "leaky_relu"}
+    built = make_problem(
+        NavierStokes, {"projection": "cg", "limiter": "cells", "simulator": "phiflow", "activation": "relu"}
+    )
+    objects = NavierStokes(projection=fluid.CGProjection(), limiter=fluid.CellLimiter(), simulator=PhiFlowFluid(),
+                           activation=jax.nn.relu)  # fmt: skip
+    assert built == objects
+    with pytest.raises(ValueError, match="valid choices: fft, cg"):
+        make_problem(NavierStokes, {"projection": "spectral"})
+    with pytest.warns(DeprecationWarning, match="is deprecated; pass the object"):
+        assert NavierStokes(projection="cg", limiter="cells", simulator="phiflow", activation="relu") == objects
+    with pytest.raises(ValueError, match=r"FFTProjection\(\) or CGProjection\(\)"):
+        NavierStokes(projection=fluid.CellLimiter())  # pyright: ignore[reportArgumentType]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # the defaults are objects: no deprecated spelling inside
+        problem = NavierStokes()
+    words = {k: _cache_word(k, getattr(problem, k)) for k in ("projection", "limiter", "simulator", "resolution")}
+    assert words == {"projection": "fft", "limiter": "faces", "simulator": "jax", "resolution": 64}
+    assert _cache_word("projection", fluid.CGProjection(atol=1e-6)) == repr(fluid.CGProjection(atol=1e-6))
+
+
+def test_the_simulator_object_runs_the_jax_fluid_with_the_problems_solver_and_limiter(samples):
+    p = NavierStokes(**{**SMALL, "steps": 2}, limiter=fluid.CellLimiter())
+    sample = one(samples)
+    velocity = p.initial_velocity(sample["v0"])
+    expected = fluid.rollout(sample["m0"], velocity, 2, p.dt, p.dx, fluid.FFTProjection(), fluid.CellLimiter())
+    np.testing.assert_array_equal(np.asarray(p.rollout(sample["m0"], velocity)[0]), np.asarray(expected[0]))
+
+
+def test_unet_takes_its_activation_as_a_function():
+    from physgrad.nets import UNet
+
+    key, x = jax.random.key(0), jax.random.uniform(jax.random.key(1), (2, 8, 8))
+    leaky = UNet(2, 2, levels=2, filters=4, key=key, activation=jax.nn.leaky_relu)
+    with pytest.warns(DeprecationWarning, match="jax.nn.leaky_relu"):
+        named = UNet(2, 2, levels=2, filters=4, key=key, activation="leaky_relu")
+    np.testing.assert_array_equal(np.asarray(leaky(x)), np.asarray(named(x)))
+    assert not np.array_equal(np.asarray(leaky(x)), np.asarray(UNet(2, 2, levels=2, filters=4, key=key)(x)))

@@ -108,3 +108,34 @@ class PathRefused(ConfigError):
     def __init__(self, argument: str, template: str, **values: Any):
         self.argument, self.template, self.values = argument, template, values
         super().__init__(template.format(argument=argument, **values))
+
+
+class MissingPieces(ConfigError):
+    """A rule refuses a problem whose objective lacks pieces it needs: ``rule`` (how the
+    errors call it), the ``fields`` of its part (:class:`physgrad.methods.Part`), the part
+    in ``words`` and what to use ``instead``, in the library's objects."""
+
+    def __init__(self, rule: str, fields: tuple[str, ...], words: str, instead: str = ""):
+        self.rule, self.fields, self.words, self.instead = rule, fields, words, instead
+        super().__init__(f"{rule} needs a problem with {words}" + (f"; {instead}" if instead else ""))
+
+
+class SolverNotDifferentiable(ConfigError):
+    """A rule back-propagates through a solver that declares itself non-differentiable;
+    ``instead`` spells the rules that stop the gradient at the solver (e.g.
+    ``UnrolledGradient(policy=S())``)."""
+
+    def __init__(self, instead: tuple[str, ...]):
+        self.instead = instead
+        super().__init__(
+            "this method differentiates through the solver, which is not differentiable; use " + " or ".join(instead)
+        )
+
+
+class MethodRefused(ConfigError):
+    """A method (``label``) refuses a problem (named ``problem``); ``cause`` is its own
+    one-line error, kept so the command line can write it in its words."""
+
+    def __init__(self, label: str, problem: str, cause: BaseException):
+        self.label, self.problem, self.cause = label, problem, cause
+        super().__init__(f"{label} on {problem}: {cause}")

@@ -96,7 +96,24 @@ def parameter_count(module) -> int:
     return sum(leaf.size for leaf in jax.tree.leaves(eqx.filter(module, eqx.is_inexact_array)))
 
 
-UNET_ACTIVATIONS = ("relu", "leaky_relu")
+# The deprecated string spellings of UNet's activation (one release).
+_UNET_ACTIVATION_NAMES = {"relu": jax.nn.relu, "leaky_relu": jax.nn.leaky_relu}
+
+
+def _unet_activation(activation: Callable[[Array], Array] | str) -> Callable[[Array], Array]:
+    """``activation`` itself, or the function of a deprecated name with a ``DeprecationWarning``."""
+    if isinstance(activation, str):
+        warnings.warn(
+            f"UNet(..., activation={activation!r}) is deprecated; pass the function, e.g. jax.nn.leaky_relu",
+            DeprecationWarning,
+            stacklevel=3,
+        )
+        if activation not in _UNET_ACTIVATION_NAMES:
+            raise ValueError(f"unknown activation {activation!r}; valid choices: {', '.join(_UNET_ACTIVATION_NAMES)}")
+        return _UNET_ACTIVATION_NAMES[activation]
+    if not callable(activation):
+        raise TypeError(f"activation must be a function (e.g. jax.nn.relu), got {activation!r}")
+    return activation
 
 
 def _circular_conv(conv: eqx.nn.Conv2d, x: Float[Array, "c h w"]) -> Float[Array, "c2 h w"]:
@@ -130,11 +147,11 @@ class _DoubleConv(eqx.Module):
 
     first: eqx.nn.Conv2d
     second: eqx.nn.Conv2d
-    activation: str = eqx.field(static=True, default="relu")
+    activation: Callable[[Array], Array] = eqx.field(static=True, default=jax.nn.relu)
     standardise: bool = eqx.field(static=True, default=False)
 
-    def __init__(self, c_in: int, c_out: int, *, key: PRNGKeyArray, dtype, activation: str = "relu",
-                 standardise: bool = False):  # fmt: skip
+    def __init__(self, c_in: int, c_out: int, *, key: PRNGKeyArray, dtype,
+                 activation: Callable[[Array], Array] = jax.nn.relu, standardise: bool = False):  # fmt: skip
         k1, k2 = jax.random.split(key)
         make = (
             _he_conv if standardise else (lambda i, o, k, *, key, dtype: eqx.nn.Conv2d(i, o, k, key=key, dtype=dtype))
@@ -150,7 +167,7 @@ class _DoubleConv(eqx.Module):
         return _circular_conv(conv, x)
 
     def __call__(self, x):
-        act = jax.nn.leaky_relu if self.activation == "leaky_relu" else jax.nn.relu
+        act = self.activation
         return act(self._conv(self.second, act(self._conv(self.first, x))))
 
 
@@ -171,7 +188,9 @@ class UNet(eqx.Module):
     ``levels`` resolution levels with ``filters`` channels each: a double 3×3 conv at full
     resolution, then per lower level a 2×2 max-pool and a double conv; going up, bilinear
     ×2 upsampling, concatenation with the skip connection and a double conv; a 1×1 output
-    conv. Convolutions pad circularly; ReLU activations; PyTorch's default initialisation
+    conv. Convolutions pad circularly; ``activation`` (any elementwise function, ReLU by
+    default; a name, ``"relu"`` or ``"leaky_relu"``, still works for one release with a
+    ``DeprecationWarning``) after each conv; PyTorch's default initialisation
     (U(±1/√fan_in) for kernels and biases, which is Equinox's too). ``u_net(1, 1)``
     (4 levels × 16 filters) has 37,249 parameters here: PhiFlow's 37,697 minus the 448
     batch-norm scales and offsets. Batch norm is left out on purpose: physgrad's networks
@@ -181,7 +200,7 @@ class UNet(eqx.Module):
 
     Without batch norm, deep ReLU U-Nets with PyTorch's initialisation can die in training
     (``navier_stokes``: docs/reproductions/sip.md). Two per-sample options stand in:
-    ``activation="leaky_relu"`` (slope 0.01) and ``weight_standardisation=True``: every
+    ``activation=jax.nn.leaky_relu`` (slope 0.01) and ``weight_standardisation=True``: every
     3×3 kernel is standardised per output channel at each call
     (:func:`standardised_weight`, He's gain), all kernels are drawn He-normal and all biases
     start at 0 (the 1×1 output conv is not standardised). Same parameter count. The
@@ -194,9 +213,9 @@ class UNet(eqx.Module):
     levels: int = eqx.field(static=True)
 
     def __init__(self, c_in: int, c_out: int, *, levels: int = 4, filters: int = 16, key: PRNGKeyArray,
-                 dtype=jnp.float32, activation: str = "relu", weight_standardisation: bool = False):  # fmt: skip
-        if activation not in UNET_ACTIVATIONS:
-            raise ValueError(f"unknown activation {activation!r}; valid choices: {', '.join(UNET_ACTIVATIONS)}")
+                 dtype=jnp.float32, activation: Callable[[Array], Array] | str = jax.nn.relu,
+                 weight_standardisation: bool = False):  # fmt: skip
+        activation = _unet_activation(activation)
         keys = jax.random.split(key, 2 * levels)
         self.levels = levels
         kw = dict(dtype=dtype, activation=activation, standardise=weight_standardisation)

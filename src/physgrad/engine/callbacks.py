@@ -9,6 +9,9 @@ Lightning's hooks work the same way); their time is not training time.
 
 Why not inside the step: a callback is for logging, plotting and stopping by hand, which
 need Python values, and the steps between evaluations run as one compiled program.
+
+Internal module: the public names are those :mod:`physgrad.engine` and ``physgrad``
+export (their ``__all__``); import them from there.
 """
 
 from __future__ import annotations

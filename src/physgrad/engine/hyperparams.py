@@ -7,6 +7,9 @@ say. ``optax.inject_hyperparams(optax.adam)(learning_rate=1e-3)`` keeps them in 
 (``state.hyperparams``), which is read here from the state of a stand-in parameter; a
 schedule shows there as its value at step 0, and is recorded as a schedule with that value
 (its form is not recorded). Where nothing can be read the record says so, and how to fix it.
+
+Internal module: the public names are those :mod:`physgrad.engine` and ``physgrad``
+export (their ``__all__``); import them from there.
 """
 
 from __future__ import annotations

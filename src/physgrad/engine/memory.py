@@ -31,6 +31,9 @@ and optimizer state: ``resident``) is not in use yet, so it is counted against t
 available memory: a batch size suggested then passes the footprint check once the data
 exist (the compiled check that follows may still lower it). ``memory_guard=False``
 (:class:`physgrad.TrainSettings`, ``--set memory_guard=false``) turns the guard off.
+
+Internal module: the public names are those :mod:`physgrad.engine` and ``physgrad``
+export (their ``__all__``); import them from there.
 """
 
 from __future__ import annotations

@@ -1,7 +1,11 @@
 """Run-directory files kept gzipped (kept results and finished runs' curves are committed
 compressed) and reading them back whichever form they have: the one module that both the
 recording (:mod:`physgrad.engine.recording`) and the result (:mod:`physgrad.engine.result`)
-read them through, so that neither imports the other for them."""
+read them through, so that neither imports the other for them.
+
+Internal module: the public names are those :mod:`physgrad.engine` and ``physgrad``
+export (their ``__all__``); import them from there.
+"""
 
 from __future__ import annotations
 

@@ -15,6 +15,9 @@ a small K and raises it only when the validation error stops improving
 The savings are PR (few iterations early) plus IC (the final K stays below full fidelity).
 The controller is a pure state machine over a JSON-able dict, so a resumed run continues
 its schedule.
+
+Internal module: the public names are those :mod:`physgrad.engine` and ``physgrad``
+export (their ``__all__``); import them from there.
 """
 
 from __future__ import annotations

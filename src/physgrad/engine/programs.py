@@ -19,6 +19,9 @@ program is compiled afresh, exactly as without the cache.
 
 Across processes, JAX's persistent compilation cache does the same job on disk:
 :func:`use_compilation_cache` (the command line's ``--compilation-cache DIR``).
+
+Internal module: the public names are those :mod:`physgrad.engine` and ``physgrad``
+export (their ``__all__``); import them from there.
 """
 
 from __future__ import annotations

@@ -5,6 +5,9 @@ and :func:`identity` and :func:`like` say whether a recorded run is the same run
 The record is readable JSON: the problem's and the phases' ``repr`` (memory addresses
 removed), the method's name, each phase's optimizer hyperparameters where optax exposes them
 (:mod:`physgrad.engine.hyperparams`), the seed, the budget and the settings as resolved.
+
+Internal module: the public names are those :mod:`physgrad.engine` and ``physgrad``
+export (their ``__all__``); import them from there.
 """
 
 from __future__ import annotations

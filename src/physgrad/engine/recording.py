@@ -9,6 +9,9 @@ A run directory holds ``config.json`` (what the caller says identifies the run),
 ``metrics.csv`` (long format: step, wall_time, split, metric, value), ``env.json``,
 ``summary.json``, ``test_cases.json``, ``params.eqx`` (the final network) and
 ``checkpoint/`` for ``resume``.
+
+Internal module: the public names are those :mod:`physgrad.engine` and ``physgrad``
+export (their ``__all__``); import them from there.
 """
 
 from __future__ import annotations

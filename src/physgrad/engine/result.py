@@ -2,6 +2,9 @@
 evaluation as arrays, the final network and state), and the history made from evaluation
 rows (:func:`history_of`) or read back from a run directory's ``metrics.csv``
 (:func:`history_from_metrics`).
+
+Internal module: the public names are those :mod:`physgrad.engine` and ``physgrad``
+export (their ``__all__``); import them from there.
 """
 
 from __future__ import annotations

@@ -1,7 +1,11 @@
 """What a run directory already holds, read before a run builds anything: whether it is
 this run (:func:`recorded`), whether its budget is met (:func:`done_already`,
 :func:`budget_met`), which of a finished run's files are missing, and its environment
-record (:func:`write_environment`, kept from the run's start across resumes)."""
+record (:func:`write_environment`, kept from the run's start across resumes).
+
+Internal module: the public names are those :mod:`physgrad.engine` and ``physgrad``
+export (their ``__all__``); import them from there.
+"""
 
 from __future__ import annotations
 

@@ -16,6 +16,9 @@ From the caller's objects to the jitted step::
 
 Wall time counts training steps only: compilation (``compile_seconds``) and evaluation are
 excluded, so equal budgets compare update rules, not tracing.
+
+Internal module: the public names are those :mod:`physgrad.engine` and ``physgrad``
+export (their ``__all__``); import them from there.
 """
 
 from __future__ import annotations

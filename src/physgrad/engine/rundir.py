@@ -24,6 +24,9 @@ or corrupts a result (they are what people cite).
   not yet in place), ``checkpoint-committed``, ``before-summary`` (the final checkpoint written,
   ``params.eqx`` and ``summary.json`` not yet), ``evaluating`` (an evaluation begins), ``calibrating`` (a study's calibration begins). Action
   ``term`` sends the process SIGTERM, ``int`` SIGINT (Ctrl-C).
+
+Internal module: the public names are those :mod:`physgrad.engine` and ``physgrad``
+export (their ``__all__``); import them from there.
 """
 
 from __future__ import annotations

@@ -4,6 +4,9 @@
 the problem, with one-line errors. :func:`abstract_setup` makes the same from shapes alone
 (``eqx.filter_eval_shape``: nothing is generated or initialised); the memory guard's
 :func:`preflight` and the bench's applicability check (:mod:`physgrad.harness.bench`) use it.
+
+Internal module: the public names are those :mod:`physgrad.engine` and ``physgrad``
+export (their ``__all__``); import them from there.
 """
 
 from __future__ import annotations
@@ -21,7 +24,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import distributed
-from ..errors import ConfigError
+from ..errors import ConfigError, MethodRefused
 from ..methods import AbstractMethod, Objective
 from ..methods.base import check_batch
 from ..problems import AbstractProblem
@@ -157,7 +160,7 @@ def build_stages(
                 phase.method.check(objective)
             phase.method.check_batch_size(batch_size)
         except ValueError as e:
-            raise ConfigError(f"{name} on {problem.name}: {e}") from None
+            raise MethodRefused(name, problem.name, e) from None
         per_epoch, phase_start = n_train // batch_size, start
         expanded = phase.method.stages()
         for stage_method, epochs in expanded:
@@ -283,7 +286,7 @@ def method_refusals(label: str, problem: AbstractProblem) -> Iterator[None]:
     except ConfigError:
         raise
     except ValueError as e:
-        raise ConfigError(f"{label} on {problem.name}: {e}") from None
+        raise MethodRefused(label, problem.name, e) from None
 
 
 def _optimizer_state_shape(method: AbstractMethod, params) -> Any:

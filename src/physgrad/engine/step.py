@@ -4,7 +4,11 @@ memory guard, :mod:`physgrad.engine.memory`) ahead of time.
 
 The run takes its steps in chunks (:func:`make_steps`): up to :data:`CHUNK` steps in one
 dispatch, their statistics read back once, so a step of a fraction of a millisecond is not
-dominated by a host round trip and Python work per step."""
+dominated by a host round trip and Python work per step.
+
+Internal module: the public names are those :mod:`physgrad.engine` and ``physgrad``
+export (their ``__all__``); import them from there.
+"""
 
 from __future__ import annotations
 

@@ -2,7 +2,11 @@
 budget is spent), :class:`EvalSchedule` (when to evaluate), :class:`ChunkSize` (how many
 steps one dispatch takes), :class:`Placement` (where arrays live: one device or a data
 mesh over devices and processes) and :class:`Fidelity` (PRDP's solver refinement). The
-progress meter is :mod:`physgrad.engine.progress`'s."""
+progress meter is :mod:`physgrad.engine.progress`'s.
+
+Internal module: the public names are those :mod:`physgrad.engine` and ``physgrad``
+export (their ``__all__``); import them from there.
+"""
 
 from __future__ import annotations
 

@@ -5,6 +5,9 @@
 :class:`Setup` are what a run builds before its first step (:mod:`physgrad.engine.setup`);
 :class:`TrainState` is the loop's state (and what a checkpoint holds); :class:`Ending` is
 how the loop ends.
+
+Internal module: the public names are those :mod:`physgrad.engine` and ``physgrad``
+export (their ``__all__``); import them from there.
 """
 
 from __future__ import annotations

@@ -11,8 +11,14 @@ maps one to the other, so a run directory written before the objects existed kee
   :class:`~physgrad.problems.sim.steppers.Residual`, :class:`~physgrad.problems.sim.steppers.Parallel`,
   :class:`~physgrad.problems.sim.steppers.Sequential`, :class:`~physgrad.problems.sim.steppers.Bypass`, with α the
   problem's ``network_scale``;
-- problem settings that hold an activation function (the oscillators' ``activation``) →
-  ``jax.nn.relu``, ``jax.nn.tanh``, ... (:data:`ACTIVATIONS`);
+- problem settings that hold an activation function (the oscillators' and Navier–Stokes'
+  ``activation``) → ``jax.nn.relu``, ``jax.nn.tanh``, ... (:data:`ACTIVATIONS`);
+- problem settings that hold another strategy object, by its kind (:data:`STRATEGIES`):
+  Navier–Stokes' ``projection=fft|cg``, ``limiter=faces|cells`` and
+  ``simulator=jax|phiflow`` → :mod:`physgrad.problems.sim.fluid`'s
+  :class:`~physgrad.problems.sim.fluid.FFTProjection`, :class:`~physgrad.problems.sim.fluid.CGProjection`,
+  :class:`~physgrad.problems.sim.fluid.FaceLimiter`, :class:`~physgrad.problems.sim.fluid.CellLimiter`,
+  :class:`~physgrad.problems.sim.fluid.JaxFluid`, :class:`~physgrad.problems.sim.phiflow.PhiFlowFluid`;
 - ``--devices N|all`` → ``devices=N`` or ``devices=None`` (every device), as
   :func:`physgrad.fit` takes it (:func:`devices`);
 - SIP's ``krylov=cg|cg_negative|gmres|bicgstab|normal_cg`` → a lineax solver object and the
@@ -29,6 +35,8 @@ import lineax as lx
 from ..errors import ConfigError
 from ..nets import identity
 from ..problems.base import AbstractProblem
+from ..problems.sim import fluid
+from ..problems.sim.phiflow import PhiFlowFluid
 from ..problems.sim.steppers import AbstractComposition, Bypass, Parallel, Prediction, Residual, Sequential
 
 # setup -> composition name -> (problem's network scale α) -> composition object
@@ -45,6 +53,7 @@ ACTIVATIONS = {
     "sigmoid": jax.nn.sigmoid,
     "gelu": jax.nn.gelu,
     "identity": identity,
+    "leaky_relu": jax.nn.leaky_relu,
 }
 _ACTIVATION_NAMES = {id(f): name for name, f in ACTIVATIONS.items()}
 
@@ -54,6 +63,43 @@ def activation(name: str):
     if name not in ACTIVATIONS:
         raise ValueError(f"unknown activation {name!r}; valid choices: {', '.join(ACTIVATIONS)}")
     return ACTIVATIONS[name]
+
+
+# the kind of a problem setting's object -> its command-line name -> the object
+STRATEGIES: dict[type, dict[str, Any]] = {
+    fluid.AbstractPressureSolver: {"fft": fluid.FFTProjection(), "cg": fluid.CGProjection()},
+    fluid.AbstractLimiter: {"faces": fluid.FaceLimiter(), "cells": fluid.CellLimiter()},
+    fluid.AbstractFluid: {"jax": fluid.JaxFluid(), "phiflow": PhiFlowFluid()},
+}
+
+
+def _strategy_names(value: Any) -> dict[str, Any] | None:
+    """The names of the objects of ``value``'s kind (:data:`STRATEGIES`), or None."""
+    return next((names for kind, names in STRATEGIES.items() if isinstance(value, kind)), None)
+
+
+def _setting_name(value: Any) -> Any:
+    """A problem setting's value as the command line spells it: an activation's or a strategy
+    object's name; any other value (or an object the command line has no name for) as it is."""
+    names = _strategy_names(value)
+    if names is not None:
+        return next((name for name, known in names.items() if type(known) is type(value) and known == value), value)
+    return _ACTIVATION_NAMES.get(id(value), value) if callable(value) else value
+
+
+def _setting_value(setting: str, default: Any, value: Any) -> Any:
+    """The object of a command-line name ``value`` for a setting whose ``default`` is an
+    activation or a strategy object; any other value as it is."""
+    if not isinstance(value, str):
+        return value
+    if callable(default) and id(default) in _ACTIVATION_NAMES:
+        return activation(value)
+    names = _strategy_names(default)
+    if names is None:
+        return value
+    if value not in names:
+        raise ValueError(f"unknown {setting} {value!r}; valid choices: {', '.join(names)}")
+    return names[value]
 
 
 def devices(value: int | str | None) -> int | None:
@@ -97,7 +143,7 @@ def problem_defaults(cls: type[AbstractProblem]) -> dict[str, Any]:
     """``cls``'s settings and their defaults as the command line spells them (the strings
     ``config.json`` records): a time-stepper's ``composition`` object becomes ``setup`` (its
     setup) and ``composition=""`` (the problem's default composition of that setup)."""
-    settings = {k: _ACTIVATION_NAMES.get(id(v), v) if callable(v) else v for k, v in cls.settings().items()}
+    settings = {k: _setting_name(v) for k, v in cls.settings().items()}
     default = _composition_default(cls)
     if default is None:
         return settings
@@ -126,8 +172,8 @@ def composition(cls: type[AbstractProblem], setup: str, name: str) -> AbstractCo
 def problem_arguments(cls: type[AbstractProblem], settings: dict[str, Any]) -> dict[str, Any]:
     """The constructor's arguments of ``cls`` from settings spelt as the command line spells
     them (:func:`problem_defaults`)."""
-    functions = {k for k, v in cls.settings().items() if callable(v) and id(v) in _ACTIVATION_NAMES}
-    out = {k: activation(v) if k in functions and isinstance(v, str) else v for k, v in settings.items()}
+    defaults = cls.settings()
+    out = {k: _setting_value(k, defaults[k], v) if k in defaults else v for k, v in settings.items()}
     if _composition_default(cls) is None:
         return out
     out = {k: v for k, v in out.items() if k not in ("setup", "composition")}

@@ -1,8 +1,9 @@
 """The library's errors in the command line's words, by error type and argument.
 
-The library speaks its own arguments (``resume=True``, ``Budget(steps=N)``, ``devices=4``,
-``out``); the command line prints the same line with its flags (``--resume``, ``--steps N``,
-``--devices 4``, ``--out``). The core raises the small error types of
+The library speaks its own arguments and objects (``resume=True``, ``Budget(steps=N)``,
+``devices=4``, ``out``, ``UnrolledGradient(policy=S())``); the command line prints the same
+line with its flags, problems and methods (``--resume``, ``--steps N``, ``--devices 4``,
+``--out``, ``nog``). The core raises the small error types of
 :mod:`physgrad.errors`, which carry the arguments they name as fields; this module writes
 each type's line from those fields, beside the flags, so no module of the core names a flag
 and no message is parsed. Any other error is printed as it is.
@@ -18,11 +19,14 @@ from ..errors import (
     DevicesInvalid,
     DevicesRefused,
     DoesNotFit,
+    MethodRefused,
+    MissingPieces,
     NoBudget,
     PathRefused,
     ProcessesInvalid,
     RunDirectoryExists,
     RunDirectoryRefused,
+    SolverNotDifferentiable,
 )
 
 # the library's argument -> the command line's flag
@@ -31,6 +35,35 @@ FLAGS = {"out": "--out", "devices": "--devices", "resume": "--resume", "coordina
 
 def _devices(count: int) -> str:
     return f"{FLAGS['devices']} {count}"
+
+
+# a rule's spelling in the library's errors -> its method on the command line
+METHODS = {
+    "UnrolledGradient(policy=S())": "nog",
+    "UnrolledGradient(teacher_forcing=True)": "one",
+    "RolloutGradient(policy=S())": "no_temporal",
+}
+# the fields of a part a problem lacks (physgrad.methods.Part) -> what to use instead, in the
+# command line's problems and methods
+INSTEAD = {
+    ("predict", "loss"): "use a rollout method",
+    ("rollout",): "use a closed-loop problem (cartpole, guidance, quantum_control)",
+    ("unrolled",): "use a time-stepper problem (ks, kolmogorov, advection_1d)",
+}
+# SIP's solvers other than the analytic inverse (physgrad.harness.registry.INVERSE_SOLVERS)
+OTHER_SOLVERS = ("gauss_newton", "saddle_free_newton", "lbfgs", "linear_solve")
+
+
+def _missing(e: MissingPieces) -> str:
+    if e.fields == ("inverse",):  # SIP's Analytic() on a problem without one: a choice of solver
+        return f"this problem has no analytic inverse; valid choices: {', '.join(OTHER_SOLVERS)}"
+    instead = INSTEAD.get(e.fields, e.instead)
+    return f"{e.rule} needs a problem with {e.words}" + (f"; {instead}" if instead else "")
+
+
+def _not_differentiable(e: SolverNotDifferentiable) -> str:
+    methods = [METHODS.get(rule, rule) for rule in e.instead]
+    return f"this method differentiates through the solver, which is not differentiable; use {' or '.join(methods)}"
 
 
 # error type -> its line in the command line's words, from the error's fields
@@ -44,6 +77,9 @@ _LINES: dict[type, Callable] = {
     DevicesInvalid: lambda e: f"--devices must be {e.accepted}, got {e.devices!r}",
     DevicesRefused: lambda e: f"{e.before}{_devices(e.devices)}{e.after}",
     DoesNotFit: lambda e: e.before if e.devices is None else f"{e.before}{_devices(e.devices)}{e.after}",
+    MissingPieces: _missing,
+    SolverNotDifferentiable: _not_differentiable,
+    MethodRefused: lambda e: f"{e.label} on {e.problem}: {command_line_words(e.cause)}",
     PathRefused: lambda e: e.template.format(argument=FLAGS.get(e.argument, e.argument), **e.values),
 }
 

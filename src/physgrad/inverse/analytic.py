@@ -4,6 +4,9 @@ Assumptions: ``fn(x, y, y_target, sample) -> x̃`` is the problem's closed-form 
 conditioned on the current prediction ``x`` where P is not injective (pick the solution
 closest to x, as the SIP paper prescribes). Examples: Poisson ``x̃ = x + ∇²(y_t − y)``; exp ``x̃ = log y_t``;
 the heat equation's damped Fourier deconvolution. Converged = all entries finite.
+
+Internal module: the public names are those :mod:`physgrad.inverse` exports (its
+``__all__``); import them from there.
 """
 
 from __future__ import annotations

@@ -13,6 +13,9 @@ solver runs outside the network's autodiff (SIP applies ``stop_gradient``), so `
 is only differentiated by solvers that need derivatives in x (Gauss–Newton, Newton,
 L-BFGS, Krylov). Every solver returns :class:`InverseResult` with a per-sample
 ``converged`` flag: a failed solve is reported, never silently used.
+
+Internal module: the public names are those :mod:`physgrad.inverse` exports (its
+``__all__``); import them from there.
 """
 
 from __future__ import annotations

@@ -15,6 +15,9 @@ time, :func:`physgrad.jacobian.supports_forward_mode`) or when dim y < dim x, el
 mode; ``ForwardMode()`` and ``ReverseMode()`` force one. Both give the same J up to rounding.
 The strings ``"auto"|"forward"|"reverse"`` still work for one release, with a
 ``DeprecationWarning``.
+
+Internal module: the public names are those :mod:`physgrad.inverse` exports (its
+``__all__``); import them from there.
 """
 
 from __future__ import annotations

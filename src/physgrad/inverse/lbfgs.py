@@ -15,6 +15,9 @@ dtype and whether or not the user enabled ``jax_enable_x64``: the solve is scope
 line search mixes in float64 scalars wherever x64 is on). Its inputs are constants for
 differentiation (a scoped region cannot be transposed outside it; SIP never
 differentiates the solve); x̃ is returned in the prediction's dtype.
+
+Internal module: the public names are those :mod:`physgrad.inverse` exports (its
+``__all__``); import them from there.
 """
 
 from __future__ import annotations

@@ -47,6 +47,9 @@ simulator (PhiFlow, :mod:`physgrad.problems.sim.phiflow`) gets a one-line ``Valu
 Under ``precision=jnp.float64`` SIP runs the solve in :func:`physgrad.precision.float64_call`:
 ``lineax.linear_solve`` is a primitive whose body is traced again when an enclosing
 ``jax.jit`` is lowered, after a plain float64 scope has closed.
+
+Internal module: the public names are those :mod:`physgrad.inverse` exports (its
+``__all__``); import them from there.
 """
 
 from __future__ import annotations

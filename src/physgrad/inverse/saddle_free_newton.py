@@ -14,6 +14,9 @@ limit, zero divisions give zero steps (``divide_no_nan``, as the authors'). Assu
 d × d Hessian per sample). Converged = finite. The Hessian is forward over reverse
 (``jax.hessian``), or reverse over reverse for a simulator without forward mode
 (:func:`physgrad.jacobian.dense_hessian`); a one-line ``ValueError`` if both fail.
+
+Internal module: the public names are those :mod:`physgrad.inverse` exports (its
+``__all__``); import them from there.
 """
 
 from __future__ import annotations

@@ -63,7 +63,7 @@ import jax.numpy as jnp
 import optax
 from jaxtyping import Array, PyTree
 
-from ..errors import ConfigError
+from ..errors import ConfigError, MissingPieces, SolverNotDifferentiable
 
 Stats = dict[str, Array]
 _T = TypeVar("_T")
@@ -117,33 +117,67 @@ def required(piece: _T | None, name: str) -> _T:
     return piece
 
 
+def _solver_differentiable(objective: Objective) -> bool:
+    return objective.differentiable
+
+
+def _rollout_differentiable(objective: Objective) -> bool:
+    return objective.rollout.differentiable_physics
+
+
+def _unrolled_differentiable(objective: Objective) -> bool:
+    return required(objective.unrolled, "unrolled")(None, False).differentiable_physics
+
+
+#: The rules that stop the gradient at a time-stepper's solver (no-gradient unrolling and
+#: one-step training), what a rule that differentiates through a non-differentiable one
+#: is told to use instead.
+STOP_AT_SOLVER = ("UnrolledGradient(policy=S())", "UnrolledGradient(teacher_forcing=True)")
+
+
 class Part(NamedTuple):
     """One group of :class:`Objective` pieces: what a family of rules needs from a problem.
 
-    A rule declares its part (``AbstractRule.part``) and :meth:`AbstractRule.check` refuses,
-    in one line, a problem whose objective lacks any of ``fields``:
-    ``"<rule> needs a problem with <words>[; <instead>]"``. Where ``differentiable`` is
-    true the rule back-propagates through ``predict`` and also refuses a problem whose
-    solver declares itself non-differentiable.
+    A rule declares its part (``AbstractRule.part``, a class variable, or a property where
+    the rule's settings decide it) and :meth:`AbstractRule.check` refuses, in one line, a
+    problem whose objective lacks any of ``fields``
+    (:class:`~physgrad.errors.MissingPieces`: ``"<rule> needs a problem with <words>[;
+    <instead>]"``), after the pieces of ``base`` (a part this one extends). ``solver``
+    reads from the objective whether the solver the part runs through is differentiable
+    (asked on every check: for an unrolled system it also checks the window length); where
+    ``differentiable`` is true the rule back-propagates through that solver and refuses a
+    non-differentiable one (:class:`~physgrad.errors.SolverNotDifferentiable`, naming the
+    rules of ``stop``).
     """
 
     fields: tuple[str, ...]
     words: str
     instead: str = ""
     differentiable: bool = False
+    solver: Callable[[Objective], bool] = _solver_differentiable
+    stop: tuple[str, ...] = STOP_AT_SOLVER
+    base: Part | None = None
 
 
 #: ``predict`` and ``loss``: the open-loop chain network → simulator → loss, differentiated
 #: as one (DP, Gauss–Newton, HIG, Levenberg–Marquardt, Newton, K-FAC, Kronecker HIG).
-OPEN_LOOP = Part(("predict", "loss"), "predict(params, sample) and loss(y, sample)", "use a rollout method", True)
+OPEN_LOOP = Part(("predict", "loss"), "predict(params, sample) and loss(y, sample)",
+                 "use a rollout rule (RolloutGradient, UnrolledGradient)", True)  # fmt: skip
 #: The network and the physics apart, and a y-space target (SIP; ``inverse`` is optional).
 SPLIT = Part(("network_output", "simulate", "target"),
              "network_output, simulate and a y-space target (define target(sample))")  # fmt: skip
+#: SPLIT with the problem's analytic local inverse (SIP with ``Analytic()`` and no function).
+ANALYTIC_INVERSE = Part(("inverse",), "an analytic local inverse (define inverse(x, y, y_target, sample))",
+                        "choose another solver: GaussNewton(), SaddleFreeNewton(), LBFGS() or LinearSolve()",
+                        base=SPLIT)  # fmt: skip
 #: A rollout system whose transition takes the parameters (BPTT and its variants).
-ROLLOUT = Part(("rollout",), "a rollout system", "use a closed-loop problem (cartpole, guidance, quantum_control)")
+ROLLOUT = Part(("rollout",), "a rollout system",
+               "use a closed-loop problem (physgrad.problems.AbstractClosedLoop)",
+               solver=_rollout_differentiable, stop=("RolloutGradient(policy=S())",))  # fmt: skip
 #: Windows of a time-stepper's trajectories, unrolled over m steps (ONE / NOG / WIG).
 UNROLLED = Part(("unrolled",), "unrolled windows of a neural time-stepper",
-                "use a time-stepper problem (ks, kolmogorov, advection_1d)")  # fmt: skip
+                "use a time-stepper problem (physgrad.problems.AbstractTimeStepper)",
+                solver=_unrolled_differentiable)  # fmt: skip
 
 
 class Objective(NamedTuple):
@@ -182,21 +216,22 @@ class Objective(NamedTuple):
         return all(getattr(self, name) is not None for name in part.fields)
 
     def require(self, part: Part, who: str) -> None:
-        """Raise the one-line error of rule ``who`` when a piece of ``part`` is missing,
-        and :meth:`require_differentiable` where the part back-propagates through
-        ``predict``."""
+        """Raise the one-line error of rule ``who`` when a piece of ``part`` (or of its
+        ``base``) is missing, or when the part back-propagates through a solver that is
+        not differentiable (:class:`Part`)."""
+        if part.base is not None:
+            self.require(part.base, who)
         if not self.provides(part):
-            raise ValueError(f"{who} needs a problem with {part.words}" + (f"; {part.instead}" if part.instead else ""))
-        if part.differentiable:
-            self.require_differentiable()
+            raise MissingPieces(who, part.fields, part.words, part.instead)
+        differentiable = part.solver(self)  # asked either way: it may check more (window lengths)
+        if part.differentiable and not differentiable:
+            raise SolverNotDifferentiable(part.stop)
 
     def require_differentiable(self) -> None:
         """Raise the one-line error of a rule that back-propagates through ``predict``
         when the problem declares its solver non-differentiable."""
         if not self.differentiable:
-            raise ValueError(
-                "this method differentiates through the solver, which is not differentiable; use nog or one"
-            )
+            raise SolverNotDifferentiable(OPEN_LOOP.stop)
 
     def bind_static(self, static: PyTree) -> Objective:
         """This objective as a function of the inexact-array leaves of the parameters
@@ -252,8 +287,9 @@ class AbstractRule(eqx.Module):
 
     def check(self, objective: Objective) -> None:
         """Raise ``ValueError`` (one line, saying what to use instead) if the rule cannot
-        run on ``objective``: by default, when a piece of the rule's :attr:`part` is
-        missing (:meth:`Objective.require`)."""
+        run on ``objective``: when a piece of the rule's :attr:`part` is missing, or the
+        part back-propagates through a non-differentiable solver (:meth:`Objective.require`).
+        A rule whose needs depend on its settings declares ``part`` as a property."""
         if self.part is not None:
             objective.require(self.part, self.name)
 

@@ -35,7 +35,7 @@ from jaxtyping import Array
 
 from ..inverse import AbstractInverseSolver, Analytic, GaussNewton, InverseFailureWarning
 from ..precision import float64_call, to_float64
-from .base import SPLIT, AbstractRule, Estimator, Objective, Part, required
+from .base import ANALYTIC_INVERSE, SPLIT, AbstractRule, Estimator, Objective, Part, required
 
 PRECISIONS = (np.dtype("float32"), np.dtype("float64"))
 
@@ -105,20 +105,19 @@ class ScaleInvariantPhysics(AbstractRule):
         if solver is None:
             solver = Analytic() if objective.inverse is not None else GaussNewton()
         if isinstance(solver, Analytic) and solver.fn is None:
-            if objective.inverse is None:
-                raise ValueError(
-                    "this problem has no analytic inverse; valid choices: gauss_newton, saddle_free_newton, "
-                    "lbfgs, linear_solve"
-                )
+            objective.require(ANALYTIC_INVERSE, self.name)  # refuses a problem without one
             solver = Analytic(objective.inverse)
         return solver
 
-    part: ClassVar[Part] = SPLIT
     name: ClassVar[str] = "sip"
 
-    def check(self, objective):
-        super().check(objective)
-        self.resolve_solver(objective)
+    @property
+    def part(self) -> Part:  # pyright: ignore[reportIncompatibleVariableOverride]
+        """The network and the physics apart (:data:`~physgrad.methods.SPLIT`), and the
+        problem's analytic inverse where ``Analytic()`` without a function stands for it."""
+        if isinstance(self.solver, Analytic) and self.solver.fn is None:
+            return ANALYTIC_INVERSE
+        return SPLIT
 
     def __call__(self, objective, params, batch):
         network_output = required(objective.network_output, "network_output")

@@ -20,8 +20,6 @@ between g_M and g_R.
 
 from __future__ import annotations
 
-from typing import ClassVar
-
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -37,15 +35,12 @@ class RolloutGradient(AbstractRule):
     policy: GradientFlow | Combined = R()
     checkpoint: bool = eqx.field(static=True, default=False)
 
-    part: ClassVar[Part] = ROLLOUT
-
-    def check(self, objective):
-        super().check(objective)
+    @property
+    def part(self) -> Part:  # pyright: ignore[reportIncompatibleVariableOverride]
+        """The rollout system; differentiated through its physics unless the policy stops
+        the gradient there (S, and M's and R's ``stop_physics``)."""
         differentiates_physics = isinstance(self.policy, Combined) or not self.policy.stop_physics
-        if differentiates_physics and not objective.rollout.differentiable_physics:
-            raise ValueError(
-                "this method differentiates through the solver, which is not differentiable; use no_temporal"
-            )
+        return ROLLOUT._replace(differentiable=differentiates_physics)
 
     def gradient(self, system, params, s0):
         """(loss, gradient, extra statistics) of one batch of initial states."""

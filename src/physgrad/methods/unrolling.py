@@ -36,7 +36,6 @@ by a factor whenever the epoch-mean training loss stops improving (PyTorch's
 from __future__ import annotations
 
 import dataclasses
-from typing import ClassVar
 
 import equinox as eqx
 import jax.numpy as jnp
@@ -67,16 +66,15 @@ class UnrolledGradient(AbstractRule):
     def system(self, objective):
         return objective.unrolled(self.m or None, self.teacher_forcing)
 
-    part: ClassVar[Part] = UNROLLED
-
-    def check(self, objective):
-        super().check(objective)
-        system = self.system(objective)
-        if not system.differentiable_physics and not self.teacher_forcing and not self.policy.stop_physics:
-            raise ValueError(
-                "this method differentiates through the solver, but the problem's solver is not "
-                "differentiable; train with nog or one"
-            )
+    @property
+    def part(self) -> Part:  # pyright: ignore[reportIncompatibleVariableOverride]
+        """The unrolled windows of this rule's m (their system is built on every check, which
+        refuses an m beyond the problem's windows), differentiated through the solver unless
+        the rule forces the teacher's inputs or its policy stops the gradient there."""
+        return UNROLLED._replace(
+            differentiable=not self.teacher_forcing and not self.policy.stop_physics,
+            solver=lambda objective: self.system(objective).differentiable_physics,
+        )
 
     def __call__(self, objective, params, batch):
         system = self.system(objective)

@@ -44,8 +44,9 @@ class AbstractProblem(eqx.Module):
       network (``--no-network``) starts (zeros by default);
     - ``default_shuffle``: the paper's batch order, fixed (False, the default) or a fresh
       permutation of the training samples every epoch (True); optionally
-      ``batch_groups(train) -> labels``: when shuffled, every batch holds samples of one
-      label, the labels' batches interleaved at random (KS: one domain size per batch);
+      ``batch_group_key``, a key of the data whose values label the samples: when shuffled,
+      every batch holds samples of one label, the labels' batches interleaved at random (KS:
+      one domain size per batch, ``batch_groups(train)`` reads the labels);
     - ``default_fresh_samples``: whether the paper trains on a stream of fresh samples
       (True: every epoch after the first draws a new train split from ``make_data``);
     - ``fixed_samples``: True where the samples are what is trained (direct optimisation),
@@ -92,15 +93,12 @@ class AbstractProblem(eqx.Module):
         return self.simulate(self.network_output(network, sample), sample)
 
     # --- what the training engine asks of a problem (declared, never type-tested) -------
-    @property
-    def needs_float64(self) -> bool:
-        """True when the problem's own arrays or physics are float64: the engine then runs
-        the whole training under ``jax.enable_x64(True)``.
-
-        False by default: importing physgrad leaves JAX's configuration alone, and float32
-        problems neither need nor get x64 (their few float64 parts, such as reference
-        solvers for data, scope it themselves)."""
-        return False
+    # True when the problem's own arrays or physics are float64: the engine then runs the
+    # whole training under ``jax.enable_x64(True)``. A declared flag (a class variable, or a
+    # property where a setting decides it, e.g. ``dtype``). False by default: importing
+    # physgrad leaves JAX's configuration alone, and float32 problems neither need nor get
+    # x64 (their few float64 parts, such as reference solvers for data, scope it themselves).
+    needs_float64: ClassVar[bool] = False
 
     def initial_network(self, key: PRNGKeyArray, data: dict[str, Sample]) -> eqx.Module:
         """The network a run starts from (default: :meth:`make_network`; direct
@@ -141,12 +139,17 @@ class AbstractProblem(eqx.Module):
     # ``fresh_samples=True`` on such a problem.
     fixed_samples: ClassVar[bool] = False
 
+    # The data's key whose values label the training samples' groups, or None: when the order
+    # is shuffled, every batch then holds samples of one label only, and the labels' batches
+    # follow each other at random (the KS code batches each domain size by itself). None (the
+    # default): batches are cut from one permutation of all samples.
+    batch_group_key: ClassVar[str | None] = None
+
     def batch_groups(self, train: Sample) -> np.ndarray | None:
-        """One label per training sample (``train`` is the data's train split), or None: when
-        the order is shuffled, every batch then holds samples of one label only, and the
-        labels' batches follow each other at random (the KS code batches each domain size
-        by itself). None (the default): batches are cut from one permutation of all samples."""
-        return None
+        """One label per training sample (``train`` is the data's train split): its
+        :attr:`batch_group_key` entry, or None where the problem declares none."""
+        key = self.batch_group_key
+        return None if key is None else np.asarray(train[key])
 
     @classmethod
     def settings(cls) -> dict[str, Any]:

@@ -42,7 +42,8 @@ class DirectOptimisation(AbstractProblem):
         return self.problem.name
 
     @property
-    def needs_float64(self) -> bool:  # the wrapped problem's physics keeps its precision
+    def needs_float64(self) -> bool:  # pyright: ignore[reportIncompatibleVariableOverride]
+        # the wrapped problem's physics keeps its precision
         return self.problem.needs_float64
 
     def make_data(self, key):

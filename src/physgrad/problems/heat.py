@@ -120,10 +120,7 @@ class Heat(AbstractProblem):
     source: ClassVar[str] = "Holl et al., NeurIPS 2022, Fig. 6c,d"
     default_batch_size: ClassVar[int] = 128
 
-    @property
-    def needs_float64(self) -> bool:
-        """The physics and the data's y are float64 (as the authors'): train under x64."""
-        return True
+    needs_float64: ClassVar[bool] = True  # the physics and the data's y are float64, as the authors'
 
     def make_data(self, key):
         require_float64(self.name)  # else JAX would silently build float32 "float64" physics

@@ -22,7 +22,7 @@ blog re-run), Adam lr 1e-4, batch 16, m = 3.
 
 Batches (shuffled by default, as the KS code): every batch holds windows of one domain size,
 drawn at random from that size's windows, and the sizes' batches are interleaved at random,
-a fresh order every epoch (``batch_groups``; 7,488 windows per size at the defaults: 468
+a fresh order every epoch (``batch_group_key``; 7,488 windows per size at the defaults: 468
 batches of 16 per size). The authors' loader draws the next size at random
 per batch and ends the epoch when the first size runs out; here every window is seen once
 per epoch. ``--set shuffle=false`` takes the windows in stored order (size by size).
@@ -144,7 +144,6 @@ class KuramotoSivashinsky(AbstractTimeStepper):
     def apply(self, network, u, cond):
         return network(self.with_cond_channel(u, cond))
 
-    def batch_groups(self, train):
-        """The domain size of every training window (its solver index): a shuffled batch
-        holds one size, as the KS code's per-size loaders."""
-        return np.asarray(train["index"])
+    # The domain size of every training window (its solver index): a shuffled batch holds one
+    # size, as the KS code's per-size loaders.
+    batch_group_key: ClassVar[str | None] = "index"

@@ -17,8 +17,8 @@ Data, per sample (the authors' ``generate_example``):
 - v₀* = (64 − COM(m₀)) / T  (the drift that brings the marker's centre of mass to the
   centre) + a Gaussian swirl s · exp(−|d|²/2σ²) · (−d_y, d_x) about (64, 64), σ = 20,
   s ~ U[−2, 2]  + 0.1 × vector noise;
-- m_T* = the simulation of (m₀, v₀*) by the JAX fluid (also when ``simulator="phiflow"``:
-  pair it with ``limiter="cells"`` for data that PhiFlow's step reproduces).
+- m_T* = the simulation of (m₀, v₀*) by the JAX fluid (also when ``simulator=PhiFlowFluid()``:
+  pair it with ``limiter=CellLimiter()`` for data that PhiFlow's step reproduces).
 
 Loss (DP / Adam): the authors' ``frequency_loss(m_T − m_T*, n=1, frequency_falloff=80,
 ignore_mean=True)``: with d = m_T − m_T* − mean, D̂ = FFT(d) and k in cycles per cell,
@@ -49,11 +49,11 @@ x̃ lies in the (uniform + swirl) family, so the 0.1 noise part of v₀* is neve
 
 Differences from the authors' code (all documented in docs/reproductions/sip.md):
 
-- the projection is the exact FFT solve (``projection="cg"`` for the authors' CG with
-  absolute tolerance 1e-4, warm started);
+- the projection is the exact FFT solve (``projection=CGProjection()`` for the authors' CG
+  with absolute tolerance 1e-4, warm started);
 - MacCormack's limiter clamps a staggered velocity component to its own faces' 2 × 2
-  neighbourhood; ``limiter="cells"`` uses PhiFlow 3.4's (as if cell centred), and
-  ``simulator="phiflow"`` runs the same step written with PhiFlow itself
+  neighbourhood; ``limiter=CellLimiter()`` uses PhiFlow 3.4's (as if cell centred), and
+  ``simulator=PhiFlowFluid()`` runs the same step written with PhiFlow itself
   (:mod:`physgrad.problems.sim.phiflow`; reverse-mode only, CG at 1e-4);
 - the reference simulation runs on the same staggered grid as the predictions (the
   authors ran the ground truth on a centred grid without an initial projection), and the
@@ -66,7 +66,7 @@ Differences from the authors' code (all documented in docs/reproductions/sip.md)
   functions (the methods vmap ``network_output`` over the batch without an axis name; HIG
   needs per-sample Jacobians, SIP per-sample targets, evaluation runs in chunks), so batch
   statistics are not available. The plain BN-less U-Net with PyTorch's initialisation
-  (``activation="relu", weight_standardisation=False``) dies here: its ReLUs die within
+  (``activation=jax.nn.relu, weight_standardisation=False``) dies here: its ReLUs die within
   ~25 SIP or supervised steps at lr 5e-3 and the output collapses to a constant. The
   default is therefore per sample and does not die: leaky ReLU (slope 0.01) and
   weight-standardised 3×3 convs (He gain, He-normal kernels, zero biases; scale-invariant
@@ -77,22 +77,68 @@ Differences from the authors' code (all documented in docs/reproductions/sip.md)
 
 from __future__ import annotations
 
-from typing import ClassVar
+import warnings
+from collections.abc import Callable
+from typing import Any, ClassVar
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..nets import UNET_ACTIVATIONS, UNet
+from ..nets import UNet
 from .base import AbstractProblem
 from .poisson_hig import phiflow_noise
 from .sim import fluid
 from .sim.cache import cached_arrays
+from .sim.phiflow import PhiFlowFluid
 
 DATA_VERSION = 1  # bump when the generator changes, so cached data are regenerated
-PROJECTIONS = ("fft", "cg")
-SIMULATORS = ("jax", "phiflow")
+
+# The settings' objects with the words they were spelt with before they were objects: the
+# deprecated string spellings (one release; the command line's own names are
+# physgrad.harness.objects.STRATEGIES), and the data cache's keys, so that data cached
+# then stay valid.
+_SPELLINGS: dict[str, dict[str, Any]] = {
+    "projection": {"fft": fluid.FFTProjection(), "cg": fluid.CGProjection()},
+    "limiter": {"faces": fluid.FaceLimiter(), "cells": fluid.CellLimiter()},
+    "simulator": {"jax": fluid.JaxFluid(), "phiflow": PhiFlowFluid()},
+    "activation": {"relu": jax.nn.relu, "leaky_relu": jax.nn.leaky_relu},
+}
+
+
+def _spelling(setting: str, name: str) -> str:
+    """How the library spells the object of a deprecated name (for the warning)."""
+    return f"jax.nn.{name}" if setting == "activation" else repr(_SPELLINGS[setting][name])
+
+
+def _spelt(setting: str, accepts: Callable[[Any], bool], expected: str) -> Callable[[Any], Any]:
+    """The converter of ``setting``: a value it ``accepts`` passes, a deprecated name becomes
+    its object with a ``DeprecationWarning``; anything else is refused in one line."""
+
+    def convert(value):
+        if not isinstance(value, str):
+            if not accepts(value):
+                raise ValueError(f"NavierStokes' {setting} must be {expected}, got {value!r}")
+            return value
+        if value not in _SPELLINGS[setting]:
+            raise ValueError(f"unknown {setting} {value!r}; valid choices: {', '.join(_SPELLINGS[setting])}")
+        warnings.warn(
+            f"NavierStokes({setting}={value!r}) is deprecated; pass the object, {setting}={_spelling(setting, value)}",
+            DeprecationWarning,
+            stacklevel=4,
+        )
+        return _SPELLINGS[setting][value]
+
+    return convert
+
+
+def _cache_word(setting: str, value: Any) -> Any:
+    """``value``'s word in the data cache's key: its earlier spelling, else its repr."""
+    for word, known in _SPELLINGS.get(setting, {}).items():
+        if type(known) is type(value) and known == value:
+            return word
+    return value if isinstance(value, int | float | str | bool) else repr(value)
 
 
 def box_fraction(n: int, dx: float, lower, upper, dtype=jnp.float32):
@@ -141,12 +187,43 @@ class NavierStokes(AbstractProblem):
     fluctuations: float = eqx.field(static=True, default=0.1)
     noise_scale: float = eqx.field(static=True, default=10.0)
     falloff: float = eqx.field(static=True, default=80.0)
-    projection: str = eqx.field(static=True, default="fft")
-    limiter: str = eqx.field(static=True, default="faces")
-    simulator: str = eqx.field(static=True, default="jax")
+    # the pressure solve (FFTProjection(), exact; CGProjection(), the authors'), MacCormack's
+    # limiter (FaceLimiter(); CellLimiter(), PhiFlow's), physgrad.problems.sim.fluid, and the
+    # code that runs the training's steps (fluid.JaxFluid(); phiflow.PhiFlowFluid())
+    projection: fluid.AbstractPressureSolver = eqx.field(
+        static=True,
+        default=fluid.FFTProjection(),
+        converter=_spelt(
+            "projection",
+            lambda v: isinstance(v, fluid.AbstractPressureSolver),
+            "FFTProjection() or CGProjection() (physgrad.problems.sim.fluid)",
+        ),
+    )
+    limiter: fluid.AbstractLimiter = eqx.field(
+        static=True,
+        default=fluid.FaceLimiter(),
+        converter=_spelt(
+            "limiter",
+            lambda v: isinstance(v, fluid.AbstractLimiter),
+            "FaceLimiter() or CellLimiter() (physgrad.problems.sim.fluid)",
+        ),
+    )
+    simulator: fluid.AbstractFluid = eqx.field(
+        static=True,
+        default=fluid.JaxFluid(),
+        converter=_spelt(
+            "simulator",
+            lambda v: isinstance(v, fluid.AbstractFluid),
+            "JaxFluid() (physgrad.problems.sim.fluid) or PhiFlowFluid() (physgrad.problems.sim.phiflow)",
+        ),
+    )
     levels: int = eqx.field(static=True, default=5)
     filters: int = eqx.field(static=True, default=16)
-    activation: str = eqx.field(static=True, default="leaky_relu")
+    activation: Callable[[jax.Array], jax.Array] = eqx.field(
+        static=True,
+        default=jax.nn.leaky_relu,
+        converter=_spelt("activation", callable, "a function (e.g. jax.nn.leaky_relu)"),
+    )
     weight_standardisation: bool = eqx.field(static=True, default=True)
     n_train: int = eqx.field(static=True, default=4096)
     n_test: int = eqx.field(static=True, default=64)
@@ -159,11 +236,6 @@ class NavierStokes(AbstractProblem):
     default_batch_size: ClassVar[int] = 64
 
     def __check_init__(self):
-        choices = (("projection", self.projection, PROJECTIONS), ("simulator", self.simulator, SIMULATORS),
-                   ("limiter", self.limiter, fluid.LIMITERS), ("activation", self.activation, UNET_ACTIVATIONS))  # fmt: skip
-        for setting, value, valid in choices:
-            if value not in valid:
-                raise ValueError(f"unknown {setting} {value!r}; valid choices: {', '.join(valid)}")
         if self.resolution % 2 ** (self.levels - 1):
             raise ValueError(f"resolution must be divisible by 2^(levels - 1) = {2 ** (self.levels - 1)}")
 
@@ -181,7 +253,7 @@ class NavierStokes(AbstractProblem):
         return self.size / 2
 
     def pressure_solver(self) -> fluid.AbstractPressureSolver:
-        return fluid.CGProjection() if self.projection == "cg" else fluid.FFTProjection()
+        return self.projection
 
     def initial_velocity(self, v0):
         """The centred prediction on the faces, made divergence free (the authors'
@@ -194,11 +266,9 @@ class NavierStokes(AbstractProblem):
 
     def rollout(self, marker, velocity):
         """``(m_T, v_T, markers)`` after ``steps`` steps from a staggered, divergence-free velocity."""
-        if self.simulator == "phiflow":  # PhiFlow's own step (CG, its limiter): physgrad.problems.sim.phiflow
-            from .sim import phiflow
-
-            return phiflow.rollout(marker, velocity, self.steps, self.dt, self.dx)
-        return self.reference_rollout(marker, velocity)
+        return self.simulator.rollout(
+            marker, velocity, self.steps, self.dt, self.dx, self.pressure_solver(), self.limiter
+        )
 
     def swirl(self, strength):
         """The Gaussian swirl about the domain centre, cell centred (2, n, n)."""
@@ -255,7 +325,7 @@ class NavierStokes(AbstractProblem):
         skip = ("levels", "filters", "activation", "weight_standardisation", "simulator")
 
         def draw(split, k, count):
-            settings = {f: getattr(self, f) for f in self.settings() if f not in skip}
+            settings = {f: _cache_word(f, getattr(self, f)) for f in self.settings() if f not in skip}
             cache_key = {"problem": self.name, "split": split, "count": count, "version": DATA_VERSION,
                          "key": np.asarray(jax.random.key_data(k)).tolist(), **settings}  # fmt: skip
             data = cached_arrays(f"{self.name}-{split}", cache_key, lambda: self.examples(k, count))

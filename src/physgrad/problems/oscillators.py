@@ -54,7 +54,7 @@ class AbstractOscillators(AbstractProblem):
     dtype: eqx.AbstractVar[str]
 
     @property
-    def needs_float64(self) -> bool:
+    def needs_float64(self) -> bool:  # pyright: ignore[reportIncompatibleVariableOverride]
         """``dtype=float64`` runs the whole problem in double precision (engine scopes x64)."""
         return jnp.dtype(self.dtype) == jnp.float64
 

@@ -82,7 +82,7 @@ class PoissonHig(AbstractProblem):
     default_batch_size: ClassVar[int] = 64
 
     @property
-    def needs_float64(self) -> bool:
+    def needs_float64(self) -> bool:  # pyright: ignore[reportIncompatibleVariableOverride]
         """``dtype=float64`` runs the whole problem in double precision (engine scopes x64)."""
         return jnp.dtype(self.dtype) == jnp.float64
 

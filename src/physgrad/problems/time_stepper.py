@@ -143,7 +143,7 @@ class AbstractTimeStepper(AbstractProblem):
     default_eval_samples: ClassVar[int] = 512
     # Windows are stored trajectory by trajectory, so a fixed order would make every batch
     # consecutive, overlapping windows of one trajectory; the authors' code permutes every
-    # epoch (KS: per domain size, :meth:`KuramotoSivashinsky.batch_groups`; Kolmogorov:
+    # epoch (KS: per domain size, ``KuramotoSivashinsky.batch_group_key``; Kolmogorov:
     # one permutation of all windows; trainax: a fresh permutation per epoch).
     default_shuffle: ClassVar[bool] = True
     state_channels: ClassVar[int] = 1

@@ -44,10 +44,7 @@ class Toy2d(AbstractProblem):
     source: ClassVar[str] = "PBDL book physgrad-comparison.ipynb"
     default_batch_size: ClassVar[int] = 1
 
-    @property
-    def needs_float64(self) -> bool:
-        """x and y are float64 (the book's NumPy toy): train under x64."""
-        return True
+    needs_float64: ClassVar[bool] = True  # x and y are float64 (the book's NumPy toy): train under x64
 
     def make_data(self, key):
         require_float64(self.name)  # else JAX would silently make the float64 arrays float32

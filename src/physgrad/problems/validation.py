@@ -72,7 +72,7 @@ class Validation(AbstractProblem):
         return self.problem.extra
 
     @property
-    def needs_float64(self) -> bool:
+    def needs_float64(self) -> bool:  # pyright: ignore[reportIncompatibleVariableOverride]
         return self.problem.needs_float64
 
     @property
@@ -130,5 +130,6 @@ class Validation(AbstractProblem):
     def objective(self, static):
         return self.problem.objective(static)
 
-    def batch_groups(self, train):
-        return self.problem.batch_groups(train)
+    @property
+    def batch_group_key(self) -> str | None:  # type: ignore[override]
+        return self.problem.batch_group_key

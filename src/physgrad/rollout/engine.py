@@ -32,6 +32,9 @@ Gradients:
   the backward scan recomputes each step's VJP (memory ≈ m states). Against the authors'
   two full passes it measured 0.49–0.69× the time and about half the memory on the three
   StableBPTT problems (benchmarks/rollout_step.py).
+
+Internal module: the public names are those :mod:`physgrad.rollout` exports (its
+``__all__``); import them from there.
 """
 
 from __future__ import annotations

@@ -25,6 +25,9 @@ and warm-up options):
 gradients live within windows of k steps; with a warm-up the windows are not shifted), ``warmup=W`` runs the first W steps without gradient and drops their
 losses (the "pushforward" trick): both paths are stopped at step W and the losses of
 steps 0..W−1 are masked.
+
+Internal module: the public names are those :mod:`physgrad.rollout` exports (its
+``__all__``); import them from there.
 """
 
 from __future__ import annotations

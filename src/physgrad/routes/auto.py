@@ -10,6 +10,9 @@
   (every physgrad problem: rows = batch × output size ≪ parameters);
 - else :class:`~.svd.SVD`: for nearly square matrices the SVD avoids squaring the
   condition number at no extra cost. Measured in ``benchmarks/hig_step.py``.
+
+Internal module: the public names are those :mod:`physgrad.routes` exports (its
+``__all__``); import them from there.
 """
 
 from __future__ import annotations

@@ -20,6 +20,9 @@ vector, is a dense layer (``eqx.nn.Linear``, :class:`physgrad.nets.Dense`, a han
 ``W @ x`` or ``x @ W``), found in the traced program, not by module type; a bias added right
 after the product is recorded with it. The other leaves are "explicit": their Jacobian rows
 are formed in groups of at most ``CHUNK_ELEMENTS`` numbers (:mod:`.structured`).
+
+Internal module: the public names are those :mod:`physgrad.routes` exports (its
+``__all__``); import them from there.
 """
 
 from __future__ import annotations

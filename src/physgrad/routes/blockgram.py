@@ -19,6 +19,9 @@ The float64 is scoped (:func:`physgrad.precision.float64_scope`) and works with
 ``jax_enable_x64`` off; the network and simulator are traced outside the scope (in the
 caller's configuration), only the Gram arithmetic is float64. As the Gram route, the inputs
 are constants for differentiation (``stop_gradient``).
+
+Internal module: the public names are those :mod:`physgrad.routes` exports (its
+``__all__``); import them from there.
 """
 
 from __future__ import annotations

@@ -22,6 +22,9 @@ and ``w = U Λ^{(κ−1)/2} Uᵀ g`` (m,) is broadcast by a ``psum``; ``Jᵀ w =
 applied shard-wise with one ``psum`` of a P-vector. Tall J: ``JᵀJ = Σ_i J_iᵀ J_i`` and
 ``Jᵀ g`` by ``psum``, then as one device. J is never gathered; memory per device is the own
 block (in float64) and one visiting block.
+
+Internal module: the public names are those :mod:`physgrad.routes` exports (its
+``__all__``); import them from there.
 """
 
 from __future__ import annotations

@@ -25,6 +25,9 @@ network's dtype, so eigenvalues below ~ε_float32·λ_max are not resolved in fl
 
 The float64 is scoped as the Gram routes' (the network is linearised outside the scope);
 the inputs are constants for differentiation.
+
+Internal module: the public names are those :mod:`physgrad.routes` exports (its
+``__all__``); import them from there.
 """
 
 from __future__ import annotations

@@ -16,6 +16,9 @@ gives the Levenberg–Marquardt direction ``Jᵀ (J Jᵀ + λ I)⁻¹ g`` by the
 
 The Gram routes never form the large SVD factor: for a Gram matrix ``U Σ² Uᵀ`` (``J Jᵀ``
 or ``Jᵀ J``) :func:`gram_power` gives ``U Σ^{κ−1} Uᵀ v`` — one ``eigh``, σ = √λ.
+
+Internal module: the public names are those :mod:`physgrad.routes` exports (its
+``__all__``); import them from there.
 """
 
 from __future__ import annotations

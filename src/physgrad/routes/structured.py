@@ -31,6 +31,9 @@ Source: the Kronecker factorisation of a dense layer's per-example gradient is t
 of K-FAC (Martens & Grosse 2015) and of per-example gradient norms (Goodfellow 2015);
 here it gives the exact Gram matrix that the half-inverse gradient of Schnell, Holl &
 Thuerey (ICLR 2022) decomposes.
+
+Internal module: the public names are those :mod:`physgrad.routes` exports (its
+``__all__``); import them from there.
 """
 
 from __future__ import annotations

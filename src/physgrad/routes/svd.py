@@ -4,6 +4,9 @@
 damped filter of :mod:`.spectrum` on the kept singular values. Costs a bidiagonalisation,
 O(m P min(m, P)); float32 for float32 networks (as the paper). Differentiable (no float64
 scope). Memory: J, its copy in the factorisation and the thin factors U (m × k), V (P × k).
+
+Internal module: the public names are those :mod:`physgrad.routes` exports (its
+``__all__``); import them from there.
 """
 
 from __future__ import annotations

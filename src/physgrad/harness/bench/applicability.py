@@ -22,6 +22,7 @@ from ...engine.types import Steps
 from ...extras import MissingExtra
 from ..config import make_config, phase_methods
 from ..failures import one_line
+from ..words import command_line_words
 from .choices import check_settings, problem_settings
 
 # newton builds the dense Hessian of the batch loss: dim θ² memory and dim θ Hessian-vector
@@ -100,8 +101,8 @@ def applicability(problem: str, methods: Sequence[str], settings: dict[str, Any]
                     _refused_by_footprint(phase.method, objective, shapes, batch_size)
         # the contract of check(): one line saying what to use instead; ConfigError (a ValueError)
         # e.g. for SIP's solver resolution on a problem without an inverse
-        except ValueError as e:
-            verdicts.append(Verdict(method, "not applicable", one_line(e)))
+        except ValueError as e:  # a rule's typed refusal in the command line's words (nog, no_temporal, ...)
+            verdicts.append(Verdict(method, "not applicable", " ".join(command_line_words(e).split())))
             continue
         except Exception as e:  # noqa: BLE001 — a check that crashed: a failure to report, not a crash
             verdicts.append(Verdict(method, "error", f"{type(e).__name__}: {one_line(e)}"))

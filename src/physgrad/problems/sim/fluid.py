@@ -24,10 +24,11 @@ velocity interpolated there, v_p,
     φ̂ = φ(p − Δt v_p),   φ̌ = φ̂(p + Δt v_p),   φ⁺ = φ̂ + ½ (φ − φ̌),
 
 clamped to the range of the 2 × 2 values of φ that surround the back-traced point
-p − Δt v_p (no new extrema). All sampling is bilinear with periodic wrap. ``limiter="cells"``
-reproduces PhiFlow 3.4, whose limiter picks a staggered component's 2 × 2 values as if the
-component were cell centred (half a cell off along its own axis); the default ``"faces"``
-uses the component's own neighbours. The two differ only where the limiter is active.
+p − Δt v_p (no new extrema). All sampling is bilinear with periodic wrap. The limiter is an
+object: :class:`CellLimiter` reproduces PhiFlow 3.4, whose limiter picks a staggered
+component's 2 × 2 values as if the component were cell centred (half a cell off along its
+own axis); the default :class:`FaceLimiter` uses the component's own neighbours. The two
+differ only where the limiter is active.
 
 Projection: the discrete divergence ``(u[i+1,j] − u[i,j] + v[i,j+1] − v[i,j]) / Δx`` and
 the face gradient ``(p[i,j] − p[i−1,j]) / Δx`` compose to the 5-point Laplacian, so
@@ -43,6 +44,8 @@ by solving again).
 from __future__ import annotations
 
 import abc
+import warnings
+from typing import Any
 
 import equinox as eqx
 import jax
@@ -180,16 +183,56 @@ def mac_cormack(values: Float[Array, "n n"], offset, velocity, dt: float, dx: fl
     return new
 
 
-LIMITERS = ("faces", "cells")
+class AbstractLimiter(eqx.Module):
+    """Where MacCormack's clamp finds a staggered velocity component's 2 × 2 neighbourhood
+    (module docstring): ``offset(axis)``, the sample offset (in cells) the component's
+    values are taken at for the clamp."""
+
+    @abc.abstractmethod
+    def offset(self, axis: int) -> tuple[float, float]: ...
 
 
-def advect_velocity(velocity, dt: float, dx: float, clamp: bool = True, limiter: str = "faces"):
+class FaceLimiter(AbstractLimiter):
+    """The component's own faces (the default)."""
+
+    def offset(self, axis):
+        return STAGGERED[axis]
+
+
+class CellLimiter(AbstractLimiter):
+    """PhiFlow 3.4's: as if the component were cell centred, half a cell off along its own axis."""
+
+    def offset(self, axis):
+        return CENTRED
+
+
+# The deprecated string spellings of a limiter (one release); the command line's own names are
+# physgrad.harness.objects.STRATEGIES.
+_LIMITER_NAMES = {"faces": FaceLimiter(), "cells": CellLimiter()}
+
+
+def limiter_of(limiter: AbstractLimiter | str) -> AbstractLimiter:
+    """``limiter`` itself, or the object of a deprecated name (``"faces"``, ``"cells"``) with a
+    ``DeprecationWarning``; a one-line ``ValueError`` for anything else."""
+    if isinstance(limiter, AbstractLimiter):
+        return limiter
+    if isinstance(limiter, str) and limiter in _LIMITER_NAMES:
+        warnings.warn(
+            f"limiter={limiter!r} is deprecated; pass FaceLimiter() or CellLimiter() (physgrad.problems.sim.fluid)",
+            DeprecationWarning,
+            stacklevel=3,
+        )
+        return _LIMITER_NAMES[limiter]
+    raise ValueError(f"limiter must be FaceLimiter() or CellLimiter() (physgrad.problems.sim.fluid), got {limiter!r}")
+
+
+def advect_velocity(velocity, dt: float, dx: float, clamp: bool = True, limiter: AbstractLimiter | str = FaceLimiter()):
     """MacCormack self-advection of a staggered velocity, component by component
     (``limiter``: the clamp's neighbourhood, module docstring)."""
-    if limiter not in LIMITERS:
-        raise ValueError(f"unknown limiter {limiter!r}; valid choices: {', '.join(LIMITERS)}")
-    at = (lambda a: STAGGERED[a]) if limiter == "faces" else (lambda a: CENTRED)  # noqa: E731
-    return jnp.stack([mac_cormack(velocity[a], STAGGERED[a], velocity, dt, dx, clamp, at(a)) for a in range(2)])
+    limiter = limiter_of(limiter)
+    return jnp.stack(
+        [mac_cormack(velocity[a], STAGGERED[a], velocity, dt, dx, clamp, limiter.offset(a)) for a in range(2)]
+    )
 
 
 def energy(velocity) -> Float[Array, ""]:
@@ -205,7 +248,7 @@ def rescale_energy(velocity, target_energy):
 
 
 def step(marker, velocity, pressure, dt: float, dx: float, solver: AbstractPressureSolver = FFTProjection(),
-         limiter: str = "faces"):  # fmt: skip
+         limiter: AbstractLimiter | str = FaceLimiter()):  # fmt: skip
     """One energy-conserving inviscid step: ``(marker, velocity, pressure) -> same``.
 
     ``marker`` (n, n) cell centred, ``velocity`` (2, n, n) staggered and divergence free,
@@ -220,13 +263,30 @@ def step(marker, velocity, pressure, dt: float, dx: float, solver: AbstractPress
 
 
 def rollout(marker, velocity, steps: int, dt: float, dx: float, solver: AbstractPressureSolver = FFTProjection(),
-            limiter: str = "faces"):  # fmt: skip
+            limiter: AbstractLimiter | str = FaceLimiter()):  # fmt: skip
     """``steps`` steps from a divergence-free staggered velocity, pressure guess 0.
 
     Returns the final ``(marker, velocity)`` and the markers after every step
     ``(steps, n, n)``."""
+    limiter = limiter_of(limiter)  # once, not per step
     one_step = lambda m, v, p: step(m, v, p, dt, dx, solver, limiter)  # noqa: E731
     return unroll(one_step, marker, velocity, jnp.zeros_like(velocity[0]), steps)
+
+
+class AbstractFluid(eqx.Module):
+    """Which code runs the steps of a rollout: ``fluid.rollout(marker, velocity, steps, dt,
+    dx, solver, limiter) -> (m_T, v_T, markers)``, as :func:`rollout`."""
+
+    @abc.abstractmethod
+    def rollout(self, marker, velocity, steps: int, dt: float, dx: float, solver: AbstractPressureSolver,
+                limiter: AbstractLimiter) -> Any: ...  # fmt: skip
+
+
+class JaxFluid(AbstractFluid):
+    """This module's fluid (:func:`rollout`) with the given pressure solver and limiter."""
+
+    def rollout(self, marker, velocity, steps, dt, dx, solver, limiter):
+        return rollout(marker, velocity, steps, dt, dx, solver, limiter)
 
 
 def unroll(one_step, marker, velocity, pressure, steps: int):

@@ -90,7 +90,7 @@ import jax.extend.core as jax_core
 import jax.numpy as jnp
 
 from ...jacobian import mark_reverse_only
-from .fluid import unroll
+from .fluid import AbstractFluid, unroll
 
 INSTALL_HINT = "PhiFlow is not installed; install it with `pip install physgrad[phiflow]` (phiflow>=3.4, phiml>=1.16)"
 KINDS = ("centered", "staggered", "vector", "array")
@@ -470,8 +470,19 @@ def rollout(marker, velocity, steps: int, dt: float, dx: float, solver_tol: floa
 mark_reverse_only(rollout)
 mark_reverse_only(step)
 
+
+class PhiFlowFluid(AbstractFluid):
+    """PhiFlow's own step as a fluid for :class:`physgrad.problems.NavierStokes`'s
+    ``simulator``: :func:`rollout`, with PhiFlow's CG and its limiter (so the ``solver`` and
+    ``limiter`` passed are PhiFlow's whatever they are). Reverse mode only."""
+
+    def rollout(self, marker, velocity, steps, dt, dx, solver, limiter):
+        return rollout(marker, velocity, steps, dt, dx)
+
+
 __all__ = [
     "Domain",
+    "PhiFlowFluid",
     "PhiFlowFunction",
     "import_phiflow",
     "phiflow_available",
