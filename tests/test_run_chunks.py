@@ -62,6 +62,32 @@ def test_a_replay_times_each_chunk_from_dispatch_to_read_back_with_the_state_car
     assert time_programs({"m": [replay]}, repeats=1, clock=clock)["m"][0][0] < 2e-3
 
 
+def test_a_replay_evaluates_where_the_run_evaluates_untimed():
+    """The cycle marks the chunks the run evaluates after (every 6 steps, and at the cycle's
+    end); the replay evaluates the parameters there, between chunks, and an evaluation's
+    10 s on the clock are not the chunks' time."""
+    from physgrad.harness.run_chunks import chunk_cycle
+
+    cycle = chunk_cycle(steps_per_epoch=4, epoch_end=True, stage_steps=None, program_chunk=1024, eval_every=6,
+                        eval_seconds=0.0, per_step=1e-4)  # fmt: skip
+    assert cycle == [((0, 0, 4), False), ((1, 0, 2), True), ((1, 2, 2), False), ((2, 0, 4), True)]
+    now, evaluated = [0.0], []
+
+    def dispatch(params, opt_state, data, order, batch, count):
+        now[0] += 2**-9  # ~2 ms, exact in binary
+        return params + count, opt_state, count, False, {}
+
+    def evaluate(params):
+        evaluated.append(params)
+        now[0] += 10.0
+
+    replay = Replay(dispatch, lambda r: r, lambda e: ("data", e), (0, "opt"), [c for c, _ in cycle],
+                    clock=lambda: now[0], evaluate=evaluate, evaluated=[e for _, e in cycle])  # fmt: skip
+    steps, seconds = replay()
+    assert steps == 18 and seconds == 6 * 2**-9  # six chunks reach 10 ms; the evaluations' 30 s are not counted
+    assert evaluated == [6, 12, 6]  # after the 2nd and 4th chunk of each cycle, the parameters of that step
+
+
 def test_the_calibration_replays_the_chunks_a_run_takes(tmp_path, monkeypatch):
     """hig_toy's Adam (4 batches an epoch, shuffled) with an evaluation every 6 steps: after
     its first epoch (the run's first chunk is one step) the run dispatches exactly the
