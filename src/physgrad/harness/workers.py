@@ -144,7 +144,7 @@ class Dask(AbstractExecutor):
             elif self.scheduler:
                 self._client = Client(self.scheduler)
             else:
-                import dask
+                import dask.config
 
                 # Worker processes (JAX is not fork-safe; each has its own compiled programs),
                 # one thread each; no dashboard (a port nobody asked for). No statistical
