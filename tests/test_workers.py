@@ -102,6 +102,7 @@ def test_the_local_clusters_workers_run_without_the_statistical_profiler():
     (that CPU went into every run's cpu_time_per_step); the caller's configuration is left
     as it was."""
     import dask
+    import distributed  # noqa: F401  (its configuration's defaults)
 
     before = dask.config.get("distributed.worker.profile.enabled")
     executor = Dask(workers=1)
