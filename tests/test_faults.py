@@ -31,7 +31,7 @@ from physgrad.harness.cli import main
 STEPS = 20
 ARGS = ["train", "hig_toy", "--method", "adam", "--set", "batch_size=64", "--set", "checkpoint_seconds=0",
         "--set", "eval_every=5", "--quiet"]  # fmt: skip
-TIMINGS = ("train_seconds", "compile_seconds", "time_per_step")
+TIMINGS = ("train_seconds", "compile_seconds", "time_per_step", "cpu_seconds", "cpu_steps", "cpu_time_per_step")
 
 
 def with_extra(extra) -> list[str]:

@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import dataclasses
+
+import pytest
+
 import physgrad
 from physgrad.engine import strategies
 from physgrad.harness.calibration import step_programs, time_programs
@@ -58,6 +62,32 @@ def test_a_replay_times_each_chunk_from_dispatch_to_read_back_with_the_state_car
     assert time_programs({"m": [replay]}, repeats=1, clock=clock)["m"][0][0] < 2e-3
 
 
+def test_a_replay_evaluates_where_the_run_evaluates_untimed():
+    """The cycle marks the chunks the run evaluates after (every 6 steps, and at the cycle's
+    end); the replay evaluates the parameters there, between chunks, and an evaluation's
+    10 s on the clock are not the chunks' time."""
+    from physgrad.harness.run_chunks import chunk_cycle
+
+    cycle = chunk_cycle(steps_per_epoch=4, epoch_end=True, stage_steps=None, program_chunk=1024, eval_every=6,
+                        eval_seconds=0.0, per_step=1e-4)  # fmt: skip
+    assert cycle == [((0, 0, 4), False), ((1, 0, 2), True), ((1, 2, 2), False), ((2, 0, 4), True)]
+    now, evaluated = [0.0], []
+
+    def dispatch(params, opt_state, data, order, batch, count):
+        now[0] += 2**-9  # ~2 ms, exact in binary
+        return params + count, opt_state, count, False, {}
+
+    def evaluate(params):
+        evaluated.append(params)
+        now[0] += 10.0
+
+    replay = Replay(dispatch, lambda r: r, lambda e: ("data", e), (0, "opt"), [c for c, _ in cycle],
+                    clock=lambda: now[0], evaluate=evaluate, evaluated=[e for _, e in cycle])  # fmt: skip
+    steps, seconds = replay()
+    assert steps == 18 and seconds == 6 * 2**-9  # six chunks reach 10 ms; the evaluations' 30 s are not counted
+    assert evaluated == [6, 12, 6]  # after the 2nd and 4th chunk of each cycle, the parameters of that step
+
+
 def test_the_calibration_replays_the_chunks_a_run_takes(tmp_path, monkeypatch):
     """hig_toy's Adam (4 batches an epoch, shuffled) with an evaluation every 6 steps: after
     its first epoch (the run's first chunk is one step) the run dispatches exactly the
@@ -99,3 +129,124 @@ def test_compares_table_flags_a_method_whose_in_run_step_is_not_its_calibrated_o
     note = table_note(table)
     assert note.startswith(TABLE_NOTE) and "adam 2.00x" in note and "hig" not in note.split("\n")[1]
     assert table_note(table[1:]) == TABLE_NOTE
+
+
+# --- the in-run step on the calibration's clock -------------------------------------------------
+
+
+class ProcessClock:
+    """A fake ``time.process_time`` for the engine's loop: each chunk (two readings, before
+    the dispatch and after the read-back) costs exactly ``per_chunk`` CPU seconds."""
+
+    def __init__(self, per_chunk):
+        self.now, self.per_chunk, self.readings = 0.0, per_chunk, 0
+
+    def __call__(self):
+        self.readings += 1
+        self.now += self.per_chunk if self.readings % 2 == 0 else 0.0
+        return self.now
+
+
+def _counted_run(monkeypatch, per_chunk):
+    """The loop's clock replaced by :class:`ProcessClock` and its chunks counted (the steps of each)."""
+    import importlib
+    import time
+    import types
+
+    run_module = importlib.import_module("physgrad.engine.run")
+    monkeypatch.setattr(run_module, "time", types.SimpleNamespace(perf_counter=time.perf_counter,
+                                                                  process_time=ProcessClock(per_chunk)))  # fmt: skip
+    taken = []
+    observe = strategies.ChunkSize.observe
+    monkeypatch.setattr(strategies.ChunkSize, "observe", lambda self, n, s: (taken.append(n), observe(self, n, s)))
+    return taken
+
+
+def test_a_run_records_its_cpu_seconds_per_step_beside_the_wall_clock(tmp_path, monkeypatch):
+    """summary.json holds the wall-clock and the CPU seconds per step of the same chunks:
+    with a process clock that charges each chunk 3 ms, cpu_seconds is 3 ms × the chunks
+    the loop took (counted by hand) and cpu_time_per_step that over the steps; the wall
+    clock's time_per_step is train_seconds over the steps, as before."""
+    import json
+
+    taken = _counted_run(monkeypatch, 3e-3)
+    config = make_config("hig_toy", "adam", budget=physgrad.Budget(steps=24), settings={"eval_every": "8"})
+    summary = train(config, tmp_path / "run")
+    assert summary["steps"] == summary["cpu_steps"] == sum(taken) == 24
+    assert summary["cpu_seconds"] == pytest.approx(3e-3 * len(taken), abs=1e-12)
+    assert summary["cpu_time_per_step"] == pytest.approx(3e-3 * len(taken) / 24)
+    assert summary["time_per_step"] == pytest.approx(summary["train_seconds"] / 24)
+    assert json.loads((tmp_path / "run" / "summary.json").read_text())["cpu_time_per_step"] == pytest.approx(
+        summary["cpu_time_per_step"])  # fmt: skip
+
+
+def test_a_resumed_run_counts_its_own_sessions_cpu_steps_and_old_checkpoints_load(tmp_path, monkeypatch):
+    """The CPU counters are a process's own: the checkpoint does not keep them (a checkpoint
+    written before they existed is the same file), and a run resumed from step 16 to 40
+    divides its session's CPU seconds by its session's 24 steps, not by all 40."""
+    import json
+
+    run = tmp_path / "run"
+    first = make_config("hig_toy", "adam", budget=physgrad.Budget(steps=16), settings={"eval_every": "8"})
+    train(first, run)
+    counters = json.loads((run / "checkpoint" / "counters.json").read_text())
+    assert counters["step"] == 16 and not {"cpu_seconds", "cpu_steps"} & set(counters)
+    taken = _counted_run(monkeypatch, 5e-3)
+    summary = train(dataclasses.replace(first, budget=physgrad.Budget(steps=40)), run, resume=True)
+    assert summary["steps"] == 40 and summary["cpu_steps"] == sum(taken) == 24
+    assert summary["cpu_time_per_step"] == pytest.approx(5e-3 * len(taken) / 24)
+
+
+def _rows(clock):
+    """Three seeds of adam and hig: wall 2.0 and 1.1 ms/step, CPU 1.05 and 0.5 ms/step, both
+    calibrated at 1 ms/step on ``clock`` (None: a summary.csv without the column)."""
+
+    def row(method, seed, wall, cpu):
+        return {"method": method, "seed": seed, "status": "finished", "final_test_loss": "0.1", "best_test_loss": "0.1",
+                "steps": "100", "time_per_step": str(wall), "cpu_time_per_step": str(cpu),
+                "calibrated_ms_per_step": "1.0", "calibration_clock": clock or ""}  # fmt: skip
+
+    return [row("adam", s, 2e-3, 1.05e-3) for s in range(3)] + [row("hig", s, 1.1e-3, 0.5e-3) for s in range(3)]
+
+
+def test_the_in_run_over_calibrated_ratio_is_on_the_calibrations_clock():
+    """A calibration on the cpu clock compares the in-run CPU ms/step (adam 1.05, hig 0.50:
+    hig flagged), one on the wall clock, or unrecorded, the in-run wall-clock (adam 2.00
+    flagged); the note under the table names the clock where the rows record it."""
+    from physgrad.harness.seeds import TABLE_NOTE, aggregate, calibration_ratio, format_table, table_note
+
+    cpu = aggregate(_rows("cpu"), ["adam", "hig"])
+    assert [calibration_ratio(t) for t in cpu] == pytest.approx([1.05, 0.5])
+    lines = format_table(cpu)
+    assert lines[0][-4:] == ["ms/step (wall)", "ms/step (cpu)", "calibrated ms/step", "cpu / calibrated"]
+    assert lines[1][-4:] == ["2.00", "1.05", "1", "1.05"] and lines[2][-1] == "0.50 *"
+    note = table_note(cpu).split("\n")
+    assert note[0] == TABLE_NOTE and "both on the cpu clock" in note[1] and "process_time" in note[1]
+    assert note[2].startswith("* ") and "hig 0.50x" in note[2] and "adam" not in note[2]
+    for clock in ("wall", None):
+        wall = aggregate(_rows(clock), ["adam", "hig"])
+        assert [calibration_ratio(t) for t in wall] == pytest.approx([2.0, 1.1])
+        assert format_table(wall)[0][-2:] == ["calibrated ms/step", "wall / calibrated"]
+        assert ("both on the wall clock" in table_note(wall)) == (clock == "wall") and "adam 2.00x" in table_note(wall)
+
+
+def test_summary_csv_carries_the_cpu_step_and_the_calibrations_clock(tmp_path):
+    """collect() puts each run's cpu_time_per_step and its study's calibration clock
+    (calibration.json's "clock", "wall" where a record predates it) in summary.csv."""
+    import json
+
+    from physgrad.harness.study import collect, read_csv
+
+    out = tmp_path / "study"
+    config = make_config("hig_toy", "adam", budget=physgrad.Budget(steps=8), settings={"eval_every": "4"})
+    summary = train(config, out / "runs" / "adam-0")
+    assert 0 < summary["cpu_time_per_step"] < 1 and summary["cpu_steps"] == 8  # the real process clock
+    cost = {"method": "adam", "batch_size": 4, "steps": None, "route": "", "seconds": 1e-3, "q25": 1e-3, "q75": 1e-3,
+            "low": 1e-3, "high": 1e-3, "rounds": 3}  # fmt: skip
+    record = {"version": 3, "problem": "hig_toy", "measured": "now", "methods": {"adam": {"stages": [cost]}}}
+    for clock in ("cpu", None):
+        (out / "calibration.json").write_text(json.dumps({**record, **({"clock": clock} if clock else {})}))
+        collect(out)
+        (row,) = read_csv(out / "summary.csv")
+        assert float(row["cpu_time_per_step"]) == pytest.approx(summary["cpu_time_per_step"])
+        assert row["calibration_clock"] == (clock or "wall") and float(row["calibrated_ms_per_step"]) == 1.0

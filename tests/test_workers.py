@@ -94,3 +94,21 @@ def test_two_workers_one_killed_mid_run_give_the_sequential_tables(tmp_path):
     assert killed, "no worker was killed mid-run: the runs were too short to catch one"
     assert _table(tmp_path / "parallel") == _table(tmp_path / "sequential")
     assert _curves(tmp_path / "parallel") == _curves(tmp_path / "sequential")
+
+
+@pytest.mark.slow  # starts a LocalCluster of one worker process: a few seconds, more on a loaded machine
+def test_the_local_clusters_workers_run_without_the_statistical_profiler():
+    """The worker processes the executor starts do not sample their stacks every 10 ms
+    (that CPU went into every run's cpu_time_per_step); the caller's configuration is left
+    as it was."""
+    import dask
+    import distributed  # noqa: F401  (its configuration's defaults)
+
+    before = dask.config.get("distributed.worker.profile.enabled")
+    executor = Dask(workers=1)
+    try:
+        seen = executor.client.run(lambda: __import__("dask").config.get("distributed.worker.profile.enabled"))
+        assert list(seen.values()) == [False]
+    finally:
+        executor.close()
+    assert dask.config.get("distributed.worker.profile.enabled") == before

@@ -43,7 +43,7 @@ from .packed import gzip_bytes, kept_path, open_kept, pack_file, packed_path, re
 from .result import Row, rows_from_metrics
 from .step import make_evaluate
 from .strategies import Fidelity, Placement
-from .types import Budget, Ending, Setup, TrainSettings, TrainState
+from .types import SESSION_COUNTERS, Budget, Ending, Setup, TrainSettings, TrainState
 
 METRICS_HEADER = ("step", "wall_time", "split", "metric", "value")
 FINAL_STATUSES = ("finished", "diverged")
@@ -249,7 +249,7 @@ class Checkpointer:
         counters = rundir.parse_counters(ckpt, files["counters.json"])
         counters.setdefault("stage", 0)
         counters.setdefault("stat_totals", {})
-        counters = {k: v for k, v in counters.items() if k in TrainState._fields[2:]}
+        counters = {k: v for k, v in counters.items() if k in TrainState._fields[2:] and k not in SESSION_COUNTERS}
         try:
             template = like(counters)
             arrays = (template.params, template.opt_state)
@@ -295,6 +295,11 @@ def finish(ending: Ending, *, recorder: Recorder, checkpointer: Checkpointer, bu
         "train_seconds": state.train_time,
         "compile_seconds": state.compile_seconds,
         "time_per_step": state.train_time / state.step if state.step else None,
+        # the same chunks on this process's CPU clock, over the steps this session took (the
+        # calibration's cpu clock: harness.calibration.CLOCKS); None where it took none
+        "cpu_seconds": state.cpu_seconds,
+        "cpu_steps": state.cpu_steps,
+        "cpu_time_per_step": state.cpu_seconds / state.cpu_steps if state.cpu_steps else None,
         "final_train_loss": last.get("train_loss"),
         "final_test_loss": last.get("test_loss"),
         "final_test_metrics": {k[5:]: v for k, v in last.items() if k.startswith("test_") and k != "test_loss"},

@@ -15,7 +15,8 @@ From the caller's objects to the jitted step::
       FitResult(summary, history, network, state)                          (result.py)
 
 Wall time counts training steps only: compilation (``compile_seconds``) and evaluation are
-excluded, so equal budgets compare update rules, not tracing.
+excluded, so equal budgets compare update rules, not tracing. The same chunks are also
+timed on the process's CPU clock (``cpu_time_per_step``: a calibration's ``cpu`` clock).
 
 Internal module: the public names are those :mod:`physgrad.engine` and ``physgrad``
 export (their ``__all__``); import them from there.
@@ -214,10 +215,11 @@ def loop(state: TrainState, *, setup: Setup, compiled: Any, strategies: Strategi
             count = placement.agree(chunks.size(limit, seconds_left=min(
                 stop.seconds_left(state.train_time),
                 schedule.seconds_left(state.train_time), checkpointer.seconds_left())))  # fmt: skip
-            t_start = time.perf_counter()
+            t_start, cpu_start = time.perf_counter(), time.process_time()
             params, opt_state, taken, diverged, stats = compiled(state.params, state.opt_state, steps.data, order,
                                                                  np.int32(batch), np.int32(count))  # fmt: skip
             taken, diverged, stats = jax.device_get(distributed.to_host((taken, diverged, stats)))  # waits: honest time
+            cpu_seconds = time.process_time() - cpu_start  # the same chunk on the process's CPU clock
             # From here to the checkpoint after an evaluation is one unit: a Ctrl-C or SIGTERM waits
             # for it, so a step is never taken without its evaluation logged (rundir.deferred_interrupts)
             with rundir.deferred_interrupts():
@@ -231,7 +233,8 @@ def loop(state: TrainState, *, setup: Setup, compiled: Any, strategies: Strategi
                 last_finite = float(finite[-1]) if finite.size else state.last_finite_loss
                 state = recorder.accumulate(state, stats, taken)._replace(
                     params=params, opt_state=opt_state, step=state.step + taken, train_time=train_time,
-                    last_finite_loss=last_finite)  # fmt: skip
+                    last_finite_loss=last_finite, cpu_seconds=state.cpu_seconds + cpu_seconds,
+                    cpu_steps=state.cpu_steps + taken)  # fmt: skip
                 if fidelity.name:
                     state = state._replace(
                         solver_iterations=state.solver_iterations + taken * fidelity.iterations(state)

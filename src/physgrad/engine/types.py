@@ -374,7 +374,12 @@ class TrainState(NamedTuple):
     PRDP's controller state, the per-statistic [sum, count] since the last evaluation (so a
     resumed run logs the same averages) and the last finite training loss (a diverged run
     reports it). Checkpointing all of it makes a resumed run end exactly as an
-    uninterrupted one."""
+    uninterrupted one.
+
+    ``cpu_seconds`` and ``cpu_steps`` are this process's CPU seconds (``time.process_time``)
+    over the training chunks it ran and the steps they took (:data:`SESSION_COUNTERS`: not
+    checkpointed, so a resumed run counts its own session's steps only; CPU seconds are a
+    process's own, and a checkpoint written before they existed loads alike)."""
 
     params: Any
     opt_state: Any
@@ -388,9 +393,17 @@ class TrainState(NamedTuple):
     prdp: dict | None = None
     stat_window: dict = {}
     last_finite_loss: float | None = None
+    cpu_seconds: float = 0.0
+    cpu_steps: int = 0
 
     def counters(self) -> dict[str, Any]:
-        return {k: getattr(self, k) for k in self._fields[2:]}
+        """The host scalars a checkpoint keeps (``counters.json``): all but the arrays and
+        :data:`SESSION_COUNTERS`."""
+        return {k: getattr(self, k) for k in self._fields[2:] if k not in SESSION_COUNTERS}
+
+
+# TrainState's counters of one process's session, never checkpointed: a resumed run starts them at 0.
+SESSION_COUNTERS = ("cpu_seconds", "cpu_steps")
 
 
 class Ending(NamedTuple):

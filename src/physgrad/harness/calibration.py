@@ -59,7 +59,7 @@ CALL_SECONDS = 0.01  # a timed call takes at least this many steps' worth (chunk
 # 2: a timed call is a chunk of the run's loop (1: one step per call, which charged a cheap
 # step a whole dispatch). A resumed study keeps its record (its runs were budgeted by it).
 # 3: a timed call replays the run's own chunks between evaluations, read-back and epoch orders
-# included (harness.run_chunks).
+# included, and the run's evaluations between them, untimed (harness.run_chunks).
 VERSION = 3
 MIN_REPEATS = 3  # every method gets at least this many rounds
 MAX_SECONDS = 10.0  # a method leaves the rounds once its timed steps add up to this (after MIN_REPEATS)
@@ -82,9 +82,9 @@ def clock_name() -> str:
     return name
 
 
-RULE = ("median over interleaved rounds (one call of every method per round) of the compiled step's wall-clock per "
-        "step, each call the run's own chunks between evaluations (dispatch to read-back, each epoch's order drawn "
-        "between chunks) adding up to about 10 ms; compilation and the first call excluded; seed 0's data and network")  # fmt: skip
+RULE = ("median over interleaved rounds (one call of every method per round) of the compiled step's time per step, "
+        "each call the run's own chunks between evaluations (dispatch to read-back; each epoch's order and, untimed, "
+        "the run's evaluations between chunks) adding up to about 10 ms; compilation, first call excluded; seed 0")  # fmt: skip
 
 Program = Callable[[], Any]  # one training step, blocking until its results are ready
 
@@ -205,14 +205,14 @@ def step_programs(
     from ..engine.strategies import Placement
     from ..engine.types import TrainState
     from .objects import devices as edge_devices
-    from .run_chunks import Replay, epoch_inputs, run_chunks
+    from .run_chunks import Replay, chunk_cycle, epoch_inputs, evaluation
     from .train import build, settings_of
 
     setup = build(config)
     placement = Placement(edge_devices(devices))
     params = placement.put(setup.params)
     steps = Steps(setup, placement, settings_of(config), config.seed)
-    programs, warmups = [], []
+    programs, warmups, evaluate = [], [], evaluation(setup, settings_of(config), placement)
     for i, stage in enumerate(setup.stages):
         opt_state = placement.put(stage.method.init(setup.params))
         state = TrainState(params, opt_state, stage=i)
@@ -232,14 +232,14 @@ def step_programs(
         # a calibrated run evaluates eval_seconds as eval_every steps (study.calibrated_config)
         every = (max(1, round(config.settings.eval_seconds / per_step)) if config.settings.eval_seconds > 0
                  else config.settings.eval_every)  # fmt: skip
-        chunks = run_chunks(steps_per_epoch=stage.steps_per_epoch, epoch_end=not steps.same_every_epoch,
-                            stage_steps=stage.steps, program_chunk=compiled.chunk, eval_every=every,
-                            eval_seconds=0.0, per_step=per_step)  # fmt: skip
+        cycle = chunk_cycle(steps_per_epoch=stage.steps_per_epoch, epoch_end=not steps.same_every_epoch, per_step=per_step,
+                            stage_steps=stage.steps, program_chunk=compiled.chunk, eval_every=every, eval_seconds=0.0)  # fmt: skip
         programs.append(Replay(
             lambda p, s, d, o, b, c, compiled=compiled: compiled(p, s, d, o, np.int32(b), np.int32(c)),
             lambda result: jax.device_get(distributed.to_host(result)),
-            lambda epoch, i=i: epoch_inputs(steps, setup, i, epoch), (params, opt_state), chunks,
-            same_every_epoch=steps.same_every_epoch, call_seconds=CALL_SECONDS, clock=clock))  # fmt: skip
+            lambda epoch, i=i: epoch_inputs(steps, setup, i, epoch), (params, opt_state), [c for c, _ in cycle],
+            same_every_epoch=steps.same_every_epoch, call_seconds=CALL_SECONDS, clock=clock,
+            evaluate=evaluate, evaluated=[e for _, e in cycle]))  # fmt: skip
     return programs, warmups, list(setup.stages)
 
 

@@ -189,12 +189,25 @@ TABLE_NOTE = ("over seeds: medians [95% bootstrap CI, from 3 seeds], a diverged 
 
 # a run whose in-run ms/step is outside [1/RATIO_LIMIT, RATIO_LIMIT] x its calibrated one is flagged
 RATIO_LIMIT = 1.2
+# The in-run ms/step (a row of :func:`aggregate`) on each calibration clock
+# (harness.calibration.CLOCKS, the record's "clock"), and what that clock counts.
+IN_RUN = {"wall": "ms_per_step", "cpu": "cpu_ms_per_step"}
+CLOCK_WORDS = {"wall": "wall-clock seconds", "cpu": "the process's CPU seconds, time.process_time"}
+
+
+def row_clock(row: Mapping[str, Any]) -> str:
+    """The clock a row's calibrated ms/step was timed on ("wall" where unrecorded: a record
+    written before the cpu clock, or a test's fake clock)."""
+    clock = row.get("clock") or "wall"
+    return clock if clock in IN_RUN else "wall"
 
 
 def calibration_ratio(row: Mapping[str, Any]) -> float:
-    """A method's in-run ms/step over its calibrated one (medians over seeds; NaN without)."""
-    wall, calibrated = row.get("ms_per_step", math.nan), row.get("calibrated_ms", math.nan)
-    return wall / calibrated if math.isfinite(wall) and math.isfinite(calibrated) and calibrated > 0 else math.nan
+    """A method's in-run ms/step over its calibrated one, both on the calibration's clock
+    (:func:`row_clock`: the in-run wall-clock or CPU seconds per step; medians over seeds;
+    NaN without)."""
+    in_run, calibrated = row.get(IN_RUN[row_clock(row)], math.nan), row.get("calibrated_ms", math.nan)
+    return in_run / calibrated if math.isfinite(in_run) and math.isfinite(calibrated) and calibrated > 0 else math.nan
 
 
 def mismatched(row: Mapping[str, Any]) -> bool:
@@ -204,15 +217,20 @@ def mismatched(row: Mapping[str, Any]) -> bool:
 
 
 def table_note(table: Sequence[Mapping[str, Any]]) -> str:
-    """:data:`TABLE_NOTE`, and a line naming the methods whose in-run step cost is outside
-    [1/1.2, 1.2]x the calibrated one (their budgets did not take the seconds they stand for)."""
+    """:data:`TABLE_NOTE`; where the rows name their calibration's clock, a line saying which
+    clock the in-run / calibrated ratio is on; and a line naming the methods whose in-run step
+    cost is outside [1/1.2, 1.2]x the calibrated one (their budgets did not take the seconds
+    they stand for)."""
+    lines = [TABLE_NOTE]
+    clocks = sorted({row_clock(t) for t in table if t.get("clock") and math.isfinite(t.get("calibrated_ms", math.nan))})
+    if clocks:
+        lines.append(f"in-run / calibrated ms/step: both on the {' and '.join(clocks)} clock "
+                     f"({'; '.join(CLOCK_WORDS[c] for c in clocks)} per step)")  # fmt: skip
     flagged = [f"{t['method']} {calibration_ratio(t):.2f}x" for t in table if mismatched(t)]
-    if not flagged:
-        return TABLE_NOTE
-    return (
-        f"{TABLE_NOTE}\n* in-run / calibrated ms/step outside [1/{RATIO_LIMIT:g}, {RATIO_LIMIT:g}]: "
-        f"{', '.join(flagged)} (a loaded machine, or a calibration that did not time the run's step)"
-    )
+    if flagged:
+        lines.append(f"* in-run / calibrated ms/step outside [1/{RATIO_LIMIT:g}, {RATIO_LIMIT:g}]: "
+                     f"{', '.join(flagged)} (a loaded machine, or a calibration that did not time the run's step)")  # fmt: skip
+    return "\n".join(lines)
 
 
 def seed_values(rows: Sequence[Mapping[str, Any]], method: str, key: str) -> dict[str, float]:
@@ -244,14 +262,18 @@ def aggregate(rows: list[dict[str, Any]], order: Sequence[str], spread: Mapping[
         best = summarize([as_float(r["best_test_loss"]) for r in runs])  # a diverged run's best is real
         steps = [as_float(r["steps"]) for r in runs]
         times = [as_float(r["time_per_step"]) for r in runs]
+        cpu_times = [as_float(r.get("cpu_time_per_step")) for r in runs]
         calibrated = [as_float(r.get("calibrated_ms_per_step")) for r in runs]
+        clock = next((str(r["calibration_clock"]) for r in runs if r.get("calibration_clock")), None)
         table.append({
             "method": method, "runs": len(runs), "diverged": sum(r["status"] == "diverged" for r in runs),
             "final": final, "best": best, "seeds": seeds, "spread": (spread or {}).get(method, math.nan),
             "final_test_loss": (final["mean"], final["std"]), "best_test_loss": (best["mean"], best["std"]),
             "steps": float(np.nanmedian(steps)) if not np.isnan(steps).all() else math.nan,
             "ms_per_step": 1e3 * float(np.nanmedian(times)) if not np.isnan(times).all() else math.nan,
+            "cpu_ms_per_step": 1e3 * float(np.nanmedian(cpu_times)) if not np.isnan(cpu_times).all() else math.nan,
             "calibrated_ms": float(np.nanmedian(calibrated)) if not np.isnan(calibrated).all() else math.nan,
+            "clock": clock,  # the calibration's clock (None: unrecorded, the wall clock)
         })  # fmt: skip
     return table
 
@@ -268,15 +290,17 @@ def format_table(table: list[dict[str, Any]], reference: str | None = None) -> l
     diverged), the test-case spread, the best test loss (median over seeds), steps and
     ms/step (medians); ``reference`` adds the median over seeds of the per-seed ratio to that
     method (:func:`ratio_summary`). :data:`TABLE_NOTE` says so under a table. A calibrated
-    study adds the calibrated ms/step and the in-run over calibrated ratio, marked ``*``
-    outside [1/1.2, 1.2] (:func:`table_note` names them under the table)."""
+    study adds the calibrated ms/step and the in-run over calibrated ratio on the
+    calibration's clock, marked ``*`` outside [1/1.2, 1.2] (:func:`table_note` names them
+    under the table); calibrated on the cpu clock, the in-run CPU ms/step too."""
     ref = next((t for t in table if t["method"] == reference), None)
     header = ["method", "runs", "final test loss, median [95% CI]", "mean ± std", "test-case spread",
               "best test loss", "steps", "ms/step"]  # fmt: skip
     calibrated = any(math.isfinite(t.get("calibrated_ms", math.nan)) for t in table)
+    clock = next((row_clock(t) for t in table if t.get("clock")), "wall")
     if calibrated:
         header[-1] = "ms/step (wall)"
-        header += ["calibrated ms/step", "wall / calibrated"]
+        header += [*([f"ms/step ({clock})"] if clock != "wall" else []), "calibrated ms/step", f"{clock} / calibrated"]
     if ref is not None:
         header.append(f"final / {reference}")
     lines = [header]
@@ -286,6 +310,7 @@ def format_table(table: list[dict[str, Any]], reference: str | None = None) -> l
                 f"{t['ms_per_step']:.2f}"]  # fmt: skip
         if calibrated:
             ratio = calibration_ratio(t)
+            line += [f"{t.get(IN_RUN[clock], math.nan):.2f}"] if clock != "wall" else []
             line += [number(t.get("calibrated_ms", math.nan), ".3g"),
                      "-" if math.isnan(ratio) else f"{ratio:.2f}{' *' if mismatched(t) else ''}"]  # fmt: skip
         if ref is not None:

@@ -19,6 +19,7 @@ SUMMARY_COLUMNS = (
     "problem", "method", "seed", "status", "steps", "epochs", "train_seconds", "time_per_step",
     "final_train_loss", "final_test_loss", "best_test_loss", "diverged_step", "last_finite_loss",
     "compile_seconds", "run_dir", "calibrated_seconds", "calibrated_ms_per_step", "wall_capped",
+    "cpu_time_per_step", "calibration_clock",
 )  # fmt: skip
 RESULT_COLUMNS = ("problem", "method", "seed", "step", "wall_time", "split", "metric", "value", "calibrated_time")
 
@@ -51,6 +52,8 @@ def collect(out: str | Path) -> list[dict[str, Any]]:
         if clock is not None and isinstance(summary.get("steps"), int):
             row["calibrated_seconds"] = clock(summary["steps"])
             row["calibrated_ms_per_step"] = 1e3 * calibration.seconds_per_step(config["method"])  # type: ignore[union-attr]
+            # the timer of calibrated_ms_per_step: the in-run time_per_step (wall) or cpu_time_per_step it compares with
+            row["calibration_clock"] = calibration.record.get("clock", "wall")  # type: ignore[union-attr]
         rows.append(row)
         try:
             metrics = read_metrics(run_dir / "metrics.csv")
