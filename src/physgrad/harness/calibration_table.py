@@ -9,12 +9,9 @@ import io
 import os
 from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from ..engine import rundir
-
-if TYPE_CHECKING:
-    from .calibration import Calibration
 
 # The columns of docs/reproductions/long/calibration.csv (the long-study lanes' table),
 # then the spread and conditions of each measurement.
@@ -56,9 +53,11 @@ def machine_line(record: Mapping[str, Any]) -> str:
             f"threads {threads if threads is not None else 'default'}; load {load_text}")  # fmt: skip
 
 
-def csv_rows(calibration: Calibration, specs: Sequence[str] | None = None, command: str = "") -> list[dict[str, Any]]:
-    """One row per stage of every calibrated method, in the long-study table's columns
-    (:data:`CSV_COLUMNS`) followed by the spread and conditions (:data:`EXTRA_COLUMNS`)."""
+def csv_rows(calibration: Any, specs: Sequence[str] | None = None, command: str = "") -> list[dict[str, Any]]:
+    """One row per stage of every calibrated method of ``calibration`` (a
+    :class:`physgrad.harness.calibration.Calibration`; not imported: that module imports this
+    one), in the long-study table's columns (:data:`CSV_COLUMNS`) followed by the spread and
+    conditions (:data:`EXTRA_COLUMNS`)."""
     record = calibration.record
     rows = []
     for spec in specs or list(record["methods"]):
