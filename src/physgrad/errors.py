@@ -108,3 +108,15 @@ class PathRefused(ConfigError):
     def __init__(self, argument: str, template: str, **values: Any):
         self.argument, self.template, self.values = argument, template, values
         super().__init__(template.format(argument=argument, **values))
+
+
+class ProgressInvalid(ConfigError):
+    """A ``progress`` argument of :func:`physgrad.fit` that is neither a progress meter nor
+    None, True or False."""
+
+    def __init__(self, progress: Any):
+        self.progress = progress
+        super().__init__(
+            f"progress must be None (a bar in a terminal), True, False or a progress meter "
+            f"(physgrad.engine.progress.AbstractProgressMeter), got {progress!r}"
+        )
