@@ -1,5 +1,6 @@
 import os
 import resource
+import sys
 import time
 
 # Four CPU devices for the data-parallel tests (test_distributed.py); set before JAX
@@ -77,6 +78,51 @@ if _xla_cache:
     jax.config.update("jax_compilation_cache_dir", _xla_cache)
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+
+
+# --- jaxtyping's annotations checked at run time (`pytest --jaxtyping`) ---------------------
+# Shapes and dtypes of every physgrad function's arguments and results, and Equinox modules'
+# fields, checked by beartype through jaxtyping's import hook, installed before the test
+# modules import physgrad. The PEP 484 numeric tower: an int is a float, as the annotations
+# mean it (`truncation: float` takes 1). A test that passes a wrong type on purpose, to test
+# physgrad's own one-line error, says so with `@pytest.mark.unchecked("why")`.
+JAXTYPING_CHECKER = "beartype.beartype(conf=beartype.BeartypeConf(is_pep484_tower=True))"
+
+
+def pytest_addoption(parser):
+    parser.addoption(
+        "--jaxtyping",
+        action="store_true",
+        help="check physgrad's jaxtyping annotations at run time (beartype through jaxtyping's import hook)",
+    )
+
+
+def pytest_configure(config):
+    config.addinivalue_line(
+        "markers", "unchecked(reason): passes a wrong type on purpose; --jaxtyping leaves its calls unchecked"
+    )
+    if config.getoption("--jaxtyping"):
+        if any(name == "physgrad" or name.startswith("physgrad.") for name in sys.modules):
+            raise pytest.UsageError("--jaxtyping: physgrad was imported before the import hook could be installed")
+        from jaxtyping import install_import_hook
+
+        install_import_hook("physgrad", JAXTYPING_CHECKER)
+
+
+@pytest.fixture(autouse=True)
+def _unchecked(request):
+    """A test marked ``unchecked`` runs with jaxtyping's checks off (they are read per call)."""
+    if request.node.get_closest_marker("unchecked") is None:
+        yield
+        return
+    import jaxtyping
+
+    before = jaxtyping.config.jaxtyping_disable
+    jaxtyping.config.update("jaxtyping_disable", True)
+    try:
+        yield
+    finally:
+        jaxtyping.config.update("jaxtyping_disable", before)
 
 
 # --- the fast tier's CPU rule -----------------------------------------------------------------

@@ -24,7 +24,9 @@ def test_the_public_fit_takes_the_engines_arguments_and_threads():
     engine = inspect.signature(run.fit).parameters
     assert list(public) == [*engine, "threads"]
     for name, p in engine.items():
-        assert (public[name].kind, public[name].default, public[name].annotation) == (p.kind, p.default, p.annotation)
+        # progress: the public fit also takes True/False (a bar in a terminal by default; issue 53 item 3)
+        annotation = p.annotation.replace(" | None", " | bool | None") if name == "progress" else p.annotation
+        assert (public[name].kind, public[name].default, public[name].annotation) == (p.kind, p.default, annotation)
     assert public["threads"].default == 1 and public["threads"].kind is inspect.Parameter.KEYWORD_ONLY
     doc = physgrad.fit.__doc__ or ""
     assert "threads=None" in doc and (run.fit.__doc__ or "").strip() in doc  # help() shows both

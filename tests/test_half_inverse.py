@@ -86,6 +86,7 @@ def test_rank_deficient_gives_finite_result():
         np.testing.assert_allclose(np.asarray(got), reference(j, g, -0.5, 1e-6), rtol=1e-6, atol=1e-9)
 
 
+@pytest.mark.unchecked("route='qr' on purpose: half_inverse's own one-line error")
 def test_auto_route_and_errors():
     assert isinstance(by_shape((512, 2956)), Gram)
     assert isinstance(by_shape((2956, 512)), Gram)

@@ -34,6 +34,20 @@ def test_readme_example_trains():
     run_example("HIG on your own simulator", 100)
 
 
+def test_readme_problem_object_trains_with_fit():
+    # the HIG section's simulator as an AbstractProblem (issue 53: the README pointed to the
+    # oscillators' module while its only problem example was a time-stepper)
+    text = (Path(__file__).parents[1] / "README.md").read_text()
+    section = re.search(r"## HIG on your own simulator(.*?)\n## ", text, re.S).group(1)
+    code = re.findall(r"```python\n(.*?)```", section, re.S)[1]
+    assert "class Mass(physgrad.AbstractProblem)" in code
+    namespace = {}
+    exec(compile(code, "README.md", "exec"), namespace)
+    history = namespace["result"].history
+    assert namespace["result"]["status"] == "finished"
+    assert history["test_loss"][-1] < history["test_loss"][0] / 10, history["test_loss"]
+
+
 def test_readme_sip_example_trains():
     run_example("SIP on your own simulator", 10)
 

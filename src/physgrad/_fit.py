@@ -10,6 +10,10 @@ command line runs the engine's ``fit`` inside :func:`physgrad.cpu.process_thread
 script calls this one, which limits the pools loaded in the process
 (:func:`physgrad.cpu.threads`) and restores them on return. XLA's own Eigen pool is set
 once, when JAX's backend starts, and is left alone (``physgrad.cpu``).
+
+It also shows the command line's progress bar (:class:`~physgrad.engine.progress.RichProgressMeter`)
+where a user's script runs in a terminal, and nothing where its output goes to a file, a
+pipe or a test log, as the command line decides (Rich's console ``is_terminal``).
 """
 
 from __future__ import annotations
@@ -19,12 +23,15 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+import rich
+
 from . import cpu as _cpu
 from .engine import run as _run
 from .engine.callbacks import Callback
-from .engine.progress import AbstractProgressMeter
+from .engine.progress import AbstractProgressMeter, NoProgressMeter, RichProgressMeter
 from .engine.result import FitResult
 from .engine.types import Budget, Phase, TrainSettings
+from .errors import ProgressInvalid
 from .methods import AbstractMethod
 from .problems import AbstractProblem
 
@@ -42,7 +49,7 @@ def fit(
     batch_size: int | None = None,
     settings: TrainSettings = _run.DEFAULT_SETTINGS,
     resume: bool = False,
-    progress: AbstractProgressMeter | None = None,
+    progress: AbstractProgressMeter | bool | None = None,
     devices: int | Sequence[jax.Device] | None = 1,  # pyright: ignore[reportInvalidTypeForm]
     record: dict[str, Any] | None = None,
     same_run: Callable[[dict[str, Any]], Any] | None = None,
@@ -64,7 +71,15 @@ def fit(
     ``threads=None`` leaves the pools as they are (a limit of the caller's own, such as
     ``with physgrad.threads(4):``, stays in force). XLA's own CPU thread pool is not
     affected (:mod:`physgrad.cpu`).
+
+    ``progress``: None (the default) shows a progress bar (step, batch loss, training
+    time, time left; :class:`~physgrad.engine.progress.RichProgressMeter`) when standard
+    output is a terminal and nothing otherwise (a file, a pipe, a test log), as the
+    command line does; ``False`` shows nothing; ``True`` shows the bar wherever Rich can
+    draw one (a notebook, whose output is no terminal); an
+    :class:`~physgrad.engine.progress.AbstractProgressMeter` is used as it is.
     """
+    meter = _meter(progress)
     limit = contextlib.nullcontext() if threads is None else _cpu.threads(threads)
     with limit:
         return _run.fit(
@@ -76,7 +91,7 @@ def fit(
             batch_size=batch_size,
             settings=settings,
             resume=resume,
-            progress=progress,
+            progress=meter,
             devices=devices,
             record=record,
             same_run=same_run,
@@ -84,6 +99,26 @@ def fit(
             name=name,
             callbacks=callbacks,
         )
+
+
+def _console():
+    """Rich's console of standard output (a function, so a test can give a forced terminal)."""
+    return rich.get_console()
+
+
+def _meter(progress: AbstractProgressMeter | bool | None) -> AbstractProgressMeter:
+    """The meter ``fit``'s ``progress`` argument asks for (see :func:`fit`)."""
+    if isinstance(progress, AbstractProgressMeter):
+        return progress
+    if progress is not None and not isinstance(progress, bool):
+        raise ProgressInvalid(progress)
+    if progress is False:
+        return NoProgressMeter()
+    console = _console()
+    # the command line's rule: a bar only where it redraws in place; in a log it would be noise
+    if progress is None and not console.is_terminal:
+        return NoProgressMeter()
+    return RichProgressMeter(console=console)
 
 
 # help(physgrad.fit): the above, then the engine's own description of every argument

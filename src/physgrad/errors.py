@@ -139,3 +139,15 @@ class MethodRefused(ConfigError):
     def __init__(self, label: str, problem: str, cause: BaseException):
         self.label, self.problem, self.cause = label, problem, cause
         super().__init__(f"{label} on {problem}: {cause}")
+
+
+class ProgressInvalid(ConfigError):
+    """A ``progress`` argument of :func:`physgrad.fit` that is neither a progress meter nor
+    None, True or False."""
+
+    def __init__(self, progress: Any):
+        self.progress = progress
+        super().__init__(
+            f"progress must be None (a bar in a terminal), True, False or a progress meter "
+            f"(physgrad.engine.progress.AbstractProgressMeter), got {progress!r}"
+        )

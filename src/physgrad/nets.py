@@ -176,7 +176,7 @@ def _max_pool_2x2(x: Float[Array, "c h w"]) -> Float[Array, "c h/2 w/2"]:
     return x.reshape(c, h // 2, 2, w // 2, 2).max(axis=(2, 4))
 
 
-def _upsample_2x(x: Float[Array, "c h w"]) -> Float[Array, "c 2h 2w"]:
+def _upsample_2x(x: Float[Array, "c h w"]) -> Float[Array, "c 2*h 2*w"]:
     """Bilinear ×2 upsampling with half-pixel centres (PyTorch ``align_corners=False``)."""
     c, h, w = x.shape
     return jax.image.resize(x, (c, 2 * h, 2 * w), "bilinear")

@@ -5,6 +5,7 @@ from __future__ import annotations
 import abc
 import time
 
+from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn
 
 
@@ -37,10 +38,12 @@ class NoProgressMeter(AbstractProgressMeter):
 
 
 class RichProgressMeter(AbstractProgressMeter):
-    """A progress bar with step, batch loss, training time and time left (refreshed ≤ 10/s)."""
+    """A progress bar with step, batch loss, training time and time left (refreshed ≤ 10/s),
+    drawn on ``console`` (default: Rich's console of standard output)."""
 
-    def __init__(self, refresh_seconds: float = 0.1):
+    def __init__(self, refresh_seconds: float = 0.1, console: Console | None = None):
         self.refresh_seconds = refresh_seconds
+        self.console = console
         self._progress = None
 
     def start(self, *, budget, steps_per_epoch, step, train_time, label):
@@ -53,6 +56,7 @@ class RichProgressMeter(AbstractProgressMeter):
                 "step {task.fields[step]}  loss {task.fields[loss]}  train {task.fields[time]}  left {task.fields[left]}"
             ),
             transient=True,
+            console=self.console,
         )
         self._progress.start()
         self._task = self._progress.add_task(label, total=self._total, step=step, loss="-", time="0s", left="?")

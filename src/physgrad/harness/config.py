@@ -106,6 +106,7 @@ def parse_method(spec: str) -> list[tuple[str, int | None]]:
         else:
             choose("method", name, METHODS, also=("optax:NAME", "optax.contrib:NAME"))
         last = i == len(parts) - 1
+        steps: int | None = None  # the last method's: until the budget is spent
         if sep:
             if last:
                 raise ConfigError(f"the last method of {spec!r} runs until the budget is spent; drop ':{count}'")
@@ -117,7 +118,7 @@ def parse_method(spec: str) -> list[tuple[str, int | None]]:
                 raise ConfigError(f"method sequence {spec!r}: {name} needs a positive number of steps")
         elif not last:
             raise ConfigError(f"method sequence {spec!r}: give {name}'s number of steps as {name}:N")
-        phases.append((name, steps if sep else None))
+        phases.append((name, steps))
     return phases
 
 

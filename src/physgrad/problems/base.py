@@ -64,18 +64,18 @@ class AbstractProblem(eqx.Module):
     def make_data(self, key: PRNGKeyArray) -> dict[str, Sample]: ...
 
     @abc.abstractmethod
-    def make_network(self, key: PRNGKeyArray) -> eqx.Module: ...
+    def make_network(self, key: PRNGKeyArray) -> PyTree: ...  # an Equinox module, or any pytree of arrays and functions
 
     @abc.abstractmethod
     def network_output(self, network: PyTree, sample: Sample) -> PyTree: ...
 
     @abc.abstractmethod
-    def simulate(self, x: PyTree, sample: Sample) -> jax.Array: ...
+    def simulate(self, x: PyTree, sample: Sample) -> PyTree: ...  # an array; a closed loop's (states, controls)
 
     @abc.abstractmethod
-    def loss(self, y: jax.Array, sample: Sample) -> jax.Array: ...
+    def loss(self, y: PyTree, sample: Sample) -> jax.Array: ...
 
-    def metrics(self, x: PyTree, y: jax.Array, sample: Sample) -> dict[str, jax.Array]:
+    def metrics(self, x: PyTree, y: PyTree, sample: Sample) -> dict[str, jax.Array]:
         """Extra per-sample metrics besides the loss (none by default)."""
         return {}
 
@@ -88,7 +88,7 @@ class AbstractProblem(eqx.Module):
     target = None  # optional: (sample) -> y*
     inverse = None  # optional: (x, y, y_target, sample) -> x̃
 
-    def predict(self, network: eqx.Module, sample: Sample) -> jax.Array:
+    def predict(self, network: PyTree, sample: Sample) -> PyTree:
         """Simulator output ``y = P(network(sample))`` for one sample."""
         return self.simulate(self.network_output(network, sample), sample)
 
@@ -100,7 +100,7 @@ class AbstractProblem(eqx.Module):
     # x64 (their few float64 parts, such as reference solvers for data, scope it themselves).
     needs_float64: ClassVar[bool] = False
 
-    def initial_network(self, key: PRNGKeyArray, data: dict[str, Sample]) -> eqx.Module:
+    def initial_network(self, key: PRNGKeyArray, data: dict[str, Sample]) -> PyTree:
         """The network a run starts from (default: :meth:`make_network`; direct
         optimisation starts from the data's initial guesses)."""
         return self.make_network(key)
