@@ -65,7 +65,9 @@ from jax.extend.core import Literal
 from jaxtyping import Array, PyTree
 
 from ..jacobian import flat_output
-from ..routes.base import DenseUse, Structure
+from ..precision import float64_scope, to_float64
+from ..routes.base import DenseUse, JointJacobian, Structure
+from .base import Objective
 
 _SQUEEZING = {"squeeze", "reshape", "expand_dims"}
 
@@ -366,4 +368,39 @@ def eigh_all(matrices: list[Array], batched: bool = True) -> list[tuple[Array, A
         lam, q = jnp.linalg.eigh(jnp.stack([matrices[k] for k in indices]))
         for j, k in enumerate(indices):
             out[k] = (lam[j], q[j])
+    return out
+
+
+class ConvFactors(NamedTuple):
+    """One convolution layer's KFC factors (float64): the kernel and bias leaves (indices in
+    ``jax.tree.leaves(params)``), ``A`` (in·k' × in·k'), ``G`` (out × out) and the count
+    ``b·T`` of patch–signal pairs they sum over."""
+
+    kernel: int
+    bias: int | None
+    A: Array
+    G: Array
+    count: int
+
+
+def conv_layer_factors(predict, params: PyTree, batch: PyTree, probes: int = 0) -> list[ConvFactors]:
+    """The factors ``A = Σ_i Σ_t p̄ p̄ᵀ`` and ``G = Σ_i Σ_t D_{i,t}ᵀ D_{i,t}`` of every convolution
+    layer of ``predict`` (``params``: arrays only) for this batch, in program order, computed
+    as KHIG computes them (``probes`` as its setting); for inspection and tests."""
+    structure = JointJacobian.of(Objective(predict), params, batch).structure
+    convs = find_convolutions(structure)
+
+    def no_loss(y):
+        return jnp.zeros((), y.dtype), jnp.zeros((y.size,), y.dtype)
+
+    sig, *_ = layer_signals(structure, (), convs, params, batch, no_loss, probes)
+    patches = [conv_patches(structure, c, x) for c, x in zip(convs, sig.x)]
+    out = []
+    with float64_scope():
+        for c, p, d_v in zip(convs, patches, sig.d_v):
+            p = to_float64(p)
+            if c.bias is not None:
+                p = jnp.concatenate([p, jnp.ones((p.shape[0], 1), p.dtype)], axis=1)
+            d = to_float64(conv_signals(structure, c, d_v)).reshape(-1, c.d_out)
+            out.append(ConvFactors(c.leaf, c.bias, p.T @ p, d.T @ d / (probes or 1), p.shape[0]))
     return out
