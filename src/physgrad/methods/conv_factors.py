@@ -55,6 +55,7 @@ elsewhere too (a shared kernel).
 from __future__ import annotations
 
 import contextlib
+import itertools
 import math
 from collections import defaultdict
 from typing import NamedTuple
@@ -296,18 +297,32 @@ def _bind(eqn, invals):
 
 def conv_patches(structure: Structure, use: ConvUse, x: Array) -> Array:
     """The input patches ``p_t`` (b · T, in·k₁⋯k_d) of convolution ``use`` for the inputs
-    ``x`` (b, *lhs shape), channel-major as the kernel reshaped by :func:`kernel_matrix`."""
+    ``x`` (b, *lhs shape), channel-major as the kernel reshaped by :func:`kernel_matrix`.
+
+    Taken by slicing, not by a convolution with an identity kernel (whose multiply-adds
+    would cost as much as ``A`` itself): the input padded as the convolution pads it (and
+    dilated by ``lhs_dilation`` − 1 zeros between entries), then one strided slice per
+    kernel offset."""
     eqn = structure.jaxpr.jaxpr.eqns[use.eqn]
     p, dims = eqn.params, eqn.params["dimension_numbers"]
     kernel = eqn.invars[1].aval.shape
     window = tuple(kernel[a] for a in dims.rhs_spec[2:])
+    out = eqn.outvars[0].aval.shape
+    out_spatial = tuple(out[a] for a in dims.out_spec[2:])
 
     def one(image):
         image = jnp.transpose(image, dims.lhs_spec)  # (N, C, *spatial)
-        patches = jax.lax.conv_general_dilated_patches(
-            image, window, p["window_strides"], p["padding"], p["lhs_dilation"], p["rhs_dilation"],
-            precision=jax.lax.Precision.HIGHEST,
-        )  # fmt: skip
+        config = [(0, 0, 0), (0, 0, 0)] + [(lo, hi, d - 1) for (lo, hi), d in zip(p["padding"], p["lhs_dilation"])]
+        image = jax.lax.pad(image, jnp.zeros((), image.dtype), config)
+        taps = []
+        for offset in itertools.product(*(range(k) for k in window)):
+            start = [0, 0] + [o * r for o, r in zip(offset, p["rhs_dilation"])]
+            limit = [image.shape[0], image.shape[1]] + [
+                s + (n - 1) * st + 1 for s, n, st in zip(start[2:], out_spatial, p["window_strides"])
+            ]
+            taps.append(jax.lax.slice(image, start, limit, [1, 1, *p["window_strides"]]))  # (N, C, *out)
+        patches = jnp.stack(taps, axis=2)  # (N, C, ∏k, *out): channel-major as the kernel
+        patches = patches.reshape(patches.shape[0], -1, *out_spatial)
         return jnp.moveaxis(patches, 1, -1).reshape(-1, patches.shape[1])  # (N·T, C·∏k)
 
     return jax.vmap(one)(x).reshape(-1, use.d_in)

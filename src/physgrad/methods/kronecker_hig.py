@@ -93,6 +93,7 @@ matrix does in HIG's Gram route) and the direction is cast back to each leaf's d
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 from typing import ClassVar, NamedTuple
 
@@ -337,18 +338,23 @@ class KroneckerPower(AbstractJacobianRule):
         J = explicit_rows(plan.jacobian.predict, structure, params, batch, 0) if plan.explicit else None
         sig, g, patches, J = jax.lax.stop_gradient((sig, g, patches, J))
         scale = 1.0 / (self.probes or 1)  # probes: G is the mean over them
+        # The products run in the inputs' dtype (XLA's float64 products on a CPU are ~10x
+        # slower, and A's b·T patch products dominate the step); float32's rounding, 1e-7 of
+        # a factor's top, sits below the default damping; the eigh and the power are float64.
+        dot = functools.partial(jnp.matmul, precision=jax.lax.Precision.HIGHEST)
+        layers = []  # (A, G, ∇W̄, count) per layer
+        for use, x, d_g, d_v in zip(dense, sig.x, sig.d_g, sig.d_v):
+            a, d_v = _with_bias(x, use.bias is not None), d_v.reshape(-1, use.d_out)
+            layers.append((dot(a.T, a), dot(d_v.T, d_v), dot(d_g.T, a), a.shape[0]))
+        for c, p, d_g, d_v in zip(convs, patches, sig.d_g[len(dense) :], sig.d_v[len(dense) :]):
+            p = _with_bias(p, c.bias is not None)
+            d_v = kfc.conv_signals(structure, c, d_v).reshape(-1, c.d_out)
+            d_g = kfc.conv_signals(structure, c, d_g).reshape(-1, c.d_out)
+            layers.append((dot(p.T, p), dot(d_v.T, d_v), dot(d_g.T, p), p.shape[0]))  # KFC's count: b·T
         with float64_scope():
-            layers = []  # (ā or p̄ (count, d_in'), g's signals (count, d_out), G)
-            for use, x, d_g, d_v in zip(dense, sig.x, sig.d_g, sig.d_v):
-                d_v = to_float64(d_v).reshape(-1, use.d_out)
-                layers.append((_with_bias(to_float64(x), use.bias is not None), to_float64(d_g), scale * d_v.T @ d_v))
-            for c, p, d_g, d_v in zip(convs, patches, sig.d_g[len(dense) :], sig.d_v[len(dense) :]):
-                d_v = to_float64(kfc.conv_signals(structure, c, d_v)).reshape(-1, c.d_out)
-                d_g = to_float64(kfc.conv_signals(structure, c, d_g)).reshape(-1, c.d_out)
-                layers.append((_with_bias(to_float64(p), c.bias is not None), d_g, scale * d_v.T @ d_v))
-            eig = kfc.eigh_all([m for a, _, G in layers for m in (a.T @ a, G)], self.eigh_batched)
-            # KFC's count: b·T products of (1/(b·T)) G ⊗ A; T = 1 for a dense layer
-            deltas = [self._power(d_g.T @ a, eig, k, a.shape[0]) for k, (a, d_g, _) in enumerate(layers)]
+            eig = kfc.eigh_all([to_float64(m) for A, G, _, _ in layers for m in (A, scale * to_float64(G))],
+                               self.eigh_batched)  # fmt: skip
+            deltas = [self._power(to_float64(grad), eig, k, count) for k, (_, _, grad, count) in enumerate(layers)]
             J64 = None if J is None else to_float64(J)
             return self._assemble(plan, params, deltas[: len(dense)], deltas[len(dense) :], J64, to_float64(g),
                                   loss, y.dtype)  # fmt: skip
