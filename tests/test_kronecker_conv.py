@@ -10,6 +10,7 @@ case the power of the explicit Kronecker matrix ``kron(G, A)/(b T)`` (``numpy.li
 applied to the gradient from ``jax.grad``.
 """
 
+import csv
 import itertools
 
 import equinox as eqx
@@ -284,3 +285,28 @@ def test_probes_estimate_g_without_bias_and_draw_anew_per_batch():
     assert not np.allclose(np.asarray(factors(params, other, 2).G), np.asarray(factors(params, batch, 2).G))
     with pytest.raises(ValueError, match=r"^probes must be >= 0 \(0: every output row\), got -1$"):
         KroneckerPower(probes=-1)
+
+
+# CPU sizes of the shipped U-Net problems (tests/test_problems.py's small data)
+UNET_SMALL = {
+    "poisson": {"resolution": "16", "levels": "2", "filters": "4", "n_train": "16", "n_test": "8"},
+    "heat": {"resolution": "16", "levels": "2", "filters": "4", "n_train": "16", "n_test": "8"},
+    "navier_stokes": {"resolution": "16", "size": "32.0", "box": "14.0", "swirl_sigma": "5.0", "falloff": "20.0",
+                      "levels": "3", "filters": "4", "n_train": "16", "n_test": "8"},
+}  # fmt: skip
+
+
+@pytest.mark.slow  # minutes of compilation on a shared CPU; the directions are checked by the tests above
+@pytest.mark.parametrize("problem", sorted(UNET_SMALL))
+def test_khig_trains_the_unet_problems(problem, tmp_path):
+    """8 steps of khig (KFC factors, G from 4 probes) lower the test loss on each U-Net problem."""
+    from physgrad.harness.cli import main
+
+    settings = {**UNET_SMALL[problem], "batch_size": "8", "eval_every": "4", "probes": "4", "lr": "0.01",
+                "damping": "0.01"}  # fmt: skip
+    argv = ["train", problem, "--method", "khig", "--steps", "8", "--out", str(tmp_path / "run")]
+    assert main(argv + [f"--set={k}={v}" for k, v in settings.items()]) == 0
+    with open(tmp_path / "run" / "metrics.csv") as f:
+        test = [float(r["value"]) for r in csv.DictReader(f) if r["split"] == "test" and r["metric"] == "loss"]
+    assert len(test) == 3 and all(np.isfinite(test)), test
+    assert test[-1] < test[0], test

@@ -428,7 +428,7 @@ def _spectrum_stats(spectra: list[BlockSpectrum], dtype) -> dict[str, Array]:
 
 
 def kronecker_hig(predict, loss, *, truncation: float = 1e-6, power: float = -0.75, damping: float = 1e-4,
-                  explicit_max: int = 1024) -> Estimator:  # fmt: skip
+                  explicit_max: int = 1024, probes: int = 0) -> Estimator:  # fmt: skip
     """Kronecker-factored half-inverse gradients: ``(params, batch) -> (direction, stats)``.
 
     Per dense layer ``z = W a + c`` (bias folded in as ``W̄ = [W c]``, ``ā = [a; 1]``)
@@ -454,14 +454,19 @@ def kronecker_hig(predict, loss, *, truncation: float = 1e-6, power: float = -0.
             eigenvalues reach far below J's own spectrum and, raised to ``p``, blow up the
             step (the oscillators diverge at HIG's η = 1), so the default damps them (1e-4).
         explicit_max: the widest eigendecomposition allowed for the parameters outside the
-            dense layers it sees (handled exactly as one block; refused beyond).
+            dense and convolution layers it sees (handled exactly as one block; refused beyond).
+        probes: 0 builds every G from every simulator output row (a backward pass each);
+            ``s > 0`` from s Rademacher output directions per sample (K-FAC's Monte Carlo
+            estimate, unbiased; for outputs that are fields, as the U-Nets').
 
     ``stats``: ``loss``; ``rank``, the eigenvalue products kept over all blocks;
     ``sigma_max`` and ``sigma_min_kept``, √ of the largest and of the smallest kept product
-    (HIG's σ range). Convolution layers are refused in one line (use :func:`physgrad.hig`).
-    See :mod:`physgrad.methods.kronecker_hig` for the derivation and its assumptions.
+    (HIG's σ range). A convolution layer is factored as Grosse & Martens (KFC) do: its
+    kernel reshaped (out, in·k₁⋯k_d) as W, its input patches as ā and ``b·T`` (T output
+    positions) in place of b (:mod:`physgrad.methods.conv_factors`). See
+    :mod:`physgrad.methods.kronecker_hig` for the derivation and its assumptions.
     """
-    rule = KroneckerPower(power, truncation, damping, explicit_max)
+    rule = KroneckerPower(power, truncation, damping, explicit_max, probes)
     return Estimator(rule, Objective(predict, loss))
 
 
