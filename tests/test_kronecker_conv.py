@@ -227,8 +227,9 @@ def test_each_conv_layer_gets_the_power_of_its_kfc_block(standardise):
     kernel's direction is (∂f/∂θ)ᵀ ΔK (jax.vjp of nets.standardised_weight)."""
     params, batch, predict, loss, plain_first, second, M = _two_layer(standardise)
     power, damping = -0.75, 1e-3
-    got, _ = jax.jit(physgrad.kronecker_hig(predict, loss, power=power, damping=damping, truncation=0.0))(params, batch)
-    batched, _ = jax.jit(physgrad.methods.Estimator(KroneckerPower(power, 0.0, damping, eigh_batched=False),
+    got, _ = jax.jit(physgrad.methods.Estimator(KroneckerPower(power, 0.0, damping, eigh_batched=False),
+                                                physgrad.Objective(predict, loss)))(params, batch)  # fmt: skip
+    batched, _ = jax.jit(physgrad.methods.Estimator(KroneckerPower(power, 0.0, damping, eigh_batched=True),
                                                     physgrad.Objective(predict, loss)))(params, batch)  # fmt: skip
     for a, b in zip(jax.tree.leaves(got), jax.tree.leaves(batched)):  # one eigh per size = one per factor
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-10, atol=1e-14)

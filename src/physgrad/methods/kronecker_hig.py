@@ -83,7 +83,7 @@ as exact HIG's Jacobian).
 Cost: one backward pass per Jacobian row to the pre-activations (the same signals ``D``
 HIG's structured route uses), ``rows · d_out²`` and ``b · d_in'²`` multiply-adds for the
 factors, and two float64 ``eigh`` of d_out and d_in' per layer, same-size factors stacked
-into one ``eigh`` call (``eigh_batched``). The factors are fresh for
+into one ``eigh`` call per size on an accelerator (``eigh_batched``). The factors are fresh for
 every batch (HIG's way); :class:`AveragedKronecker` keeps running averages of them and
 recomputes their eigendecompositions every k steps (K-FAC's way;
 :mod:`physgrad.methods.averaged_kronecker`). The factors and their eigendecompositions are computed in float64
@@ -217,7 +217,9 @@ class KroneckerPower(AbstractJacobianRule):
     damping: float = eqx.field(static=True, default=1e-4)
     explicit_max: int = eqx.field(static=True, default=1024)
     probes: int = eqx.field(static=True, default=0)
-    eigh_batched: bool = eqx.field(static=True, default=True)
+    # None: stacked off a CPU (one launch per size on an accelerator), one call per factor on
+    # a CPU, where XLA's stacked eigh measured no faster (benchmarks/khig_conv_step.py)
+    eigh_batched: bool | None = eqx.field(static=True, default=None)
 
     def __check_init__(self):
         if not self.truncation >= 0:
@@ -315,13 +317,17 @@ class KroneckerPower(AbstractJacobianRule):
             layers = [(use, to_float64(D), to_float64(a)) for use, D, a in zip(structure.dense, block.D, block.A)]
             if dense is None:
                 factors = [kronecker_factors(D, a, use.bias is not None) for use, D, a in layers]
-                eig = kfc.eigh_all([m for pair in factors for m in pair], self.eigh_batched)
+                eig = kfc.eigh_all([m for pair in factors for m in pair], self._stacked)
                 deltas = [self._power(layer_gradient(D, a, g64, use.bias is not None), eig, k, a.shape[0])
                           for k, (use, D, a) in enumerate(layers)]  # fmt: skip
             else:
                 deltas = [dense(use, D, a, g64) for use, D, a in layers]
             J = None if block.J is None else to_float64(block.J)
             return self._assemble(plan, params, deltas, [], J, g64, loss, y.dtype)
+
+    @property
+    def _stacked(self) -> bool:
+        return self.eigh_batched if self.eigh_batched is not None else jax.default_backend() != "cpu"
 
     def _power(self, grad: Array, eig: list, k: int, count: int) -> tuple[Array, BlockSpectrum]:
         """Layer k's power direction from ``eig``, the eigendecompositions (A₀, G₀, A₁, G₁, …)."""
@@ -353,7 +359,7 @@ class KroneckerPower(AbstractJacobianRule):
             layers.append((dot(p.T, p), dot(d_v.T, d_v), dot(d_g.T, p), p.shape[0]))  # KFC's count: b·T
         with float64_scope():
             eig = kfc.eigh_all([to_float64(m) for A, G, _, _ in layers for m in (A, scale * to_float64(G))],
-                               self.eigh_batched)  # fmt: skip
+                               self._stacked)  # fmt: skip
             deltas = [self._power(to_float64(grad), eig, k, count) for k, (_, _, grad, count) in enumerate(layers)]
             J64 = None if J is None else to_float64(J)
             return self._assemble(plan, params, deltas[: len(dense)], deltas[len(dense) :], J64, to_float64(g),
