@@ -209,7 +209,7 @@ def test_each_layer_gets_the_power_of_its_kronecker_block(mlp, power, damping):
     assert int(stats["rank"]) == HIDDEN * (D_IN + 1) + D_OUT * (HIDDEN + 1)  # nothing truncated at τ = 0
 
 
-def test_leftover_parameters_form_one_exact_block_and_convolutions_are_refused():
+def test_leftover_parameters_form_one_exact_block_and_grouped_convolutions_are_refused():
     """A weight used twice is no dense layer: its block is (J_oᵀJ_o)^p J_oᵀ g exactly."""
     keys = jax.random.split(jax.random.key(3), 4)
     params = {"W": jax.random.normal(keys[0], (3, 3)) / 2, "shared": jax.random.normal(keys[1], (3, 3)) / 2}
@@ -239,9 +239,10 @@ def test_leftover_parameters_form_one_exact_block_and_convolutions_are_refused()
         physgrad.kronecker_hig(predict, loss, explicit_max=4)(params, batch)
     assert "\n" not in str(info.value)
 
-    conv = eqx.nn.Conv1d(1, 2, 3, key=keys[0])
-    with pytest.raises(ValueError, match=r"^khig: the network has convolution layers .*; use hig \(exact\)$"):
-        physgrad.kronecker_hig(lambda m, s: m(s["x"][None]).ravel(), lambda y, s: jnp.sum(y**2))(conv, batch)
+    # convolutions have KFC factors (tests/test_kronecker_conv.py); grouped ones are refused
+    conv = eqx.nn.Conv1d(2, 2, 3, groups=2, key=keys[0])
+    with pytest.raises(ValueError, match=r"^khig: convolution \d+ \(kernel \(2, 1, 3\)\) is grouped; .*; use hig$"):
+        physgrad.kronecker_hig(lambda m, s: m(s["x"][:2, None]).ravel(), lambda y, s: jnp.sum(y**2))(conv, batch)
 
 
 def test_khig_is_registered_with_hig_defaults_and_trains_oscillators_from_the_cli(tmp_path):

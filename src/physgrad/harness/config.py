@@ -184,6 +184,7 @@ ADDED_LATER: dict[str, dict[str, dict[str, Any]]] = {
             name: {"plateau_factor": 0.0, "plateau_patience": 10, "plateau_cooldown": 0, "plateau_every": 0}
             for name in ("one", "nog", "wig")
         },
+        "khig": {"probes": 0},  # issue 51: G from every output row
     },
     "problems": {"poisson": {"dtype": "float32"}},  # issue 7
     "training": ADDED_SETTINGS,

@@ -71,12 +71,19 @@ folded in. Every other parameter (a weight used twice, a free scale, a layer hid
 a nested ``jit``) joins one leftover block handled *exactly*: the κ-power of its own
 explicit Jacobian rows ``J_o``, ``(J_oᵀJ_o)^p J_oᵀ g``, through the eigendecomposition of
 the smaller of ``J_oᵀJ_o`` and ``J_oJ_oᵀ``; it is refused in one line when that matrix is
-wider than ``explicit_max``. Convolution kernels are refused in one line (the factors of
-Grosse & Martens 2016 are not implemented): use the exact ``hig``.
+wider than ``explicit_max``. Convolution layers (``eqx.nn.Conv``, the U-Nets' and ResNets'
+kernels, strided, dilated, transposed, zero or circular padding) get the Kronecker factors
+of Grosse & Martens 2016, with the kernel reshaped (out, in·k₁⋯k_d) as the dense weight and
+``b·T`` (T output positions per sample) in place of b (:mod:`physgrad.methods.conv_factors`);
+grouped convolutions and shared kernels are refused in one line. ``probes = s > 0``
+estimates every G from s random output directions per sample instead of every output row
+(K-FAC's Monte Carlo way; for fields of outputs, where a backward pass per row costs as much
+as exact HIG's Jacobian).
 
 Cost: one backward pass per Jacobian row to the pre-activations (the same signals ``D``
 HIG's structured route uses), ``rows · d_out²`` and ``b · d_in'²`` multiply-adds for the
-factors, and two float64 ``eigh`` of d_out and d_in' per layer. The factors are fresh for
+factors, and two float64 ``eigh`` of d_out and d_in' per layer, same-size factors stacked
+into one ``eigh`` call per size on an accelerator (``eigh_batched``). The factors are fresh for
 every batch (HIG's way); :class:`AveragedKronecker` keeps running averages of them and
 recomputes their eigendecompositions every k steps (K-FAC's way;
 :mod:`physgrad.methods.averaged_kronecker`). The factors and their eigendecompositions are computed in float64
@@ -86,6 +93,7 @@ matrix does in HIG's Gram route) and the direction is cast back to each leaf's d
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 from typing import ClassVar, NamedTuple
 
@@ -97,13 +105,11 @@ from jaxtyping import Array, PyTree
 from ..precision import float64_scope, to_float64
 from ..routes import JointJacobian, structured
 from ..routes.base import DenseUse, Structure
+from ..routes.structured import explicit_rows
+from . import conv_factors as kfc
 from .base import AbstractJacobianRule, Estimator, Objective, required
 
 _F64 = 8
-# Operations that only move or relabel a kernel's numbers: a convolution whose kernel comes
-# from a parameter leaf through these alone is a convolution layer of the network.
-_RESHAPING = {"reshape", "transpose", "convert_element_type", "broadcast_in_dim", "squeeze", "expand_dims", "rev",
-              "copy", "copy_p"}  # fmt: skip
 
 
 class BlockSpectrum(NamedTuple):
@@ -186,34 +192,16 @@ def explicit_block_direction(J: Array, g: Array, power: float, truncation: float
     return J.T @ (u @ (phi * (u.T @ g))), spectrum
 
 
-def _kernel_leaves(structure: Structure) -> set[int]:
-    """Parameter leaves that reach a convolution's kernel through reshaping alone."""
-    jaxpr = structure.jaxpr.jaxpr
-    n = len(structure.leaf_sizes)
-    origin = {v: k for k, v in enumerate(jaxpr.invars[:n])}
-    found = set()
-    for eqn in jaxpr.eqns:
-        name = eqn.primitive.name
-        # a Literal (an inline constant) is unhashable and never a parameter
-        if name in _RESHAPING and eqn.invars and not hasattr(eqn.invars[0], "val") and eqn.invars[0] in origin:
-            for v in eqn.outvars:
-                origin[v] = origin[eqn.invars[0]]
-        elif name == "conv_general_dilated":
-            kernel = eqn.invars[1]
-            if not hasattr(kernel, "val") and kernel in origin:
-                found.add(origin[kernel])
-    return found
-
-
 class Plan(NamedTuple):
     """What KHIG does for these shapes: the program's structure (one explicit group
-    holding every leftover leaf) and the leftover block's size."""
+    holding every leftover leaf), the leftover block's size and the convolution layers."""
 
     structure: Structure
     explicit: tuple[int, ...]
     explicit_parameters: int
     rows: int
     jacobian: JointJacobian  # the step's shape facts (one trace of predict)
+    convs: tuple[kfc.ConvUse, ...] = ()
 
 
 DenseDirection = Callable[[DenseUse, Array, Array, Array], tuple[Array, BlockSpectrum]]
@@ -228,6 +216,10 @@ class KroneckerPower(AbstractJacobianRule):
     truncation: float = eqx.field(static=True, default=1e-6)
     damping: float = eqx.field(static=True, default=1e-4)
     explicit_max: int = eqx.field(static=True, default=1024)
+    probes: int = eqx.field(static=True, default=0)
+    # None: stacked off a CPU (one launch per size on an accelerator), one call per factor on
+    # a CPU, where XLA's stacked eigh measured no faster (benchmarks/khig_conv_step.py)
+    eigh_batched: bool | None = eqx.field(static=True, default=None)
 
     def __check_init__(self):
         if not self.truncation >= 0:
@@ -238,13 +230,15 @@ class KroneckerPower(AbstractJacobianRule):
             raise ValueError(f"power must be negative (-0.75: HIG, -1: Gauss-Newton), got {self.power}")
         if self.explicit_max < 0:
             raise ValueError(f"explicit_max must be >= 0, got {self.explicit_max}")
+        if self.probes < 0:
+            raise ValueError(f"probes must be >= 0 (0: every output row), got {self.probes}")
 
     name: ClassVar[str] = "khig"
 
     def plan(self, objective: Objective, params: PyTree, batch: PyTree) -> Plan:
         """The dense layers and the leftover block for these shapes, or a one-line
-        ``ValueError`` for what KHIG refuses (complex parameters, convolution layers, a
-        leftover block wider than ``explicit_max``)."""
+        ``ValueError`` for what KHIG refuses (complex parameters, grouped or shared
+        convolution kernels, a leftover block wider than ``explicit_max``)."""
         leaves = jax.tree.leaves(params)
         if any(jnp.iscomplexobj(x) for x in leaves):
             raise ValueError("khig: complex parameters have no real Kronecker factors; use hig")
@@ -253,13 +247,10 @@ class KroneckerPower(AbstractJacobianRule):
         rows = jacobian.rows
         # One explicit group: the leftover block is one Jacobian of all its leaves.
         structure = jacobian.structure.regrouped(rows, 2**62)
-        kernels = _kernel_leaves(structure)
-        if kernels:
-            raise ValueError(
-                f"khig: the network has convolution layers ({len(kernels)} kernel leaves) and khig has Kronecker "
-                "factors for dense layers only; use hig (exact)"
-            )
-        explicit = tuple(k for group in structure.groups for k in group)
+        convs = kfc.find_convolutions(structure)
+        layers = {c.leaf for c in convs} | {c.bias for c in convs if c.bias is not None}
+        explicit = tuple(k for group in structure.groups for k in group if k not in layers)
+        structure = structure._replace(groups=(explicit,) if explicit else ())
         size = sum(structure.leaf_sizes[k] for k in explicit)
         if explicit and min(rows, size) > self.explicit_max:
             raise ValueError(
@@ -267,14 +258,15 @@ class KroneckerPower(AbstractJacobianRule):
                 f"eigendecomposition of {min(rows, size)} > explicit_max={self.explicit_max}; use hig, or raise "
                 "explicit_max"
             )
-        return Plan(structure, explicit, size, rows, jacobian)
+        return Plan(structure, explicit, size, rows, jacobian, convs)
 
     def describe(self, objective, params, batch):
-        """``{"dense": [(d_out, d_in', bias), …], "explicit_parameters": P_o, "jacobian":
-        (rows, P)}`` for these shapes (nothing is computed)."""
+        """``{"dense": [(d_out, d_in', bias), …], "conv": [(d_out, d_in', positions), …],
+        "explicit_parameters": P_o, "jacobian": (rows, P)}`` for these shapes (nothing is computed)."""
         plan = self.plan(objective, params, batch)
         dense = [(u.d_out, u.d_in + (u.bias is not None), u.bias is not None) for u in plan.structure.dense]
-        return {"dense": dense, "explicit_parameters": plan.explicit_parameters,
+        conv = [(c.d_out, c.d_in + (c.bias is not None), c.positions) for c in plan.convs]
+        return {"dense": dense, "conv": conv, "explicit_parameters": plan.explicit_parameters,
                 "jacobian": plan.jacobian.shape}  # fmt: skip
 
     def footprint(self, objective, params, batch, devices=1):
@@ -287,12 +279,19 @@ class KroneckerPower(AbstractJacobianRule):
         # factors, their eigenvectors and eigh's workspace; the leftover block's Gram likewise
         squares = sum(u.d_out**2 + (u.d_in + 1) ** 2 for u in dense) * 3 * _F64
         leftover = 3 * min(plan.rows, plan.explicit_parameters) ** 2 * _F64 if plan.explicit else 0
+        if plan.convs or self.probes:  # signals per cotangent (rows or probes) on every layer, and patches
+            c = self.probes or plan.rows // b
+            z = sum(u.d_out for u in dense) + sum(u.d_out * u.positions for u in plan.convs)
+            patches = sum(u.positions * (u.d_in + 1) for u in plan.convs)
+            signals += ((c + 1) * b * z + b * patches) * (itemsize + _F64)
+            squares += sum(u.d_out**2 + (u.d_in + 1) ** 2 for u in plan.convs) * 3 * _F64
         return signals + squares + leftover
 
     def footprint_note(self, objective, params, batch):
         plan = self.plan(objective, params, batch)
         widths = "+".join(str(u.d_out) for u in plan.structure.dense) or "0"
-        return f"khig: {plan.rows} rows × ({widths}) signals, {plan.explicit_parameters} leftover parameters"
+        convs = f", {len(plan.convs)} convolution layers" if plan.convs else ""
+        return f"khig: {plan.rows} rows × ({widths}) signals{convs}, {plan.explicit_parameters} leftover parameters"
 
     def __call__(self, objective, params, batch):
         return self.directions(objective, params, batch)
@@ -300,43 +299,98 @@ class KroneckerPower(AbstractJacobianRule):
     def directions(self, objective, params, batch, dense: DenseDirection | None = None):
         """``(direction, stats)``, each dense layer's ``ΔW̄`` from ``dense(use, D, a, g)`` (float64
         signals, inputs and output gradient; returns ``(ΔW̄, BlockSpectrum)``), by default
-        :func:`dense_block_direction` with this batch's factors; the leftover block exactly."""
+        the power of this batch's factors (:func:`dense_block_direction`); convolution layers
+        from their KFC factors; the leftover block exactly."""
         plan = self.plan(objective, params, batch)
+        if plan.convs or self.probes:
+            if dense is not None:
+                raise ValueError("khig: running factor averages cover dense layers with every output row; "
+                                 "convolution layers and probes need fresh factors (curvature_ema=0, inverse_every=1)")  # fmt: skip
+            return self._signal_directions(plan, params, batch)
         structure = plan.structure
         block, y = structured.factors(structure, params, batch, groups=(0,) if plan.explicit else ())
         loss, g = plan.jacobian.loss_and_gradient(y)
         # Constants for differentiation: the float64 scope below cannot be transposed.
         block, g = jax.lax.stop_gradient((block, g))
-        leaves = jax.tree.leaves(params)
-        pieces: dict[int, Array] = {}
-        spectra = []
         with float64_scope():
             g64 = to_float64(g)
-            for use, D, a in zip(structure.dense, block.D, block.A):
-                if dense is None:
-                    delta, spectrum = dense_block_direction(
-                        to_float64(D), to_float64(a), g64, use.bias is not None, self.power, self.truncation,
-                        self.damping,
-                    )  # fmt: skip
-                else:
-                    delta, spectrum = dense(use, to_float64(D), to_float64(a), g64)
-                weight = delta[:, : use.d_in]
-                pieces[use.leaf] = (weight.T if use.transposed else weight).astype(leaves[use.leaf].dtype)
-                if use.bias is not None:
-                    pieces[use.bias] = delta[:, use.d_in].astype(leaves[use.bias].dtype)
-                spectra.append(spectrum)
-            if plan.explicit:
-                assert block.J is not None  # the explicit rows of group 0: every leftover leaf
-                flat, spectrum = explicit_block_direction(
-                    to_float64(block.J), g64, self.power, self.truncation, self.damping
-                )
-                offset = 0
-                for k in plan.explicit:
-                    size = structure.leaf_sizes[k]
-                    pieces[k] = flat[offset : offset + size].reshape(leaves[k].shape).astype(leaves[k].dtype)
-                    offset += size
-                spectra.append(spectrum)
-            stats = _spectrum_stats(spectra, y.dtype)
+            layers = [(use, to_float64(D), to_float64(a)) for use, D, a in zip(structure.dense, block.D, block.A)]
+            if dense is None:
+                factors = [kronecker_factors(D, a, use.bias is not None) for use, D, a in layers]
+                eig = kfc.eigh_all([m for pair in factors for m in pair], self._stacked)
+                deltas = [self._power(layer_gradient(D, a, g64, use.bias is not None), eig, k, a.shape[0])
+                          for k, (use, D, a) in enumerate(layers)]  # fmt: skip
+            else:
+                deltas = [dense(use, D, a, g64) for use, D, a in layers]
+            J = None if block.J is None else to_float64(block.J)
+            return self._assemble(plan, params, deltas, [], J, g64, loss, y.dtype)
+
+    @property
+    def _stacked(self) -> bool:
+        return self.eigh_batched if self.eigh_batched is not None else jax.default_backend() != "cpu"
+
+    def _power(self, grad: Array, eig: list, k: int, count: int) -> tuple[Array, BlockSpectrum]:
+        """Layer k's power direction from ``eig``, the eigendecompositions (A₀, G₀, A₁, G₁, …)."""
+        (alpha, q_a), (gamma, q_g) = eig[2 * k], eig[2 * k + 1]
+        return power_direction(grad, gamma, q_g, alpha, q_a, count, self.power, self.truncation, self.damping)
+
+    def _signal_directions(self, plan: Plan, params, batch):
+        """Dense and convolution layers from the signals of one pass per cotangent (every
+        output row, or ``probes`` random ones: :func:`~physgrad.methods.conv_factors.layer_signals`)."""
+        structure, dense, convs = plan.structure, plan.structure.dense, plan.convs
+        sig, y, loss, g = kfc.layer_signals(structure, dense, convs, params, batch, plan.jacobian.loss_and_gradient,
+                                        self.probes)  # fmt: skip
+        patches = [kfc.conv_patches(structure, c, x) for c, x in zip(convs, sig.x[len(dense) :])]
+        J = explicit_rows(plan.jacobian.predict, structure, params, batch, 0) if plan.explicit else None
+        sig, g, patches, J = jax.lax.stop_gradient((sig, g, patches, J))
+        scale = 1.0 / (self.probes or 1)  # probes: G is the mean over them
+        # The products run in the inputs' dtype (XLA's float64 products on a CPU are ~10x
+        # slower, and A's b·T patch products dominate the step); float32's rounding, 1e-7 of
+        # a factor's top, sits below the default damping; the eigh and the power are float64.
+        dot = functools.partial(jnp.matmul, precision=jax.lax.Precision.HIGHEST)
+        layers = []  # (A, G, ∇W̄, count) per layer
+        for use, x, d_g, d_v in zip(dense, sig.x, sig.d_g, sig.d_v):
+            a, d_v = _with_bias(x, use.bias is not None), d_v.reshape(-1, use.d_out)
+            layers.append((dot(a.T, a), dot(d_v.T, d_v), dot(d_g.T, a), a.shape[0]))
+        for c, p, d_g, d_v in zip(convs, patches, sig.d_g[len(dense) :], sig.d_v[len(dense) :]):
+            p = _with_bias(p, c.bias is not None)
+            d_v = kfc.conv_signals(structure, c, d_v).reshape(-1, c.d_out)
+            d_g = kfc.conv_signals(structure, c, d_g).reshape(-1, c.d_out)
+            layers.append((dot(p.T, p), dot(d_v.T, d_v), dot(d_g.T, p), p.shape[0]))  # KFC's count: b·T
+        with float64_scope():
+            eig = kfc.eigh_all([to_float64(m) for A, G, _, _ in layers for m in (A, scale * to_float64(G))],
+                               self._stacked)  # fmt: skip
+            deltas = [self._power(to_float64(grad), eig, k, count) for k, (_, _, grad, count) in enumerate(layers)]
+            J64 = None if J is None else to_float64(J)
+            return self._assemble(plan, params, deltas[: len(dense)], deltas[len(dense) :], J64, to_float64(g),
+                                  loss, y.dtype)  # fmt: skip
+
+    def _assemble(self, plan: Plan, params, dense: list, conv: list, J: Array | None, g64: Array, loss, dtype):
+        """The direction with the parameters' structure and the step's stats from the layers'
+        ``(ΔW̄, spectrum)`` and the leftover rows ``J`` (float64; in a float64 scope)."""
+        structure, leaves = plan.structure, jax.tree.leaves(params)
+        pieces: dict[int, Array] = {}
+        spectra = [s for _, s in dense + conv]
+        for use, (delta, _) in zip(structure.dense, dense):
+            weight = delta[:, : use.d_in]
+            pieces[use.leaf] = (weight.T if use.transposed else weight).astype(leaves[use.leaf].dtype)
+            if use.bias is not None:
+                pieces[use.bias] = delta[:, use.d_in].astype(leaves[use.bias].dtype)
+        for use, (delta, _) in zip(plan.convs, conv):
+            kernel = kfc.kernel_matrix(structure, use, delta[:, : use.d_in]).astype(leaves[use.leaf].dtype)
+            pieces[use.leaf] = kfc.kernel_pullback(structure, use, jax.lax.stop_gradient(leaves[use.leaf]), kernel)
+            if use.bias is not None:
+                pieces[use.bias] = delta[:, use.d_in].reshape(leaves[use.bias].shape).astype(leaves[use.bias].dtype)
+        if plan.explicit:
+            assert J is not None  # the explicit rows of group 0: every leftover leaf
+            flat, spectrum = explicit_block_direction(J, g64, self.power, self.truncation, self.damping)
+            offset = 0
+            for k in plan.explicit:
+                size = structure.leaf_sizes[k]
+                pieces[k] = flat[offset : offset + size].reshape(leaves[k].shape).astype(leaves[k].dtype)
+                offset += size
+            spectra.append(spectrum)
+        stats = _spectrum_stats(spectra, dtype)
         direction = [pieces.get(k, jnp.zeros_like(x)) for k, x in enumerate(leaves)]
         return jax.tree.unflatten(jax.tree.structure(params), direction), {"loss": loss, **stats}
 
@@ -380,7 +434,7 @@ def _spectrum_stats(spectra: list[BlockSpectrum], dtype) -> dict[str, Array]:
 
 
 def kronecker_hig(predict, loss, *, truncation: float = 1e-6, power: float = -0.75, damping: float = 1e-4,
-                  explicit_max: int = 1024) -> Estimator:  # fmt: skip
+                  explicit_max: int = 1024, probes: int = 0) -> Estimator:  # fmt: skip
     """Kronecker-factored half-inverse gradients: ``(params, batch) -> (direction, stats)``.
 
     Per dense layer ``z = W a + c`` (bias folded in as ``W̄ = [W c]``, ``ā = [a; 1]``)
@@ -406,14 +460,19 @@ def kronecker_hig(predict, loss, *, truncation: float = 1e-6, power: float = -0.
             eigenvalues reach far below J's own spectrum and, raised to ``p``, blow up the
             step (the oscillators diverge at HIG's η = 1), so the default damps them (1e-4).
         explicit_max: the widest eigendecomposition allowed for the parameters outside the
-            dense layers it sees (handled exactly as one block; refused beyond).
+            dense and convolution layers it sees (handled exactly as one block; refused beyond).
+        probes: 0 builds every G from every simulator output row (a backward pass each);
+            ``s > 0`` from s Rademacher output directions per sample (K-FAC's Monte Carlo
+            estimate, unbiased; for outputs that are fields, as the U-Nets').
 
     ``stats``: ``loss``; ``rank``, the eigenvalue products kept over all blocks;
     ``sigma_max`` and ``sigma_min_kept``, √ of the largest and of the smallest kept product
-    (HIG's σ range). Convolution layers are refused in one line (use :func:`physgrad.hig`).
-    See :mod:`physgrad.methods.kronecker_hig` for the derivation and its assumptions.
+    (HIG's σ range). A convolution layer is factored as Grosse & Martens (KFC) do: its
+    kernel reshaped (out, in·k₁⋯k_d) as W, its input patches as ā and ``b·T`` (T output
+    positions) in place of b (:mod:`physgrad.methods.conv_factors`). See
+    :mod:`physgrad.methods.kronecker_hig` for the derivation and its assumptions.
     """
-    rule = KroneckerPower(power, truncation, damping, explicit_max)
+    rule = KroneckerPower(power, truncation, damping, explicit_max, probes)
     return Estimator(rule, Objective(predict, loss))
 
 
