@@ -17,6 +17,7 @@ import optax
 import pytest
 
 import physgrad
+import physgrad.methods.kfac  # a module of its own (kfac-jax), not imported by physgrad.methods
 from physgrad import Method, Objective
 from physgrad.methods import JacobianPower
 from physgrad.methods.lm import LevenbergMarquardt
