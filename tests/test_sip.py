@@ -314,6 +314,7 @@ print(json.dumps(out))
 """
 
 
+@pytest.mark.costly("x64 off needs a fresh interpreter: both simulators at both precisions in a user's jit")
 def test_linear_solve_sip_in_float32_and_float64_inside_a_users_jit_with_x64_off(tmp_path):
     """Issue 33: with ``precision="float64"`` lineax's solve used to be lowered after the
     float64 scope closed (dtype errors under jit). Both simulators, both precisions, against

@@ -123,6 +123,7 @@ def burgers(tmp_path_factory):
     mp.undo()
 
 
+@pytest.mark.costly("the module fixture's first user: it generates the user's exponax Burgers data for all")
 def test_a_users_exponax_stepper_is_a_solver_and_the_corrector_starts_at_it(burgers):
     problem, data = burgers
     u = data["train"]["u"][0, 0]
