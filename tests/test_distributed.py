@@ -87,12 +87,23 @@ def relative_update_difference(start, a, b):
 # SIP, the rollout policies: sbptt_c, the unrolled modalities: wig); the other methods take
 # the same paths and run in the slow tier, as does kfac (kfac-jax's own curvature blocks, compiled twice: minutes).
 FAST_SHARDED = {"adam", "hig", "sip", "sbptt_c", "wig"}
+SHARDED_COSTLY = {
+    "sip": pytest.mark.costly(
+        "the fast tier's one sharded SIP step: the U-Net and its per-sample inverse solves "
+        "compile for 1 and for 4 devices"
+    )
+}
+
+
+def _tiered(method):
+    """``method`` as a parameter of its tier: fast (with its reason where costly) or slow."""
+    if method in SHARDED_COSTLY:
+        return pytest.param(method, marks=SHARDED_COSTLY[method])
+    return method if method in FAST_SHARDED else pytest.param(method, marks=pytest.mark.slow)
 
 
 @needs_devices
-@pytest.mark.parametrize(
-    "method", [m if m in FAST_SHARDED else pytest.param(m, marks=pytest.mark.slow) for m in sorted(METHODS)]
-)
+@pytest.mark.parametrize("method", [_tiered(m) for m in sorted(METHODS)])
 def test_every_method_sharded_over_4_devices_gives_the_single_device_update(method):
     problem, settings = problem_for(method)
     start, single, loss1 = one_step(problem, method, settings, 1)

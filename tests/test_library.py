@@ -117,8 +117,10 @@ def test_mlp_takes_its_activation_as_a_function_and_names_are_deprecated():
 
 def test_routes_are_interchangeable_objects():
     params, predict, loss, batches = pieces()
+    # Each estimate compiled as one program (eagerly, each operation compiles on its own: twice
+    # the CPU); test_jit_estimators checks that a jitted estimate equals the eager one.
     directions = [
-        ravel_pytree(physgrad.hig(predict, loss, route=route)(params, batches[0])[0])[0]
+        ravel_pytree(jax.jit(physgrad.hig(predict, loss, route=route))(params, batches[0])[0])[0]
         for route in (
             physgrad.routes.SVD(),
             physgrad.routes.Gram(),

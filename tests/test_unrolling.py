@@ -130,6 +130,10 @@ def hand_loop(problem, net_fn, batch, m, mode):
         pytest.param("correction", "nog", marks=pytest.mark.slow),
     ],
 )
+@pytest.mark.costly(
+    "each case compiles a KS rollout's gradient and the hand-written loop's; the first also "
+    "generates the module's KS data (exponax)"
+)
 def test_modalities_on_ks_equal_hand_written_loops(setup_name, method):
     settings = {"frames": 40, "warmup_frames": 20, "n_ics": 1, "n_test": 1, "long_horizon": 12, "width": 4,
                 "blocks": 1, "dataset_fraction": 1.0, "setup": setup_name}  # fmt: skip

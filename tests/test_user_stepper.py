@@ -123,6 +123,7 @@ def burgers(tmp_path_factory):
     mp.undo()
 
 
+@pytest.mark.costly("the module fixture's first user: it generates the user's exponax Burgers data for all")
 def test_a_users_exponax_stepper_is_a_solver_and_the_corrector_starts_at_it(burgers):
     problem, data = burgers
     u = data["train"]["u"][0, 0]
@@ -161,7 +162,9 @@ def test_one_nog_wig_of_a_users_exponax_corrector_are_the_hand_written_gradients
     net = eqx.tree_at(lambda n: n.layers[2].weight, net, 0.1 * jnp.ones_like(net.layers[2].weight))  # off zero
     batch = jax.tree.map(lambda a: a[:8], data["train"])
     direction, stats = eqx.filter_jit(estimate)(net, batch)
-    loss, expected = eqx.filter_value_and_grad(_hand_rollout_loss)(net, batch, modality)
+    # the hand-written loop compiled as one program (eagerly, each exponax operation of the
+    # rollout and its gradient compiles on its own)
+    loss, expected = eqx.filter_jit(eqx.filter_value_and_grad(_hand_rollout_loss))(net, batch, modality)
     assert float(stats["loss"]) == pytest.approx(float(loss), rel=1e-5) and bool(jnp.all(stats["solver_ok"]))
     for got, want in zip(jax.tree.leaves(direction), jax.tree.leaves(expected)):
         np.testing.assert_allclose(got, want, rtol=2e-4, atol=1e-7 * float(jnp.max(jnp.abs(want))))
