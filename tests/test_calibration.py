@@ -156,10 +156,8 @@ def test_the_cpu_clock_does_not_count_a_wait_and_the_record_names_its_clock(monk
 
     from physgrad.errors import ConfigError
 
-    def busy():  # ~20 ms of Python arithmetic
-        t0, x = time.perf_counter(), 0
-        while time.perf_counter() - t0 < 0.02:
-            x += 1
+    def busy():  # a fixed amount of Python arithmetic (~10-20 ms of CPU), however loaded the machine
+        return sum(i * i for i in range(200_000)) and None
 
     def programs(config):
         return [busy if config.phases[0].method == "adam" else (lambda: time.sleep(0.02))], [0.0], []
@@ -172,7 +170,7 @@ def test_the_cpu_clock_does_not_count_a_wait_and_the_record_names_its_clock(monk
     cost = {name: {m: r["methods"][m]["stages"][0]["seconds"] for m in ("adam", "hig")} for name, r in records.items()}
     assert records["cpu"]["clock"] == "cpu" and records["wall"]["clock"] == "wall"
     assert cost["wall"]["hig"] >= 0.02 and cost["cpu"]["hig"] < 0.005  # the wait is not the step's work
-    assert cost["wall"]["adam"] >= 0.02 and cost["cpu"]["adam"] > 0.005  # the work is (a loaded core: less of it)
+    assert cost["cpu"]["adam"] > 0.002 and cost["wall"]["adam"] >= 0.5 * cost["cpu"]["adam"]  # the work counts
     monkeypatch.setenv("PHYSGRAD_CALIBRATION_CLOCK", "sundial")
     with pytest.raises(ConfigError, match="choose one of wall, cpu"):
         calibrate(configs("hig_toy", ["adam"]), repeats=1, programs=programs, echo=lambda line: None)

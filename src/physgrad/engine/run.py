@@ -323,7 +323,9 @@ def _run(request: Request, *, placement: Placement, progress: AbstractProgressMe
     recorder = Recorder(setup, settings=settings, placement=placement, fidelity=fidelity, log=log,
                         callbacks=request.callbacks)  # fmt: skip
     evaluated = recorder.restore(log.kept)
-    if steps is None:
+    if steps is None:  # nothing to train (a finished run's deleted files): its earlier CPU counts stand
+        before = (read_summary(run_dir) if run_dir is not None else None) or {}
+        state = state._replace(cpu_seconds=before.get("cpu_seconds") or 0.0, cpu_steps=before.get("cpu_steps") or 0)
         ending = _evaluated(Ending(state, setup, "finished"), recorder=recorder, evaluated=evaluated)
     else:
         strategies = Strategies(StopRule(budget, setup, settings.wall_cap), EvalSchedule(settings), placement, steps, fidelity, recorder,
