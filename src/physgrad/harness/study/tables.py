@@ -21,6 +21,7 @@ SUMMARY_COLUMNS = (
     "compile_seconds", "run_dir", "calibrated_seconds", "calibrated_ms_per_step", "wall_capped",
     "cpu_time_per_step", "calibration_clock",
 )  # fmt: skip
+CPU_COLUMNS = ("cpu_time_per_step", "calibration_clock")  # SUMMARY_COLUMNS' last, added with the CPU clock
 RESULT_COLUMNS = ("problem", "method", "seed", "step", "wall_time", "split", "metric", "value", "calibrated_time")
 
 
@@ -61,7 +62,10 @@ def collect(out: str | Path) -> list[dict[str, Any]]:
             raise ConfigError(f"{run_dir / 'metrics.csv'} cannot be read ({type(e).__name__}); "
                               f"{rundir.RUN_DAMAGED}") from None  # fmt: skip
         results += [{**ident, **r, **({"calibrated_time": clock(r["step"])} if clock else {})} for r in metrics]
-    write_csv(out / "summary.csv", SUMMARY_COLUMNS, rows)
+    # the in-run CPU columns only where a run measured one: a study collected again before
+    # them (a committed one) keeps its table as it was
+    timed = any(r.get("cpu_time_per_step") is not None for r in rows)
+    write_csv(out / "summary.csv", SUMMARY_COLUMNS if timed else SUMMARY_COLUMNS[: -len(CPU_COLUMNS)], rows)
     write_csv(out / "results.csv", RESULT_COLUMNS, results)
     return rows
 
