@@ -63,10 +63,9 @@ import optax
 from jaxtyping import Array
 
 from ..precision import float64_scope, to_float64
-from ..routes import JointJacobian, structured
 from ..routes.base import DenseUse
-from .base import Objective, trainable
-from .kronecker_hig import BlockSpectrum, KroneckerPower, kept_power, kronecker_factors, layer_gradient
+from .base import trainable
+from .kronecker_hig import BlockSpectrum, KroneckerPower, dense_signals, kept_power, kronecker_factors, layer_gradient
 from .method import AbstractControl, AbstractOptaxMethod
 
 _F64 = 8
@@ -207,9 +206,7 @@ def layer_corrections(predict, params, batch) -> list[tuple[int, Array, Array, A
     """``[(weight leaf, U_G, U_A, Λ)]`` for every dense layer that KHIG sees in ``predict``,
     with this batch's bases, computed as the method computes them (float64; for inspection
     and tests). ``params``: arrays only."""
-    structure = JointJacobian.of(Objective(predict), params, batch).structure
-    block, _ = structured.factors(structure, params, batch, groups=())
-    block = jax.lax.stop_gradient(block)
+    structure, block = dense_signals(predict, params, batch)
     out = []
     with float64_scope():
         for use, D, a in zip(structure.dense, block.D, block.A):

@@ -405,13 +405,20 @@ class LayerFactors(NamedTuple):
     G: Array
 
 
+def dense_signals(predict, params: PyTree, batch: PyTree):
+    """``(structure, block)``: the dense layers :func:`kronecker_hig` sees in ``predict`` and
+    their back-propagated signals D and inputs A for this batch (gradient stopped), as the rule
+    computes them; what :func:`layer_factors` and the eigenvalue-corrected form inspect."""
+    structure = JointJacobian.of(Objective(predict), params, batch).structure
+    block, _ = structured.factors(structure, params, batch, groups=())
+    return structure, jax.lax.stop_gradient(block)
+
+
 def layer_factors(predict, params: PyTree, batch: PyTree) -> list[LayerFactors]:
     """The Kronecker factors ``A = Σ_i ā_i ā_iᵀ`` and ``G = Σ_i D_iᵀ D_i`` of every dense layer
     that :func:`kronecker_hig` sees in ``predict`` for this batch (``params``: arrays only),
     in program order; for inspection and tests, computed as the rule computes them."""
-    structure = JointJacobian.of(Objective(predict), params, batch).structure
-    block, _ = structured.factors(structure, params, batch, groups=())
-    block = jax.lax.stop_gradient(block)
+    structure, block = dense_signals(predict, params, batch)
     out = []
     with float64_scope():
         for use, D, a in zip(structure.dense, block.D, block.A):

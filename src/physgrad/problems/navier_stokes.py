@@ -133,6 +133,12 @@ def _spelt(setting: str, accepts: Callable[[Any], bool], expected: str) -> Calla
     return convert
 
 
+def _strategy(setting: str, kind: type, default: Any, expected: str) -> Any:
+    """A static strategy field of class ``kind`` (default ``default``), converted by
+    :func:`_spelt` (a deprecated name becomes its object)."""
+    return eqx.field(static=True, default=default, converter=_spelt(setting, lambda v: isinstance(v, kind), expected))
+
+
 def _cache_word(setting: str, value: Any) -> Any:
     """``value``'s word in the data cache's key: its earlier spelling, else its repr."""
     for word, known in _SPELLINGS.get(setting, {}).items():
@@ -190,33 +196,18 @@ class NavierStokes(AbstractProblem):
     # the pressure solve (FFTProjection(), exact; CGProjection(), the authors'), MacCormack's
     # limiter (FaceLimiter(); CellLimiter(), PhiFlow's), physgrad.problems.sim.fluid, and the
     # code that runs the training's steps (fluid.JaxFluid(); phiflow.PhiFlowFluid())
-    projection: fluid.AbstractPressureSolver = eqx.field(
-        static=True,
-        default=fluid.FFTProjection(),
-        converter=_spelt(
-            "projection",
-            lambda v: isinstance(v, fluid.AbstractPressureSolver),
-            "FFTProjection() or CGProjection() (physgrad.problems.sim.fluid)",
-        ),
-    )
-    limiter: fluid.AbstractLimiter = eqx.field(
-        static=True,
-        default=fluid.FaceLimiter(),
-        converter=_spelt(
-            "limiter",
-            lambda v: isinstance(v, fluid.AbstractLimiter),
-            "FaceLimiter() or CellLimiter() (physgrad.problems.sim.fluid)",
-        ),
-    )
-    simulator: fluid.AbstractFluid = eqx.field(
-        static=True,
-        default=fluid.JaxFluid(),
-        converter=_spelt(
-            "simulator",
-            lambda v: isinstance(v, fluid.AbstractFluid),
-            "JaxFluid() (physgrad.problems.sim.fluid) or PhiFlowFluid() (physgrad.problems.sim.phiflow)",
-        ),
-    )
+    projection: fluid.AbstractPressureSolver = _strategy(
+        "projection", fluid.AbstractPressureSolver, fluid.FFTProjection(),
+        "FFTProjection() or CGProjection() (physgrad.problems.sim.fluid)",
+    )  # fmt: skip
+    limiter: fluid.AbstractLimiter = _strategy(
+        "limiter", fluid.AbstractLimiter, fluid.FaceLimiter(),
+        "FaceLimiter() or CellLimiter() (physgrad.problems.sim.fluid)",
+    )  # fmt: skip
+    simulator: fluid.AbstractFluid = _strategy(
+        "simulator", fluid.AbstractFluid, fluid.JaxFluid(),
+        "JaxFluid() (physgrad.problems.sim.fluid) or PhiFlowFluid() (physgrad.problems.sim.phiflow)",
+    )  # fmt: skip
     levels: int = eqx.field(static=True, default=5)
     filters: int = eqx.field(static=True, default=16)
     activation: Callable[[jax.Array], jax.Array] = eqx.field(
