@@ -110,3 +110,15 @@ def test_a_stage_refusal_keeps_its_cause_for_the_command_line():
     assert words.command_line_words(error) == (
         "wig on ks: this method differentiates through the solver, which is not differentiable; use nog or one"
     )
+
+
+def test_prdp_on_a_composition_without_a_solver_names_compositions():
+    from physgrad.errors import NotRefinable
+    from physgrad.problems import Advection1d
+    from physgrad.problems.sim.steppers import Parallel, Prediction
+
+    Advection1d(composition=Parallel(1.0)).check_refinable()
+    with pytest.raises(NotRefinable) as info:
+        Advection1d(composition=Prediction()).check_refinable()
+    assert "Prediction()" in str(info.value) and "setup" not in str(info.value)
+    assert words.command_line_words(info.value) == "prdp refines the solver of a correction setup; use setup=correction"

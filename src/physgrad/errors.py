@@ -132,6 +132,19 @@ class SolverNotDifferentiable(ConfigError):
         )
 
 
+class NotRefinable(ConfigError):
+    """PRDP asked of a problem whose solver is not stepped: its ``composition`` (a
+    time-stepper's :class:`~physgrad.problems.sim.steppers.AbstractComposition`, as given)
+    runs no solver to refine."""
+
+    def __init__(self, composition: Any):
+        self.composition = composition
+        super().__init__(
+            f"prdp refines the solver the composition steps, and {composition!r} steps none; "
+            "use a composition that runs the solver (Parallel, Sequential or Bypass)"
+        )
+
+
 class MethodRefused(ConfigError):
     """A method (``label``) refuses a problem (named ``problem``); ``cause`` is its own
     one-line error, kept so the command line can write it in its words."""

@@ -187,6 +187,8 @@ class Fidelity:
         if settings.prdp:
             try:
                 problem.check_refinable()
+            except ConfigError:  # a typed refusal (errors.NotRefinable) keeps its type and fields
+                raise
             except ValueError as e:
                 raise ConfigError(str(e)) from None
         if settings.prdp and (settings.prdp_start < 1 or settings.prdp_increment < 1):

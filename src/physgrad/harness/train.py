@@ -30,12 +30,13 @@ from ..engine import (
 from ..engine.programs import ProgramCache
 from ..engine.progress import AbstractProgressMeter
 from ..engine.record import differences
-from ..errors import RunDirectoryRefused
+from ..errors import NotRefinable, RunDirectoryRefused
 from ..problems.direct import DirectOptimisation
 from .config import ConfigError, RunConfig
 from .objects import devices as edge_devices
 from .objects import make_problem
 from .registry import METHODS, PROBLEMS
+from .words import command_line_words
 
 
 def problem_of(config: RunConfig, overrides: dict[str, Any] | None = None):
@@ -112,11 +113,14 @@ def train(
     if config.settings.prdp and PROBLEMS[config.problem].refinable_setting is None:
         valid = [name for name, cls in PROBLEMS.items() if cls.refinable_setting]
         raise ConfigError(f"prdp needs a problem with an iterative solver; valid choices: {', '.join(valid)}")
-    return fit(
-        problem_of(config), phases_of(config), budget=config.budget, out=run_dir, seed=config.seed,
-        settings=settings_of(config), resume=resume, progress=progress, devices=edge_devices(devices),
-        record=config.to_dict(), same_run=lambda old: _same_run(old, config), name=config.method,
-    ).summary  # fmt: skip
+    try:
+        return fit(
+            problem_of(config), phases_of(config), budget=config.budget, out=run_dir, seed=config.seed,
+            settings=settings_of(config), resume=resume, progress=progress, devices=edge_devices(devices),
+            record=config.to_dict(), same_run=lambda old: _same_run(old, config), name=config.method,
+        ).summary  # fmt: skip
+    except NotRefinable as e:  # refused before any work; the remedy is a setting of the command line's
+        raise ConfigError(command_line_words(e)) from None
 
 
 def load_network(run_dir: str | Path, like=None):

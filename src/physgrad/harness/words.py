@@ -22,6 +22,7 @@ from ..errors import (
     MethodRefused,
     MissingPieces,
     NoBudget,
+    NotRefinable,
     PathRefused,
     ProcessesInvalid,
     RunDirectoryExists,
@@ -79,6 +80,8 @@ _LINES: dict[type, Callable] = {
     DoesNotFit: lambda e: e.before if e.devices is None else f"{e.before}{_devices(e.devices)}{e.after}",
     MissingPieces: _missing,
     SolverNotDifferentiable: _not_differentiable,
+    # the command line picks a time-stepper's composition by its setup setting (harness.objects)
+    NotRefinable: lambda e: "prdp refines the solver of a correction setup; use setup=correction",
     MethodRefused: lambda e: f"{e.label} on {e.problem}: {command_line_words(e.cause)}",
     PathRefused: lambda e: e.template.format(argument=FLAGS.get(e.argument, e.argument), **e.values),
 }

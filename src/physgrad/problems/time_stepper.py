@@ -49,6 +49,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import loops
+from ..errors import NotRefinable
 from ..rollout import System
 from .base import AbstractProblem
 from .sim.cache import cached_arrays
@@ -277,7 +278,7 @@ class AbstractTimeStepper(AbstractProblem):
 
     def check_refinable(self):
         if not self.composition.uses_solver:
-            raise ValueError("prdp refines the solver of a correction setup; use setup=correction")
+            raise NotRefinable(self.composition)
 
     def objective(self, static):
         """The open-loop pieces, the rollout over the problem's m steps and the unrolled
