@@ -224,19 +224,19 @@ def test_readme_example(fresh):
 def test_layout_is_physgrads_lower_faces():
     """PhiFlow's periodic staggered x-values sit at (iΔx, (j+½)Δx), as fluid.py's."""
     domain = phiflow.Domain((4, 4), DX)
-    points = phiflow.wrap(lambda v: v.points, domain, ["staggered"], "array")(jnp.zeros((2, 4, 4)))
+    points = phiflow.wrap(lambda v: v.points, domain, [phiflow.Staggered()], phiflow.Plain())(jnp.zeros((2, 4, 4)))
     # PhiML order: (~vector: the component, x, y, vector: the coordinate)
     for component in range(2):
         want = fluid.sample_points(4, DX, fluid.STAGGERED[component])
         np.testing.assert_allclose(np.moveaxis(np.asarray(points[component]), -1, 0), want, atol=1e-5)
     ramp = jnp.arange(32.0).reshape(2, 4, 4)
-    back = phiflow.wrap(lambda v: v, domain, ["staggered"], "staggered")(ramp)
+    back = phiflow.wrap(lambda v: v, domain, [phiflow.Staggered()], phiflow.Staggered())(ramp)
     np.testing.assert_array_equal(back, ramp)
 
 
 def test_wrapped_functions_are_reverse_only_and_gauss_newton_sees_it():
     assert jacobian.is_reverse_only(phiflow.rollout) and jacobian.is_reverse_only(phiflow.step)
-    double = phiflow.wrap(lambda c: c * 2.0, phiflow.Domain((4, 4), DX), ["centered"], "centered")
+    double = phiflow.wrap(lambda c: c * 2.0, phiflow.Domain((4, 4), DX), [phiflow.Centered()], phiflow.Centered())
     assert jacobian.is_reverse_only(double)
 
     def forward(x_flat):  # a problem's closure: no mark to see, the JVP probe decides
@@ -253,13 +253,36 @@ def test_wrapped_functions_are_reverse_only_and_gauss_newton_sees_it():
 def test_a_default_solve_is_refused_in_one_line():
     flow = phiflow.import_phiflow()
     project = phiflow.wrap(
-        lambda v: flow.fluid.make_incompressible(v)[0], phiflow.Domain((4, 4), DX), ["staggered"], "staggered"
+        lambda v: flow.fluid.make_incompressible(v)[0],
+        phiflow.Domain((4, 4), DX),
+        [phiflow.Staggered()],
+        phiflow.Staggered(),
     )
     with pytest.raises(ValueError, match=r"^a PhiFlow solve ran with method 'scipy-direct'.*Solve\('CG'") as info:
         jax.eval_shape(project, jnp.zeros((2, 4, 4)))
     assert "\n" not in str(info.value)
     with pytest.raises(ValueError, match="unknown array kind"):
-        phiflow.wrap(lambda c: c, phiflow.Domain((4, 4), DX), ["cell"], "centered")
+        phiflow.wrap(lambda c: c, phiflow.Domain((4, 4), DX), ["cell"], phiflow.Centered())
+
+
+def test_the_strings_of_0_1_0_are_their_objects_with_a_warning():
+    """``"centered"``, ``"staggered"``, ``"vector"``, ``"array"`` and ``boundary="zero"`` (and
+    the other boundaries) still work for one release, each as its object."""
+    with pytest.warns(DeprecationWarning, match=r"kind='centered' is deprecated; pass .*Centered\(\)"):
+        double = phiflow.wrap(lambda c: c * 2.0, phiflow.Domain((4, 4), DX), ["centered"], "centered")
+    assert double.inputs == (phiflow.Centered(),) and double.outputs == phiflow.Centered()
+    for spelling, kind in phiflow.KINDS.items():
+        with pytest.warns(DeprecationWarning, match=spelling):
+            function = phiflow.PhiFlowFunction(lambda a: a, phiflow.Domain((4,), DX), (spelling,), (spelling,))  # type: ignore[arg-type]
+            assert function.inputs == (kind,) and function.outputs == (kind,)
+    for spelling, boundary in phiflow.BOUNDARIES.items():
+        with pytest.warns(DeprecationWarning, match=f"boundary='{spelling}'"):
+            assert phiflow.Domain((4, 4), DX, spelling) == phiflow.Domain((4, 4), DX, boundary)  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="unknown boundary 'wall'"):
+        phiflow.Domain((4, 4), DX, "wall")  # type: ignore[arg-type]
+    centred = phiflow.Domain((4, 4), DX, phiflow.Zero())
+    with pytest.raises(ValueError, match="periodic domains only"):
+        phiflow.wrap(lambda v: v, centred, [phiflow.Staggered()], phiflow.Staggered())(jnp.zeros((2, 4, 4)))
 
 
 # --- (b) the process's configuration ---------------------------------------------------------------

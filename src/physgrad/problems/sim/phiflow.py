@@ -5,11 +5,13 @@ simulations as functions of ``CenteredGrid`` / ``StaggeredGrid`` fields. This mo
 such a function into a per-sample function of plain JAX arrays, so it can be a physgrad
 simulator (``simulate(x, sample)``) under ``jax.jit``, ``jax.vmap`` and ``jax.grad``:
 
-- :func:`wrap` (:class:`PhiFlowFunction`): ``wrap(fn, Domain((n, n), dx), inputs=("centered",
-  "staggered"), outputs=("centered", "staggered"))`` gives ``f(marker, velocity) ->
+- :func:`wrap` (:class:`PhiFlowFunction`): ``wrap(fn, Domain((n, n), dx), inputs=(Centered(),
+  Staggered()), outputs=(Centered(), Staggered()))`` gives ``f(marker, velocity) ->
   (marker, velocity)`` on arrays. Array layouts are :mod:`physgrad.problems.sim.fluid`'s (PhiFlow's
   own, checked in the tests): axis 0 is x, axis 1 is y; a staggered velocity is ``(d, *n)``
-  with component a on the *lower* a-faces of the cells (periodic grids only).
+  with component a on the *lower* a-faces of the cells (periodic grids only). The kinds and
+  the domain's boundary (:class:`Periodic`, :class:`Zero`, :class:`ZeroGradient`) are objects
+  (:mod:`physgrad.problems.sim.phiflow_fields`).
 - :func:`step` and :func:`rollout`: the SIP paper's inviscid fluid step written with
   PhiFlow (``advect.mac_cormack``, ``fluid.make_incompressible`` with an explicit
   ``Solve('CG', 0, tol)`` warm started from the previous pressure, energy rescale, marker
@@ -37,7 +39,7 @@ Limits:
   (tens of seconds for a jitted gradient of the fluid on one CPU core, whatever the grid
   size). A wrapped function is traced once per (function, input shapes and dtypes) and
   replayed from a cached jaxpr afterwards, so ``fn`` must be pure and must not close over
-  traced arrays (pass them as ``"array"`` inputs); :func:`rollout` traces one step inside
+  traced arrays (pass them as :class:`Plain` inputs); :func:`rollout` traces one step inside
   ``lax.scan``. ``dx``, ``dt`` and the grid size must be Python numbers.
 - Precision follows the inputs: float64 arrays (x64 on) run PhiML at 64 bits, anything
   else at 32 bits.
@@ -82,7 +84,7 @@ import importlib.util
 import threading
 import warnings
 from collections.abc import Callable
-from typing import ClassVar
+from typing import Any, ClassVar
 
 import equinox as eqx
 import jax
@@ -91,11 +93,23 @@ import jax.numpy as jnp
 
 from ...jacobian import mark_reverse_only
 from .fluid import AbstractFluid, unroll
+from .phiflow_fields import (
+    BOUNDARIES,
+    KINDS,
+    AbstractBoundary,
+    AbstractKind,
+    Centered,
+    Domain,
+    Periodic,
+    Plain,
+    Staggered,
+    Vector,
+    Zero,
+    ZeroGradient,
+    kind_of,
+)
 
 INSTALL_HINT = "PhiFlow is not installed; install it with `pip install physgrad[phiflow]` (phiflow>=3.4, phiml>=1.16)"
-KINDS = ("centered", "staggered", "vector", "array")
-BOUNDARIES = ("periodic", "zero", "zero_gradient")
-AXES = "xyz"
 
 _LOCK = threading.Lock()
 _FLOW = None
@@ -160,89 +174,11 @@ def phiflow_available() -> bool:
     return importlib.util.find_spec("phi") is not None and importlib.util.find_spec("phiml") is not None
 
 
-# --- domains and array <-> field conversion ---------------------------------------------------
-class Domain(eqx.Module):
-    """A uniform grid of ``resolution`` cells of size ``dx`` with origin 0, axes x, y(, z).
-
-    ``boundary``: ``"periodic"`` (needed by staggered fields), ``"zero"`` or
-    ``"zero_gradient"`` (centred fields only)."""
-
-    resolution: tuple[int, ...] = eqx.field(static=True)
-    dx: float = eqx.field(static=True)
-    boundary: str = eqx.field(static=True, default="periodic")
-
-    def __check_init__(self):
-        if not 1 <= len(self.resolution) <= 3:
-            raise ValueError(f"a Domain has 1 to 3 axes, got resolution {self.resolution}")
-        if self.boundary not in BOUNDARIES:
-            raise ValueError(f"unknown boundary {self.boundary!r}; valid choices: {', '.join(BOUNDARIES)}")
-
-    @property
-    def axes(self) -> str:
-        return AXES[: len(self.resolution)]
-
-    def grid_kwargs(self, flow) -> dict:
-        """PhiFlow's keywords for ``CenteredGrid(values, **kwargs)`` / ``StaggeredGrid``."""
-        extrapolation = {
-            "periodic": flow.extrapolation.PERIODIC,
-            "zero": flow.extrapolation.ZERO,
-            "zero_gradient": flow.extrapolation.ZERO_GRADIENT,
-        }[self.boundary]
-        sizes = dict(zip(self.axes, self.resolution))
-        bounds = flow.Box(**{a: n * self.dx for a, n in sizes.items()})
-        return dict(extrapolation=extrapolation, bounds=bounds, **sizes)
-
-
-def to_field(flow, kind: str, array, domain: Domain):
-    """A per-sample array as the PhiFlow object of ``kind`` (``"array"``: as it is)."""
-    math = flow.math
-    axes = ",".join(domain.axes)
-    if kind == "array":
-        return array
-    if kind == "centered":
-        _check_shape(array, domain.resolution, kind)
-        return flow.CenteredGrid(math.tensor(array, flow.spatial(axes)), **domain.grid_kwargs(flow))
-    _check_shape(array, (len(domain.axes), *domain.resolution), kind)
-    values = math.tensor(array, flow.channel(vector=axes), flow.spatial(axes))
-    if kind == "vector":
-        return flow.CenteredGrid(values, **domain.grid_kwargs(flow))
-    if domain.boundary != "periodic":
-        raise ValueError(
-            "staggered arrays are supported on periodic domains only (other boundaries add a face per axis)"
-        )
-    return flow.StaggeredGrid(values, **domain.grid_kwargs(flow))
-
-
-def from_field(flow, kind: str, value, domain: Domain):
-    """The per-sample JAX array of a PhiFlow result of ``kind``."""
-    axes = list(domain.axes)
-    if kind == "array":
-        if isinstance(value, flow.math.Tensor):
-            return value.native(value.shape.names)
-        return jnp.asarray(value)
-    if not isinstance(value, flow.Field):
-        raise ValueError(f"expected a PhiFlow Field for output kind {kind!r}, got {type(value).__name__}")
-    if kind == "staggered":
-        if not value.is_staggered:
-            raise ValueError("output kind 'staggered' needs a StaggeredGrid; got a centred field")
-        return value.values.native(["~vector", *axes])
-    if value.is_staggered:
-        raise ValueError(f"output kind {kind!r} needs a CenteredGrid; got a StaggeredGrid")
-    if kind == "vector":
-        return value.values.native(["vector", *axes])
-    return value.values.native(axes)
-
-
-def _check_shape(array, shape, kind):
-    if tuple(array.shape) != tuple(shape):
-        raise ValueError(f"a {kind!r} array on this domain has shape {tuple(shape)}, got {tuple(array.shape)}")
-
-
 # --- the adapter -----------------------------------------------------------------------------
 class PhiFlowFunction(eqx.Module):
     """A PhiFlow function of fields as a pure per-sample JAX function of arrays.
 
-    ``f(*arrays)`` converts each array by its ``inputs`` kind (:data:`KINDS`), calls
+    ``f(*arrays)`` converts each array by its ``inputs`` kind (:class:`Centered`, ...), calls
     ``fn(*fields)`` under PhiML's JAX backend at the inputs' precision, and converts the
     result(s) back by ``outputs`` (a kind: one array; a tuple of kinds: a tuple). Usable under
     ``jit``, ``vmap`` (vmap outside: the function sees one sample), ``grad``, ``jacrev``;
@@ -250,17 +186,17 @@ class PhiFlowFunction(eqx.Module):
 
     fn: Callable = eqx.field(static=True)
     domain: Domain = eqx.field(static=True)
-    inputs: tuple[str, ...] = eqx.field(static=True)
-    outputs: str | tuple[str, ...] = eqx.field(static=True)
+    inputs: tuple[AbstractKind, ...] = eqx.field(static=True)
+    outputs: AbstractKind | tuple[AbstractKind, ...] = eqx.field(static=True)
     explicit_solve: bool = eqx.field(static=True, default=True)
 
     reverse_only: ClassVar[bool] = True  # read by physgrad.jacobian.is_reverse_only
 
-    def __check_init__(self):
-        kinds = tuple(self.inputs) + ((self.outputs,) if isinstance(self.outputs, str) else tuple(self.outputs))
-        for kind in kinds:
-            if kind not in KINDS:
-                raise ValueError(f"unknown array kind {kind!r}; valid choices: {', '.join(KINDS)}")
+    def __post_init__(self):
+        # kinds as objects; a string (physgrad 0.1.0's spelling) becomes its object with a warning
+        self.inputs = tuple(kind_of(k) for k in self.inputs)
+        outputs: Any = self.outputs
+        self.outputs = kind_of(outputs) if isinstance(outputs, (AbstractKind, str)) else tuple(map(kind_of, outputs))
 
     def __call__(self, *arrays):
         if len(arrays) != len(self.inputs):
@@ -273,14 +209,14 @@ class PhiFlowFunction(eqx.Module):
         boundary: differentiate :meth:`__call__` instead)."""
         flow = import_phiflow()
         with phiml_scope(arrays), _SolveRecorder() as solves:
-            fields = [to_field(flow, kind, a, self.domain) for a, kind in zip(arrays, self.inputs)]
+            fields = [kind.to_field(flow, a, self.domain) for a, kind in zip(arrays, self.inputs)]
             result = self.fn(*fields)
-            if isinstance(self.outputs, str):
-                out = from_field(flow, self.outputs, result, self.domain)
+            if isinstance(self.outputs, AbstractKind):
+                out = self.outputs.from_field(flow, result, self.domain)
             else:
                 if not isinstance(result, (tuple, list)) or len(result) != len(self.outputs):
                     raise ValueError(f"the PhiFlow function must return {len(self.outputs)} values ({self.outputs})")
-                out = tuple(from_field(flow, k, r, self.domain) for k, r in zip(self.outputs, result))
+                out = tuple(k.from_field(flow, r, self.domain) for k, r in zip(self.outputs, result))
         if self.explicit_solve:
             for requested, used in solves.methods:
                 if requested == "auto" or requested.startswith("scipy-"):
@@ -370,14 +306,14 @@ def wrap(fn: Callable, domain: Domain, inputs, outputs, *, explicit_solve: bool 
     Arguments:
         fn: a PhiFlow function of fields (closures or ``functools.partial`` carry constants).
         domain: the :class:`Domain` every field lives on.
-        inputs: one kind per argument: ``"centered"`` (array ``(*n)``), ``"staggered"``
-            (``(d, *n)``, lower faces, periodic), ``"vector"`` (centred vector ``(d, *n)``)
-            or ``"array"`` (any JAX array, passed to ``fn`` as it is).
-        outputs: a kind (one array returned) or a tuple of kinds.
+        inputs: one kind per argument: :class:`Centered` (array ``(*n)``), :class:`Staggered`
+            (``(d, *n)``, lower faces, periodic), :class:`Vector` (centred vector ``(d, *n)``)
+            or :class:`Plain` (any JAX array, passed to ``fn`` as it is).
+        outputs: a kind (one array returned) or a sequence of kinds (a tuple returned).
         explicit_solve: raise ``ValueError`` when ``fn`` runs a PhiFlow solve with the default
             method (``'auto'``) or a host-side ``'scipy-*'`` one.
     """
-    outputs = outputs if isinstance(outputs, str) else tuple(outputs)
+    outputs = kind_of(outputs) if isinstance(outputs, (AbstractKind, str)) else tuple(outputs)
     return PhiFlowFunction(fn, domain, tuple(inputs), outputs, explicit_solve)
 
 
@@ -440,8 +376,8 @@ def step_function(n: int, dt: float, dx: float, solver_tol: float = 1e-4) -> Phi
     return wrap(
         _Step(float(dt), float(solver_tol)),
         Domain((n, n), float(dx)),
-        inputs=("centered", "staggered", "centered"),
-        outputs=("centered", "staggered", "centered"),
+        inputs=(Centered(), Staggered(), Centered()),
+        outputs=(Centered(), Staggered(), Centered()),
     )
 
 
@@ -481,7 +417,18 @@ class PhiFlowFluid(AbstractFluid):
 
 
 __all__ = [
+    "BOUNDARIES",
+    "KINDS",
+    "AbstractBoundary",
+    "AbstractKind",
+    "Centered",
     "Domain",
+    "Periodic",
+    "Plain",
+    "Staggered",
+    "Vector",
+    "Zero",
+    "ZeroGradient",
     "PhiFlowFluid",
     "PhiFlowFunction",
     "import_phiflow",
