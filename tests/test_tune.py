@@ -85,6 +85,21 @@ def test_a_direct_optimisation_problem_is_validated_on_its_objective():
         held_out_count(1, 0.2)
 
 
+def test_prdp_refines_the_solver_of_the_problem_a_trial_wraps():
+    """A tuning trial with prdp on trains its Validation wrapper; PRDP reads and refines the
+    wrapped problem's iteration count (it used to be refused: the wrapper declared none)."""
+    from physgrad.engine import TrainSettings
+    from physgrad.engine.strategies import Fidelity
+
+    inner = PROBLEMS["advection_1d"](iterations=12)
+    wrapped = Validation(inner, 0.2)
+    fidelity = Fidelity.of(wrapped, TrainSettings(prdp=True, prdp_start=3))
+    assert (fidelity.name, fidelity.full) == ("iterations", 12)
+    refined = wrapped.with_refined(3)
+    assert isinstance(refined, Validation) and refined.holdout == 0.2
+    assert refined.problem.iterations == 3 and inner.iterations == 12
+
+
 def test_successive_halving_rungs():
     assert SuccessiveHalving(3, 3).rungs(90) == [10, 30, 90]
     assert SuccessiveHalving(2, 2).rungs(40) == [20, 40]

@@ -181,6 +181,7 @@ class Fidelity:
 
     @classmethod
     def of(cls, problem: AbstractProblem, settings: TrainSettings) -> Fidelity:
+        problem = problem.refinable_problem()
         name = problem.refinable_setting
         if settings.prdp and name is None:
             raise ConfigError("prdp needs a problem with an iterative solver (one that declares refinable_setting)")
@@ -223,9 +224,9 @@ class Fidelity:
         if not self.settings.prdp:
             return setup
         name, k = self._setting()[0], self._controller(state)["K"]
-        if getattr(setup.problem, name) == k:
+        if getattr(setup.problem.refinable_problem(), name) == k:
             return setup
-        return setup.with_problem(dataclasses.replace(setup.problem, **{name: k}))
+        return setup.with_problem(setup.problem.with_refined(k))
 
     def observe(self, state: TrainState, error: float) -> TrainState:
         s = self.settings

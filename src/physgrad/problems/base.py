@@ -124,6 +124,17 @@ class AbstractProblem(eqx.Module):
     def check_refinable(self) -> None:
         """Raise ``ValueError`` if this instance's solver cannot be refined (PRDP)."""
 
+    def refinable_problem(self) -> AbstractProblem:
+        """The problem whose ``refinable_setting`` PRDP reads and checks: this one, or the one a
+        wrapper trains (:class:`physgrad.problems.validation.Validation`)."""
+        return self
+
+    def with_refined(self, k: int) -> AbstractProblem:
+        """This problem with its refinable problem's setting at ``k`` (what PRDP trains on next)."""
+        name = self.refinable_setting
+        assert name is not None, "only for a problem that declares refinable_setting"
+        return dataclasses.replace(self, **{name: k})
+
     default_eval_samples: ClassVar[int] = 0  # evaluate the train split on a strided subset of this size
     # The paper's batch order, the default of the ``shuffle`` training setting: fixed (every
     # epoch takes the same batches in the same order) or a fresh permutation every epoch.

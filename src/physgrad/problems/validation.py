@@ -25,6 +25,7 @@ test set ... for assessment of the generalization error of the final chosen mode
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Any, ClassVar
 
 import jax
@@ -133,3 +134,10 @@ class Validation(AbstractProblem):
     @property
     def batch_group_key(self) -> str | None:  # type: ignore[override]
         return self.problem.batch_group_key
+
+    # PRDP on a tuning trial refines the wrapped problem's solver (``--set prdp=true``)
+    def refinable_problem(self) -> AbstractProblem:
+        return self.problem.refinable_problem()
+
+    def with_refined(self, k: int) -> Validation:
+        return dataclasses.replace(self, problem=self.problem.with_refined(k))
