@@ -51,9 +51,8 @@ def numpy_reference(params, batch, c, spectrum):
     flat, unravel = ravel_pytree(params)
     flat = np.asarray(flat)
 
-    def outputs(theta):
-        p = unravel(jnp.asarray(theta))
-        return np.concatenate([np.asarray(predict(p, jax.tree.map(lambda a: a[i], batch))) for i in range(B)])
+    forward = jax.jit(lambda theta: jax.vmap(lambda s: predict(unravel(theta), s))(batch).ravel())
+    outputs = lambda theta: np.asarray(forward(jnp.asarray(theta)))  # noqa: E731
 
     eps = 1e-6
     jac = np.stack([(outputs(flat + eps * e) - outputs(flat - eps * e)) / (2 * eps) for e in np.eye(flat.size)], 1)
