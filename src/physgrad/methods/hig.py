@@ -86,7 +86,9 @@ def hig(predict, loss, *, truncation: float = 1e-6, route: AbstractRoute = Auto(
     """Half-inverse gradients: ``(params, batch) -> (V Σ^{−½} Uᵀ g, stats)``.
 
     Apply with ``optax.sgd(η)`` for the paper's update θ ← θ − η V Σ^{−½} Uᵀ g (η = 1 on
-    the oscillators, Schnell et al. 2022), or any other chain.
+    the oscillators, Schnell et al. 2022), or any other chain. The direction is linear in
+    ``g``, so η depends on the loss's scale: a per-sample loss that is a mean over n output
+    cells instead of a sum needs an n× larger η (docs/methods.md); sweep η over decades.
 
     Arguments:
         predict: ``predict(params, sample) -> y``, network and simulator for one sample.
