@@ -13,7 +13,7 @@ import csv
 import gzip
 import io
 from pathlib import Path
-from typing import IO, Any
+from typing import Any
 
 from . import rundir
 
@@ -32,9 +32,10 @@ def packed_path(path: str | Path) -> Path:
     return Path(path).with_name(Path(path).name + ".gz")
 
 
-def open_kept(path: str | Path) -> IO[str]:
+def open_kept(path: str | Path) -> io.TextIOBase:
     """``path`` opened for reading as text, or its gzipped copy where only that exists
-    (:func:`kept_path`); ``newline=""`` as the csv module wants."""
+    (:func:`kept_path`); ``newline=""`` as the csv module wants. Typed as the concrete text
+    stream both openers return (``typing.IO`` is not a runtime type for beartype's checks)."""
     path = kept_path(path)
     return (gzip.open if path.suffix == ".gz" else open)(path, "rt", encoding="utf-8", newline="")
 

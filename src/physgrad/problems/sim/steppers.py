@@ -38,6 +38,7 @@ from typing import ClassVar
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+from jax.typing import ArrayLike
 from jaxtyping import Array
 
 
@@ -54,9 +55,9 @@ class Solver(eqx.Module):
     differentiable: ClassVar[bool] = True
 
     @abc.abstractmethod
-    def __call__(self, u: Array, cond: Array) -> Array: ...
+    def __call__(self, u: Array, cond: ArrayLike) -> Array: ...
 
-    def step(self, u: Array, cond: Array) -> tuple[Array, Array]:
+    def step(self, u: Array, cond: ArrayLike) -> tuple[Array, Array]:
         """One step and whether it succeeded (default: the result is finite)."""
         u_next = self(u, cond)
         return u_next, jnp.all(jnp.isfinite(u_next))
@@ -99,7 +100,7 @@ def _no_vjp_bwd(residuals, g, perturbed, u, solver, cond):
     )
 
 
-Network = Callable[[Array, Array], Array]  # f_θ(u, cond) -> a state-shaped output
+Network = Callable[[Array, ArrayLike], Array]  # f_θ(u, cond) -> a state-shaped output
 
 
 class AbstractComposition(eqx.Module):
@@ -116,7 +117,7 @@ class AbstractComposition(eqx.Module):
 
     @abc.abstractmethod
     def __call__(
-        self, solver: Solver | None, network: Network, u_net: Array, u_phys: Array, cond: Array
+        self, solver: Solver | None, network: Network, u_net: Array, u_phys: Array, cond: ArrayLike
     ) -> tuple[Array, Array]: ...
 
 
@@ -126,7 +127,7 @@ class AbstractPrediction(AbstractComposition):
     uses_solver: ClassVar[bool] = False
 
     @abc.abstractmethod
-    def predict(self, network: Network, u: Array, cond: Array) -> Array:
+    def predict(self, network: Network, u: Array, cond: ArrayLike) -> Array:
         """u⁺ from the state ``u`` as the network sees it."""
 
     def __call__(self, solver, network, u_net, u_phys, cond):
@@ -139,7 +140,7 @@ class AbstractCorrection(AbstractComposition):
     uses_solver: ClassVar[bool] = True
 
     @abc.abstractmethod
-    def correct(self, network: Network, u: Array, p: Array, cond: Array) -> Array:
+    def correct(self, network: Network, u: Array, p: Array, cond: ArrayLike) -> Array:
         """u⁺ from the state ``u`` as the network sees it and the solver's step ``p = P(u)``."""
 
     def __call__(self, solver, network, u_net, u_phys, cond):
