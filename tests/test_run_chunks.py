@@ -135,7 +135,7 @@ def test_compares_table_flags_a_method_whose_in_run_step_is_not_its_calibrated_o
 
 
 class ProcessClock:
-    """A fake ``time.process_time`` for the engine's loop: each chunk (two readings, before
+    """A fake CPU clock (``engine.cpu_clock.run_cpu_time``) for the engine's loop: each chunk (two readings, before
     the dispatch and after the read-back) costs exactly ``per_chunk`` CPU seconds."""
 
     def __init__(self, per_chunk):
@@ -150,12 +150,9 @@ class ProcessClock:
 def _counted_run(monkeypatch, per_chunk):
     """The loop's clock replaced by :class:`ProcessClock` and its chunks counted (the steps of each)."""
     import importlib
-    import time
-    import types
 
     run_module = importlib.import_module("physgrad.engine.run")
-    monkeypatch.setattr(run_module, "time", types.SimpleNamespace(perf_counter=time.perf_counter,
-                                                                  process_time=ProcessClock(per_chunk)))  # fmt: skip
+    monkeypatch.setattr(run_module, "run_cpu_time", ProcessClock(per_chunk))
     taken = []
     observe = strategies.ChunkSize.observe
     monkeypatch.setattr(strategies.ChunkSize, "observe", lambda self, n, s: (taken.append(n), observe(self, n, s)))
@@ -164,7 +161,7 @@ def _counted_run(monkeypatch, per_chunk):
 
 def test_a_run_records_its_cpu_seconds_per_step_beside_the_wall_clock(tmp_path, monkeypatch):
     """summary.json holds the wall-clock and the CPU seconds per step of the same chunks:
-    with a process clock that charges each chunk 3 ms, cpu_seconds is 3 ms × the chunks
+    with a CPU clock that charges each chunk 3 ms, cpu_seconds is 3 ms × the chunks
     the loop took (counted by hand) and cpu_time_per_step that over the steps; the wall
     clock's time_per_step is train_seconds over the steps, as before."""
     import json
@@ -221,7 +218,7 @@ def test_the_in_run_over_calibrated_ratio_is_on_the_calibrations_clock():
     assert lines[0][-4:] == ["ms/step (wall)", "ms/step (cpu)", "calibrated ms/step", "cpu / calibrated"]
     assert lines[1][-4:] == ["2.00", "1.05", "1", "1.05"] and lines[2][-1] == "0.50 *"
     note = table_note(cpu).split("\n")
-    assert note[0] == TABLE_NOTE and "both on the cpu clock" in note[1] and "process_time" in note[1]
+    assert note[0] == TABLE_NOTE and "both on the cpu clock" in note[1] and "cpu_clock" in note[1]
     assert note[2].startswith("* ") and "hig 0.50x" in note[2] and "adam" not in note[2]
     for clock in ("wall", None):
         wall = aggregate(_rows(clock), ["adam", "hig"])
@@ -240,7 +237,7 @@ def test_summary_csv_carries_the_cpu_step_and_the_calibrations_clock(tmp_path):
     out = tmp_path / "study"
     config = make_config("hig_toy", "adam", budget=physgrad.Budget(steps=8), settings={"eval_every": "4"})
     summary = train(config, out / "runs" / "adam-0")
-    assert 0 < summary["cpu_time_per_step"] < 1 and summary["cpu_steps"] == 8  # the real process clock
+    assert 0 < summary["cpu_time_per_step"] < 1 and summary["cpu_steps"] == 8  # the real CPU clock
     cost = {"method": "adam", "batch_size": 4, "steps": None, "route": "", "seconds": 1e-3, "q25": 1e-3, "q75": 1e-3,
             "low": 1e-3, "high": 1e-3, "rounds": 3}  # fmt: skip
     record = {"version": 3, "problem": "hig_toy", "measured": "now", "methods": {"adam": {"stages": [cost]}}}

@@ -97,18 +97,36 @@ def test_two_workers_one_killed_mid_run_give_the_sequential_tables(tmp_path):
 
 
 @pytest.mark.slow  # starts a LocalCluster of one worker process: a few seconds, more on a loaded machine
-def test_the_local_clusters_workers_run_without_the_statistical_profiler():
-    """The worker processes the executor starts do not sample their stacks every 10 ms
-    (that CPU went into every run's cpu_time_per_step); the caller's configuration is left
-    as it was."""
+def test_the_local_clusters_processes_get_the_cluster_config_and_the_caller_keeps_its_own():
+    """The cluster the executor starts runs with CLUSTER_CONFIG (no statistical profiler,
+    slower ticks and monitors): its worker process reads every value, and its scheduler and
+    nanny, which live in this process, were built with them; this process's configuration
+    is left as it was, and a cluster the caller gives is not touched."""
     import dask
     import distributed  # noqa: F401  (its configuration's defaults)
+    from dask.utils import parse_timedelta
 
-    before = dask.config.get("distributed.worker.profile.enabled")
+    from physgrad.harness.workers import CLUSTER_CONFIG
+
+    before = {key: dask.config.get(key) for key in CLUSTER_CONFIG}
+    assert before != CLUSTER_CONFIG  # Dask's defaults differ, so the check below means something
     executor = Dask(workers=1)
     try:
-        seen = executor.client.run(lambda: __import__("dask").config.get("distributed.worker.profile.enabled"))
-        assert list(seen.values()) == [False]
+        seen = executor.client.run(
+            lambda keys: {k: __import__("dask").config.get(k) for k in keys}, list(CLUSTER_CONFIG)
+        )
+        assert list(seen.values()) == [CLUSTER_CONFIG]
+        cluster = executor._cluster
+        assert cluster is not None
+        tick = parse_timedelta(CLUSTER_CONFIG["distributed.admin.tick.interval"])
+        assert cluster.scheduler._tick_interval == tick  # type: ignore[union-attr]
+        (nanny,) = cluster.workers.values()
+        assert nanny._tick_interval == tick
+        assert nanny.memory_manager.memory_monitor_interval == parse_timedelta(
+            CLUSTER_CONFIG["distributed.worker.memory.monitor-interval"])  # fmt: skip
+        assert {key: dask.config.get(key) for key in CLUSTER_CONFIG} == before  # restored while the cluster runs
+        given = Dask(client=executor.client)  # a cluster the caller gives: used as it is
+        assert given.client is executor.client and given._cluster is None
     finally:
         executor.close()
-    assert dask.config.get("distributed.worker.profile.enabled") == before
+    assert {key: dask.config.get(key) for key in CLUSTER_CONFIG} == before

@@ -16,7 +16,9 @@ From the caller's objects to the jitted step::
 
 Wall time counts training steps only: compilation (``compile_seconds``) and evaluation are
 excluded, so equal budgets compare update rules, not tracing. The same chunks are also
-timed on the process's CPU clock (``cpu_time_per_step``: a calibration's ``cpu`` clock).
+timed in CPU seconds (``cpu_time_per_step``: a calibration's ``cpu`` clock,
+:func:`~physgrad.engine.cpu_clock.run_cpu_time`: this thread's and XLA's, not those of the
+host's other Python threads, such as a Dask worker's event loop).
 
 Internal module: the public names are those :mod:`physgrad.engine` and ``physgrad``
 export (their ``__all__``); import them from there.
@@ -42,6 +44,7 @@ from ..problems import AbstractProblem
 from . import record as records
 from . import rundir
 from .callbacks import Callback, Callbacks
+from .cpu_clock import run_cpu_time
 from .progress import AbstractProgressMeter, NoProgressMeter
 from .recording import (
     Checkpointer,
@@ -215,11 +218,11 @@ def loop(state: TrainState, *, setup: Setup, compiled: Any, strategies: Strategi
             count = placement.agree(chunks.size(limit, seconds_left=min(
                 stop.seconds_left(state.train_time),
                 schedule.seconds_left(state.train_time), checkpointer.seconds_left())))  # fmt: skip
-            t_start, cpu_start = time.perf_counter(), time.process_time()
+            t_start, cpu_start = time.perf_counter(), run_cpu_time()
             params, opt_state, taken, diverged, stats = compiled(state.params, state.opt_state, steps.data, order,
                                                                  np.int32(batch), np.int32(count))  # fmt: skip
             taken, diverged, stats = jax.device_get(distributed.to_host((taken, diverged, stats)))  # waits: honest time
-            cpu_seconds = time.process_time() - cpu_start  # the same chunk on the process's CPU clock
+            cpu_seconds = run_cpu_time() - cpu_start  # the same chunk in CPU seconds (engine.cpu_clock)
             # From here to the checkpoint after an evaluation is one unit: a Ctrl-C or SIGTERM waits
             # for it, so a step is never taken without its evaluation logged (rundir.deferred_interrupts)
             with rundir.deferred_interrupts():

@@ -376,10 +376,11 @@ class TrainState(NamedTuple):
     reports it). Checkpointing all of it makes a resumed run end exactly as an
     uninterrupted one.
 
-    ``cpu_seconds`` and ``cpu_steps`` are this process's CPU seconds (``time.process_time``)
-    over the training chunks it ran and the steps they took (:data:`SESSION_COUNTERS`: not
-    checkpointed, so a resumed run counts its own session's steps only; CPU seconds are a
-    process's own, and a checkpoint written before they existed loads alike)."""
+    ``cpu_seconds`` and ``cpu_steps`` are the run's CPU seconds in this process
+    (:func:`~physgrad.engine.cpu_clock.run_cpu_time`) over the training chunks it ran and
+    the steps they took (:data:`SESSION_COUNTERS`: not checkpointed, so a resumed run counts
+    its own session's steps only; CPU seconds are a process's own, and a checkpoint written
+    before they existed loads alike)."""
 
     params: Any
     opt_state: Any

@@ -41,6 +41,7 @@ from pathlib import Path
 from typing import Any
 
 from ..engine import rundir
+from ..engine.cpu_clock import run_cpu_time
 from ..engine.types import Steps
 from ..errors import ConfigError
 from .calibration_table import CSV_COLUMNS, EXTRA_COLUMNS, csv_rows, load, machine, machine_line, write_csv  # noqa: F401
@@ -59,11 +60,13 @@ MIN_REPEATS = 3  # every method gets at least this many rounds
 MAX_SECONDS = 10.0  # a method leaves the rounds once its timed steps add up to this (after MIN_REPEATS)
 # The timer of a calibration (``$PHYSGRAD_CALIBRATION_CLOCK``, recorded as the record's "clock").
 # "wall" (default): the step's wall-clock, what a user on an idle machine waits. "cpu": the
-# process's CPU seconds (time.process_time: every thread of the process, XLA's included), which
+# CPU seconds of the calibrating thread and XLA's threads (engine.cpu_clock.run_cpu_time: the
+# process's, less its other Python threads', such as the loop of a Dask cluster this process
+# started; a run's cpu_time_per_step is read on the same clock), which
 # a busy neighbour on the same cores barely changes: it takes turns with the step instead of
 # stretching its work, so a study calibrated on a loaded machine gets the step budgets it would
 # get idle (a run's steps are one thread's work: --threads 1, the default of a study).
-CLOCKS: dict[str, Callable[[], float]] = {"wall": time.perf_counter, "cpu": time.process_time}
+CLOCKS: dict[str, Callable[[], float]] = {"wall": time.perf_counter, "cpu": run_cpu_time}
 CLOCK_VARIABLE = "PHYSGRAD_CALIBRATION_CLOCK"
 
 

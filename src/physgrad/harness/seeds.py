@@ -192,7 +192,7 @@ RATIO_LIMIT = 1.2
 # The in-run ms/step (a row of :func:`aggregate`) on each calibration clock
 # (harness.calibration.CLOCKS, the record's "clock"), and what that clock counts.
 IN_RUN = {"wall": "ms_per_step", "cpu": "cpu_ms_per_step"}
-CLOCK_WORDS = {"wall": "wall-clock seconds", "cpu": "the process's CPU seconds, time.process_time"}
+CLOCK_WORDS = {"wall": "wall-clock seconds", "cpu": "the run's CPU seconds, its thread's and XLA's (engine.cpu_clock)"}
 
 
 def row_clock(row: Mapping[str, Any]) -> str:

@@ -20,7 +20,9 @@ hands the job to another worker (``distributed.scheduler.allowed-failures``, and
 keeps the programs it compiled (:mod:`physgrad.engine.programs`), so each worker compiles a
 (problem, method, shapes) step once, as the single process does. Every worker process
 runs with ``threads`` threads per pool (:func:`physgrad.cpu.process_threads`), set before
-its JAX backend starts.
+its JAX backend starts. The cluster started here runs Dask's periodic bookkeeping less often
+(:data:`CLUSTER_CONFIG`), so that it takes less of the cores the runs use; in any cluster a
+run's CPU seconds leave out its worker's event loop (:mod:`physgrad.engine.cpu_clock`).
 """
 
 from __future__ import annotations
@@ -43,6 +45,27 @@ WORKERS_VARIABLE = "PHYSGRAD_WORKERS"
 # runs would share the accelerator, and every worker process would claim most of its memory
 # (JAX preallocates 75% per process), so the default is one worker.
 ACCELERATOR_PLUGINS = ("jax_cuda12_plugin", "jax_cuda13_plugin", "jax_rocm60_plugin", "jax_rocm7_plugin", "libtpu")
+
+
+# Dask's configuration in the processes of the LocalCluster that Dask() starts (never in a
+# cluster the user gives, nor left set in the caller's process). Dask's periodic bookkeeping
+# costs CPU in proportion to wall-clock time, on the cores the runs use: an idle worker took
+# 30 ms of CPU per second with the statistical profiler, 19-24 ms without it, and 4 ms with the
+# slower ticks and monitors below; the process that starts the cluster (scheduler and nannies)
+# 33-53 ms against 9 (2 workers, 2 cores under load 10-17, docs/benchmark.md).
+CLUSTER_CONFIG: dict[str, Any] = {
+    # no sampling of each worker thread's stack every 10 ms
+    "distributed.worker.profile.enabled": False,
+    # the event loop's responsiveness check, 20 ms by default: 50 wake-ups per second in every
+    # process; a loop blocked for 3 s (admin.tick.limit) is still reported
+    "distributed.admin.tick.interval": "1s",
+    # CPU, memory, network and disk samples for the dashboard and the heartbeat's metrics
+    # (500 ms by default); pausing, spilling and the nanny's restart read memory themselves
+    "distributed.admin.system-monitor.interval": "5s",
+    # the worker's pause/spill check and the nanny's restart of a worker over its memory
+    # limit (100 ms by default): a runaway run is still stopped within half a second
+    "distributed.worker.memory.monitor-interval": "500ms",
+}
 
 
 def default_workers() -> int:
@@ -147,12 +170,10 @@ class Dask(AbstractExecutor):
                 import dask.config
 
                 # Worker processes (JAX is not fork-safe; each has its own compiled programs),
-                # one thread each; no dashboard (a port nobody asked for). No statistical
-                # profiler: sampling the run's stack every 10 ms costs the worker process CPU
-                # in proportion to wall time, which a run's cpu_time_per_step counted (on
-                # hig_toy under load, HIG's in-run CPU step was 1.31x its calibrated one; 1.09x
-                # in one process). Each nanny copies the configuration as it is made.
-                with dask.config.set({"distributed.worker.profile.enabled": False}):
+                # one thread each; no dashboard (a port nobody asked for); Dask's own periodic
+                # work slowed down (CLUSTER_CONFIG). Each nanny copies the configuration to its
+                # worker as it is made; the caller's is restored on leaving the block.
+                with dask.config.set(CLUSTER_CONFIG):
                     self._cluster = LocalCluster(n_workers=self.workers or default_workers(), threads_per_worker=1,
                                                  processes=True, dashboard_address=None)  # type: ignore[arg-type]  # fmt: skip
                 self._client = Client(self._cluster)
@@ -305,6 +326,7 @@ def run_directory(path: str | Path) -> str:
 
 __all__ = [
     "AbstractExecutor",
+    "CLUSTER_CONFIG",
     "ConfiguredRun",
     "Dask",
     "InProcess",
