@@ -32,6 +32,7 @@ a 2-D leaf that turns out not to be a dense layer only holds zeros.
 
 from __future__ import annotations
 
+import math
 from typing import NamedTuple
 
 import equinox as eqx
@@ -40,7 +41,11 @@ import jax.numpy as jnp
 import optax
 from jaxtyping import Array
 
+from ..precision import float64_scope, to_float64
 from ..routes.base import DenseUse
+from ..routes.structured import explicit_rows
+from . import conv_factors as kfc
+from . import layer_terms
 from .kronecker_hig import KroneckerPower, kronecker_factors, layer_gradient, power_direction
 from .method import AbstractControl, AbstractOptaxMethod
 
@@ -70,21 +75,25 @@ class RunningFactors(AbstractControl):
 
     curvature_ema: float = eqx.field(static=True, default=0.95)
     inverse_every: int = eqx.field(static=True, default=5)
+    curvature_every: int = eqx.field(static=True, default=1)
 
     def __check_init__(self):
         if not 0.0 <= self.curvature_ema < 1.0:
             raise ValueError(f"curvature_ema must be in [0, 1), got {self.curvature_ema}")
         if self.inverse_every < 1:
             raise ValueError(f"inverse_every must be >= 1, got {self.inverse_every}")
+        if self.curvature_every < 1 or self.inverse_every % self.curvature_every:
+            raise ValueError(f"curvature_every must be >= 1 and divide inverse_every={self.inverse_every}, "
+                             f"got {self.curvature_every}")  # fmt: skip
 
     def init(self, params):
         factors, eigen = [], []
         for leaf in jax.tree.leaves(params):
-            if leaf.ndim != 2 or jnp.iscomplexobj(leaf):
+            sides = _sides(leaf)
+            if sides is None:
                 factors.append(None)
                 eigen.append(None)
                 continue
-            sides = [n + 1 for n in leaf.shape]
             factors.append(tuple(jnp.zeros((n, n), leaf.dtype) for n in sides))
             eigen.append(tuple(x for n in sides for x in (jnp.zeros((n,), leaf.dtype), jnp.eye(n, dtype=leaf.dtype))))
         return KroneckerAverages(tuple(factors), tuple(eigen), jnp.zeros((), jnp.int32))
@@ -96,6 +105,10 @@ class RunningFactors(AbstractControl):
         factors, eigen = list(state.factors), list(state.eigen)
         beta = jnp.where(state.count == 0, 0.0, self.curvature_ema)  # the first batch starts the average
         refresh = state.count % self.inverse_every == 0
+        collect = state.count % self.curvature_every == 0
+        plan = rule.plan(objective, params, batch)
+        if plan.convs or rule.probes:
+            return _signal_direct(rule, plan, params, batch, state, beta, collect, refresh)
 
         # Called by the rule once per dense layer while it traces; the new averages are
         # collected here and become the state after the step.
@@ -110,7 +123,8 @@ class RunningFactors(AbstractControl):
             out = {}
             for name, fresh in (("G", G), ("A", A)):
                 side, n = sides[name], fresh.shape[0]
-                average = beta * slots[side][:n, :n].astype(fresh.dtype) + (1 - beta) * fresh
+                stored = slots[side][:n, :n].astype(fresh.dtype)
+                average = jnp.where(collect, beta * stored + (1 - beta) * fresh, stored)
                 slots[side] = slots[side].at[:n, :n].set(average.astype(dtype))
                 old = (spectra[2 * side][:n].astype(fresh.dtype), spectra[2 * side + 1][:n, :n].astype(fresh.dtype))
                 lam, q = jax.lax.cond(refresh, lambda m=average: tuple(jnp.linalg.eigh(m)), lambda o=old: o)
@@ -125,6 +139,91 @@ class RunningFactors(AbstractControl):
         direction, stats = rule.directions(objective, params, batch, dense)
         new = KroneckerAverages(tuple(factors), tuple(eigen), state.count + 1)
         return direction, {**stats, "refreshed": refresh.astype(jnp.int32)}, new
+
+
+# A kernel leaf of 3 or more axes, (out, in, *window) as Equinox's, holds the factors of a
+# convolution layer only while in·k₁⋯k_d stays below this (its A side is that wide, squared).
+CONV_SIDE_MAX = 4096
+
+
+def _sides(leaf) -> tuple[int, int] | None:
+    """The (left, right) factor sizes a leaf holds: (r + 1, c + 1) for a 2-D leaf (r, c), (out + 1,
+    in·k₁⋯k_d + 1) for a kernel (out, in, *window) narrower than :data:`CONV_SIDE_MAX`, else None."""
+    if leaf.ndim < 2 or jnp.iscomplexobj(leaf):
+        return None
+    rest = math.prod(leaf.shape[1:])
+    return (leaf.shape[0] + 1, rest + 1) if leaf.ndim == 2 or rest < CONV_SIDE_MAX else None
+
+
+def _signal_direct(rule: KroneckerPower, plan, params, batch, state: KroneckerAverages, beta, collect, refresh):
+    """:meth:`RunningFactors.direct` where the rule takes the signal route (convolution layers,
+    or ``probes``): on a collecting step the fresh ``(A, G, ∇W̄)`` of every layer
+    (:func:`~physgrad.methods.layer_terms.layer_curvature`) enter the averages; on any other
+    step only the gradients are computed (:func:`~physgrad.methods.layer_terms.layer_gradients`,
+    the cost of a plain gradient) and the stored factors and eigendecompositions are reused."""
+    structure, dense, convs = plan.structure, plan.structure.dense, plan.convs
+    leaves = jax.tree.leaves(params)
+    b = jax.tree.leaves(batch)[0].shape[0]
+    # per layer: its leaf, the sides holding (G, A), d_out, d_in' and KFC's count (b or b·T)
+    layout = [(u.leaf, (1, 0) if u.transposed else (0, 1), u.d_out, u.d_in + (u.bias is not None), b) for u in dense]
+    layout += [(c.leaf, (0, 1), c.d_out, c.d_in + (c.bias is not None), b * c.positions) for c in convs]
+    for leaf, (g_side, a_side), d_out, d_in, _ in layout:
+        slots = state.factors[leaf]
+        if slots is None or slots[g_side].shape[0] < d_out or slots[a_side].shape[0] < d_in:
+            raise ValueError(f"khig: running factors of leaf {leaf} (shape {leaves[leaf].shape}) do not fit its layer "
+                             f"({d_out} outputs, {d_in} inputs); they are kept for 2-D weights and kernels laid out "
+                             f"(out, in, *window) with in·window < {CONV_SIDE_MAX}")  # fmt: skip
+    loss_and_gradient = plan.jacobian.loss_and_gradient
+
+    def full():
+        layers, y, loss, g = layer_terms.layer_curvature(structure, dense, convs, params, batch, loss_and_gradient,
+                                                         rule.probes)  # fmt: skip
+        return [t[2] for t in layers], [(t[1], t[0]) for t in layers], y, loss, g
+
+    def cheap():
+        grads, y, loss, g = layer_terms.layer_gradients(structure, dense, convs, params, batch, loss_and_gradient)
+        return grads, jax.tree.map(lambda m: jnp.zeros(m.shape, m.dtype), shapes[1]), y, loss, g
+
+    shapes = jax.eval_shape(full)
+    grads, fresh, y, loss, g = jax.lax.cond(collect, full, cheap)
+    factors, eigen, averages = list(state.factors), list(state.eigen), []
+    for (leaf, sides, *_), pair in zip(layout, fresh):
+        slots = list(factors[leaf])
+        for side, m in zip(sides, pair):  # (G, A)
+            n = m.shape[0]
+            stored = slots[side][:n, :n].astype(m.dtype)
+            average = jnp.where(collect, beta * stored + (1 - beta) * m, stored)
+            slots[side] = slots[side].at[:n, :n].set(average.astype(slots[side].dtype))
+            averages.append(average)
+        factors[leaf] = tuple(slots)
+    J = explicit_rows(plan.jacobian.predict, structure, params, batch, 0) if plan.explicit else None
+    J = jax.lax.stop_gradient(J)
+    with float64_scope():
+
+        def decompose():  # (A₀, G₀, A₁, G₁, …), as the rule reads them
+            return kfc.eigh_all([to_float64(averages[j ^ 1]) for j in range(len(averages))], rule._stacked)
+
+        def stored():
+            out = []
+            for leaf, (g_side, a_side), d_out, d_in, _ in layout:
+                for side, n in ((a_side, d_in), (g_side, d_out)):
+                    out.append((to_float64(eigen[leaf][2 * side][:n]), to_float64(eigen[leaf][2 * side + 1][:n, :n])))
+            return out
+
+        eig = jax.lax.cond(refresh, decompose, stored)
+        for k, (leaf, (g_side, a_side), *_) in enumerate(layout):
+            spectra = list(eigen[leaf])
+            for side, (lam, q) in ((a_side, eig[2 * k]), (g_side, eig[2 * k + 1])):
+                n = lam.shape[0]
+                spectra[2 * side] = spectra[2 * side].at[:n].set(lam.astype(spectra[2 * side].dtype))
+                spectra[2 * side + 1] = spectra[2 * side + 1].at[:n, :n].set(q.astype(spectra[2 * side + 1].dtype))
+            eigen[leaf] = tuple(spectra)
+        deltas = [rule._power(to_float64(grad), eig, k, lay[4]) for k, (grad, lay) in enumerate(zip(grads, layout))]
+        J64 = None if J is None else to_float64(J)
+        direction, stats = rule._assemble(plan, params, deltas[: len(dense)], deltas[len(dense) :], J64,
+                                          to_float64(g), loss, y.dtype)  # fmt: skip
+    new = KroneckerAverages(tuple(factors), tuple(eigen), state.count + 1)
+    return direction, {**stats, "refreshed": refresh.astype(jnp.int32)}, new
 
 
 class AveragedKronecker(AbstractOptaxMethod):
@@ -145,12 +244,13 @@ class AveragedKronecker(AbstractOptaxMethod):
     optimizer: optax.GradientTransformation = eqx.field(static=True, default=optax.sgd(1.0))
     curvature_ema: float = eqx.field(static=True, default=0.95)
     inverse_every: int = eqx.field(static=True, default=5)
+    curvature_every: int = eqx.field(static=True, default=1)
     acceptance: None = eqx.field(default=None, init=False)
     extras: tuple[str, ...] = eqx.field(static=True, default=("value",), init=False)
 
     @property
     def control(self) -> RunningFactors:
-        return RunningFactors(self.curvature_ema, self.inverse_every)
+        return RunningFactors(self.curvature_ema, self.inverse_every, self.curvature_every)
 
     def __check_init__(self):
         _ = self.control  # RunningFactors checks β and the period
