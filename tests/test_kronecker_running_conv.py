@@ -12,11 +12,11 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 import pytest
-from test_kronecker_conv import B, DY, _two_layer
 
 import physgrad
 from physgrad.methods import AveragedKronecker, KroneckerPower, RunningFactors, layer_terms
 from physgrad.methods import conv_factors as kfc
+from test_kronecker_conv import DY, B, _two_layer
 
 
 def _batches(n):
@@ -30,22 +30,27 @@ def _full(grads, name):
                           axis=1)  # fmt: skip
 
 
-def test_gradient_pass_equals_the_curvature_pass_gradient():
-    """``layer_gradients`` (kernel operand tapped, no patches) gives ``layer_curvature``'s ∇K̄
-    and the same loss, and both equal ``jax.grad`` reshaped (out, in·k) with the bias last."""
+def test_layer_pass_gradients_equal_patch_products_and_jax_grad():
+    """``layer_pass``'s ∇K̄ (the kernel operand tapped, no patches) equals the patch product
+    Σ D_gᵀ p̄ (``conv_factors.layer_signals`` and ``conv_patches``) and ``jax.grad`` reshaped
+    (out, in·k) with the bias last; its counts are b·T; the loss is the batch mean."""
     params, batch, predict, loss, *_ = _two_layer()
     objective = physgrad.Objective(predict, loss)
     plan = KroneckerPower().plan(objective, params, batch)
     args = (plan.structure, plan.structure.dense, plan.convs, params, batch, plan.jacobian.loss_and_gradient)
-    curvature = jax.jit(lambda: layer_terms.layer_curvature(*args, 0))()
-    grads, _, value, _ = jax.jit(lambda: layer_terms.layer_gradients(*args))()
+    grads, counts, value = jax.jit(lambda: (lambda r: (r.grads, r.counts, r.loss))(layer_terms.layer_pass(*args, 0)))()
+    sig, *_ = jax.jit(lambda: kfc.layer_signals(*args, 0))()
     want = jax.grad(lambda p: jnp.mean(jax.vmap(lambda s: loss(predict(p, s), s))(batch)))(params)
     assert [c.leaf for c in plan.convs] == [0, 2]  # leaves: c1's kernel and bias, then c2's
-    for (_, _, grad, count), fast, name in zip(curvature[0], grads, ("c1", "c2")):
-        np.testing.assert_allclose(np.asarray(fast), np.asarray(grad), rtol=1e-12, atol=1e-14)
+    for c, x, d_g, fast, name in zip(plan.convs, sig.x, sig.d_g, grads, ("c1", "c2")):
+        p = np.asarray(kfc.conv_patches(plan.structure, c, x))
+        p = np.concatenate([p, np.ones((p.shape[0], 1))], axis=1)
+        d = np.asarray(kfc.conv_signals(plan.structure, c, d_g)).reshape(-1, 3)
+        np.testing.assert_allclose(np.asarray(fast), d.T @ p, rtol=1e-12, atol=1e-14)
         np.testing.assert_allclose(np.asarray(fast), _full(want, name), rtol=1e-12, atol=1e-14)
-    assert [n for *_, n in curvature[0]] == [B * 8, B * 4]  # b·T: 8 positions, then 4 (stride 2)
-    np.testing.assert_allclose(float(value), float(curvature[2]), rtol=1e-14)
+    assert counts == [B * 8, B * 4]  # b·T: 8 positions, then 4 (stride 2)
+    np.testing.assert_allclose(float(value), float(jnp.mean(jax.vmap(lambda s: loss(predict(params, s), s))(batch))),
+                               rtol=1e-14)  # fmt: skip
 
 
 def test_running_conv_factors_without_averaging_equal_the_fresh_rule():
@@ -85,7 +90,9 @@ def test_running_conv_factors_collect_and_refresh_on_their_periods(curvature_eve
         for k, name in enumerate(("c1", "c2")):
             if t % curvature_every == 0:
                 pair = (np.asarray(fresh[k].A), np.asarray(fresh[k].G))
-                averages[k] = pair if t == 0 else tuple(beta * old + (1 - beta) * m for old, m in zip(averages[k], pair))
+                averages[k] = (
+                    pair if t == 0 else tuple(beta * old + (1 - beta) * m for old, m in zip(averages[k], pair))
+                )
             if t % inverse_every == 0:
                 eig[k] = (np.linalg.eigh(averages[k][0]), np.linalg.eigh(averages[k][1]))
             (alpha, q_a), (gamma, q_g) = eig[k]

@@ -45,8 +45,8 @@ from ..precision import float64_scope, to_float64
 from ..routes.base import DenseUse
 from ..routes.structured import explicit_rows
 from . import conv_factors as kfc
-from . import layer_terms
 from .kronecker_hig import KroneckerPower, kronecker_factors, layer_gradient, power_direction
+from .layer_terms import layer_pass
 from .method import AbstractControl, AbstractOptaxMethod
 
 
@@ -158,9 +158,10 @@ def _sides(leaf) -> tuple[int, int] | None:
 def _signal_direct(rule: KroneckerPower, plan, params, batch, state: KroneckerAverages, beta, collect, refresh):
     """:meth:`RunningFactors.direct` where the rule takes the signal route (convolution layers,
     or ``probes``): on a collecting step the fresh ``(A, G, ∇W̄)`` of every layer
-    (:func:`~physgrad.methods.layer_terms.layer_curvature`) enter the averages; on any other
-    step only the gradients are computed (:func:`~physgrad.methods.layer_terms.layer_gradients`,
-    the cost of a plain gradient) and the stored factors and eigendecompositions are reused."""
+    (:func:`~physgrad.methods.layer_terms.layer_pass` and its ``curvature()``, inside a
+    ``lax.cond``) enter the averages; on any other step only the pass's gradients are
+    computed (the cost of a plain gradient) and the stored factors and eigendecompositions
+    are reused."""
     structure, dense, convs = plan.structure, plan.structure.dense, plan.convs
     leaves = jax.tree.leaves(params)
     b = jax.tree.leaves(batch)[0].shape[0]
@@ -173,23 +174,14 @@ def _signal_direct(rule: KroneckerPower, plan, params, batch, state: KroneckerAv
             raise ValueError(f"khig: running factors of leaf {leaf} (shape {leaves[leaf].shape}) do not fit its layer "
                              f"({d_out} outputs, {d_in} inputs); they are kept for 2-D weights and kernels laid out "
                              f"(out, in, *window) with in·window < {CONV_SIDE_MAX}")  # fmt: skip
-    loss_and_gradient = plan.jacobian.loss_and_gradient
-
-    def full():
-        layers, y, loss, g = layer_terms.layer_curvature(structure, dense, convs, params, batch, loss_and_gradient,
-                                                         rule.probes)  # fmt: skip
-        return [t[2] for t in layers], [(t[1], t[0]) for t in layers], y, loss, g
-
-    def cheap():
-        grads, y, loss, g = layer_terms.layer_gradients(structure, dense, convs, params, batch, loss_and_gradient)
-        return grads, jax.tree.map(lambda m: jnp.zeros(m.shape, m.dtype), shapes[1]), y, loss, g
-
-    shapes = jax.eval_shape(full)
-    grads, fresh, y, loss, g = jax.lax.cond(collect, full, cheap)
+    run = layer_pass(structure, dense, convs, params, batch, plan.jacobian.loss_and_gradient, rule.probes)
+    shapes = jax.eval_shape(run.curvature)
+    fresh = jax.lax.cond(collect, run.curvature, lambda: jax.tree.map(lambda m: jnp.zeros(m.shape, m.dtype), shapes))
+    grads, y, loss, g = run.grads, run.y, run.loss, run.g
     factors, eigen, averages = list(state.factors), list(state.eigen), []
-    for (leaf, sides, *_), pair in zip(layout, fresh):
+    for (leaf, sides, *_), (A, G) in zip(layout, fresh):
         slots = list(factors[leaf])
-        for side, m in zip(sides, pair):  # (G, A)
+        for side, m in zip(sides, (G, A)):
             n = m.shape[0]
             stored = slots[side][:n, :n].astype(m.dtype)
             average = jnp.where(collect, beta * stored + (1 - beta) * m, stored)

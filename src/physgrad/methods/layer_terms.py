@@ -6,20 +6,21 @@ every dense layer (``z = W a + c``) and convolution layer (KFC: the kernel resha
 (out, in·k₁⋯k_d), its input patches p̄_t; :mod:`physgrad.methods.conv_factors`) of the
 per-sample program, layers in the order dense then convolutions:
 
-* :func:`layer_curvature` — ``(A, G, ∇W̄, count)`` from one forward pass, the gradient's
-  backward pass and one backward pass per cotangent (every output row, or ``probes``
-  Rademacher directions per sample):
+* :func:`layer_pass` — one forward and one backward pass of the batch, as a plain gradient
+  costs, give every layer's gradient ``∇W̄ = Σ D_gᵀ ā``: a convolution's kernel gradient is
+  taken on the kernel operand itself (the backward pass's own kernel product, with no input
+  patches), its bias column is the signal summed over positions. Its ``curvature()`` adds
+  the factors from the same forward pass and one backward pass per cotangent (every output
+  row, or ``probes`` Rademacher directions per sample):
 
-      A = Σ ā āᵀ  (d_in' × d_in'),   G = (1/c) Σ D_vᵀ D_v  (d_out × d_out),   ∇W̄ = Σ D_gᵀ ā,
+      A = Σ ā āᵀ  (d_in' × d_in'),   G = (1/c) Σ D_vᵀ D_v  (d_out × d_out),
 
   sums over samples (and a convolution's output positions), ``c`` the probes per sample
-  (1 for every row), ``count`` = b (dense) or b·T (convolution: KFC's count).
-* :func:`layer_gradients` — ``∇W̄`` alone, from one forward and one backward pass, as a
-  plain gradient costs: a convolution's kernel gradient is taken on the kernel operand
-  itself (the backward pass's own kernel product), with no input patches, and its bias
-  column is the signal summed over positions. What a step that reuses stored factors needs.
+  (1 for every row), ``count`` = b (dense) or b·T (convolution: KFC's count). A step that
+  reuses stored factors calls the pass alone.
+* :func:`layer_curvature` — both at once, ``(A, G, ∇W̄, count)`` per layer (the fresh rule).
 
-Both run the products in the inputs' dtype at ``Precision.HIGHEST``: XLA's float64 products
+The products run in the inputs' dtype at ``Precision.HIGHEST``: XLA's float64 products
 on a CPU are ~10× slower and A's b·T patch products dominate the curvature; float32's
 rounding, 1e-7 of a factor's top, sits below KHIG's default damping (the eigendecompositions
 and the power are float64). Gradients are stopped on every output.
@@ -28,6 +29,8 @@ and the power are float64). Gradients are stopped on every output.
 from __future__ import annotations
 
 import functools
+from collections.abc import Callable
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -45,33 +48,29 @@ def with_bias(a: Array, bias: bool) -> Array:
     return jnp.concatenate([a, jnp.ones((a.shape[0], 1), a.dtype)], axis=1) if bias else a
 
 
-def layer_curvature(structure: Structure, dense: tuple[DenseUse, ...], convs: tuple[kfc.ConvUse, ...],
-                    params: PyTree, batch: PyTree, loss_and_gradient, probes: int):  # fmt: skip
-    """``(layers, y, loss, g)``: per layer ``(A, G, ∇W̄, count)`` (module docstring), the
-    flat outputs, the batch loss and its output gradient ``g`` (rows,)."""
-    sig, y, loss, g = kfc.layer_signals(structure, dense, convs, params, batch, loss_and_gradient, probes)
-    patches = [kfc.conv_patches(structure, c, x) for c, x in zip(convs, sig.x[len(dense) :])]
-    scale = 1.0 / (probes or 1)  # probes: G is the mean over them
-    layers = []
-    for use, x, d_g, d_v in zip(dense, sig.x, sig.d_g, sig.d_v):
-        a, d_v = with_bias(x, use.bias is not None), d_v.reshape(-1, use.d_out)
-        layers.append((_dot(a.T, a), scale * _dot(d_v.T, d_v), _dot(d_g.T, a), a.shape[0]))
-    for c, p, d_g, d_v in zip(convs, patches, sig.d_g[len(dense) :], sig.d_v[len(dense) :]):
-        p = with_bias(p, c.bias is not None)
-        d_v = kfc.conv_signals(structure, c, d_v).reshape(-1, c.d_out)
-        d_g = kfc.conv_signals(structure, c, d_g).reshape(-1, c.d_out)
-        layers.append((_dot(p.T, p), scale * _dot(d_v.T, d_v), _dot(d_g.T, p), p.shape[0]))  # KFC's count: b·T
-    counts = [n for *_, n in layers]  # static sizes, kept out of stop_gradient's arrays
-    terms, y, loss, g = jax.lax.stop_gradient(([t[:3] for t in layers], y, loss, g))
-    return [(*t, n) for t, n in zip(terms, counts)], y, loss, g
+class LayerPass(NamedTuple):
+    """One forward and one backward pass of the batch (:func:`layer_pass`): each layer's
+    ``grads`` ∇W̄ (d_out × d_in', the bias last) and KFC ``counts`` (b, or b·T), the flat
+    outputs ``y``, the batch ``loss``, its output gradient ``g`` (rows,), and ``curvature()``:
+    each layer's ``(A, G)`` from the same forward pass and one more backward pass per
+    cotangent (called only where the factors are wanted: inside a ``lax.cond`` the rest of
+    the step does not pay for it)."""
+
+    grads: list
+    counts: list
+    y: Array
+    loss: Array
+    g: Array
+    curvature: Callable[[], list]
 
 
-def layer_gradients(structure: Structure, dense: tuple[DenseUse, ...], convs: tuple[kfc.ConvUse, ...],
-                    params: PyTree, batch: PyTree, loss_and_gradient) -> tuple[list[Array], Array, Array, Array]:  # fmt: skip
-    """``(grads, y, loss, g)``: each layer's ``∇W̄`` (d_out × d_in', the bias last), equal to
-    :func:`layer_curvature`'s, from one forward and one backward pass: a zero perturbation on
-    every layer's output (the dense layers' signals, the convolutions' bias) and one on each
-    convolution's kernel operand, shared by the samples (its gradient is the kernel's, summed)."""
+def layer_pass(structure: Structure, dense: tuple[DenseUse, ...], convs: tuple[kfc.ConvUse, ...], params: PyTree,
+               batch: PyTree, loss_and_gradient, probes: int) -> LayerPass:  # fmt: skip
+    """The gradients of every layer from one forward and one backward pass, and the factors'
+    closure (:class:`LayerPass`). A zero perturbation on every layer's output (per sample:
+    the signals D) and one on each convolution's kernel operand (shared by the samples: its
+    cotangent is the kernel's gradient, summed, with no input patches); ``probes`` as
+    :func:`~physgrad.methods.conv_factors.layer_signals`."""
     jaxpr = structure.jaxpr.jaxpr
     taps = [(u.eqn, u.operand) for u in dense] + [(c.eqn, 0) for c in convs]
     leaves = jax.tree.leaves(params)
@@ -80,7 +79,7 @@ def layer_gradients(structure: Structure, dense: tuple[DenseUse, ...], convs: tu
     def per_sample(eps, kernels, sample):
         shifts = {c.eqn: k for c, k in zip(convs, kernels)}
         y, taken = kfc._evaluate(structure, taps, leaves, jax.tree.leaves(sample), eps, shifts)
-        return flat_output(y), taken[: len(dense)]
+        return flat_output(y), taken
 
     def batched(eps, kernels):
         return jax.vmap(per_sample, in_axes=(0, None, 0))(eps, kernels, batch)
@@ -95,10 +94,40 @@ def layer_gradients(structure: Structure, dense: tuple[DenseUse, ...], convs: tu
     d_g, d_k = pullback(g.reshape(y.shape).astype(y.dtype))
     grads = [_dot(d.T, with_bias(x, u.bias is not None)) for u, x, d in zip(dense, taken, d_g)]
     for c, d, k in zip(convs, d_g[len(dense) :], d_k):
-        spec = structure.jaxpr.jaxpr.eqns[c.eqn].params["dimension_numbers"].rhs_spec
+        spec = jaxpr.eqns[c.eqn].params["dimension_numbers"].rhs_spec
         grad = jnp.transpose(k, spec).reshape(c.d_out, c.d_in)  # (O, I·k₁⋯k_d), channel-major as the patches
         if c.bias is not None:
             bias = kfc.conv_signals(structure, c, d).reshape(-1, c.d_out).sum(axis=0)
             grad = jnp.concatenate([grad, bias[:, None]], axis=1)
         grads.append(grad)
-    return jax.lax.stop_gradient((grads, y, loss, g))  # pyright: ignore[reportReturnType]
+    counts = [b] * len(dense) + [b * c.positions for c in convs]
+
+    def curvature() -> list:
+        dim = y.shape[1]
+        if probes == 0:
+            cotangents = jnp.broadcast_to(jnp.eye(dim, dtype=y.dtype)[:, None, :], (dim, b, dim))
+        else:
+            cotangents = jax.random.rademacher(kfc.probe_key(batch), (probes, b, dim), y.dtype)
+        d_v, _ = jax.vmap(pullback)(cotangents)  # the kernels' cotangents unused: XLA drops them
+        scale = 1.0 / (probes or 1)  # probes: G is the mean over them
+        out = []
+        for u, x, d in zip(dense, taken, d_v):
+            a, d = with_bias(x, u.bias is not None), d.reshape(-1, u.d_out)
+            out.append((_dot(a.T, a), scale * _dot(d.T, d)))
+        for c, x, d in zip(convs, taken[len(dense) :], d_v[len(dense) :]):
+            p = with_bias(kfc.conv_patches(structure, c, x), c.bias is not None)
+            d = kfc.conv_signals(structure, c, d).reshape(-1, c.d_out)
+            out.append((_dot(p.T, p), scale * _dot(d.T, d)))
+        return jax.lax.stop_gradient(out)
+
+    grads, y, loss, g = jax.lax.stop_gradient((grads, y, loss, g))
+    return LayerPass(grads, counts, y, loss, g, curvature)
+
+
+def layer_curvature(structure: Structure, dense: tuple[DenseUse, ...], convs: tuple[kfc.ConvUse, ...],
+                    params: PyTree, batch: PyTree, loss_and_gradient, probes: int):  # fmt: skip
+    """``(layers, y, loss, g)``: per layer ``(A, G, ∇W̄, count)`` (module docstring) from
+    :func:`layer_pass` and its factors, the flat outputs, the loss and its output gradient."""
+    run = layer_pass(structure, dense, convs, params, batch, loss_and_gradient, probes)
+    layers = [(A, G, grad, n) for (A, G), grad, n in zip(run.curvature(), run.grads, run.counts)]
+    return layers, run.y, run.loss, run.g
