@@ -1,20 +1,35 @@
 """KHIG with running averages of its Kronecker factors, refreshed as K-FAC does.
 
 Sources: Martens & Grosse, *Optimizing Neural Networks with Kronecker-factored Approximate
-Curvature*, ICML 2015, §5 and §8 (exponentially decayed averages of the factors, their
-inverses recomputed every T₃ steps); the rule is :class:`physgrad.methods.KroneckerPower`
-(:mod:`physgrad.methods.kronecker_hig`, where the factors and the power are derived).
+Curvature*, ICML 2015, §5 and §8 (exponentially decayed averages of the factors, updated
+every T₁ steps, their inverses recomputed every T₃ steps; kfac-jax's
+``curvature_update_period`` and ``inverse_update_period``); the rule is
+:class:`physgrad.methods.KroneckerPower` (:mod:`physgrad.methods.kronecker_hig`, where the
+factors and the power are derived; convolution layers: :mod:`physgrad.methods.conv_factors`).
 
-Per dense layer and step t, with the factors ``G(batch_t)``, ``A(batch_t)`` of this batch,
+Per layer (dense or convolution) and step t, with the factors ``G(batch_t)``, ``A(batch_t)``
+of this batch, on the collecting steps t ≡ 0 (mod ``curvature_every``)
 
     G_t = β G_{t−1} + (1 − β) G(batch_t),   A_t likewise   (G_0, A_0: the first batch's),
 
-and the eigendecompositions of ``G_t`` and ``A_t`` recomputed every ``inverse_every`` steps
-(reused in between); the layer's gradient ∇W̄ is always this batch's, so
+(``G_t = G_{t−1}`` on the other steps), and the eigendecompositions of ``G_t`` and ``A_t``
+recomputed every ``inverse_every`` steps (a multiple of ``curvature_every``; reused in
+between); the layer's gradient ∇W̄ is always this batch's, so
 
-    ΔW̄ = Q_G [ φ(γ αᵀ / b) ⊙ (Q_Gᵀ ∇W̄ Q_A) ] Q_Aᵀ,   φ(λ) = (λ + δ)^p,
+    ΔW̄ = Q_G [ φ(γ αᵀ / n) ⊙ (Q_Gᵀ ∇W̄ Q_A) ] Q_Aᵀ,   φ(λ) = (λ + δ)^p,
 
-with (γ, Q_G), (α, Q_A) the last eigendecompositions. The running factors are the state of a
+with (γ, Q_G), (α, Q_A) the last eigendecompositions and n = b (dense) or b·T (KFC's count).
+
+What a step costs. On dense layers with every output row (the rule's structured route) the
+signals D are computed every step anyway (the gradient needs them), so only the
+eigendecompositions are saved. On convolution layers or with ``probes`` (the signal route,
+:mod:`physgrad.methods.layer_terms`) a step that collects no factors runs one forward and
+one backward pass for the gradients (a convolution's kernel gradient on its operand, no
+input patches) and skips the probes' backward passes, the patches and the factor products
+(inside a ``lax.cond``): with ``curvature_every = inverse_every = k`` one step in k pays
+for the curvature, the others cost about a plain gradient step.
+
+The running factors are the state of a
 control (:class:`RunningFactors`, :class:`physgrad.methods.AbstractControl`) that hands
 the rule its per-layer direction; :class:`AveragedKronecker` is the final method that fills
 :class:`physgrad.methods.AbstractOptaxMethod`'s fields with it.
@@ -26,8 +41,11 @@ The factors of a dense layer are kept per parameter leaf, before the network is 
 (one more row and column for a bias folded into either side). Once the trace shows which
 leaves are dense layers, W @ x (W: d_out × d_in) keeps G in the top-left d_out² of the left
 factor and A in the top-left d_in'² of the right one; a @ W (W: d_in × d_out) the other way
-round. So the state's shapes follow from the parameters alone, as an optax state's do, and
-a 2-D leaf that turns out not to be a dense layer only holds zeros.
+round. A kernel leaf of 3 or more axes laid out (out, in, *window), as Equinox's, holds
+(out + 1)² (G) and (in·k₁⋯k_d + 1)² (A, the bias last) when in·k₁⋯k_d < :data:`CONV_SIDE_MAX`
+(a wider leaf holds none, and a convolution on it is refused in one line). So the state's
+shapes follow from the parameters alone, as an optax state's do, and a leaf that turns out
+not to be a layer only holds zeros.
 """
 
 from __future__ import annotations
@@ -64,7 +82,8 @@ class RunningFactors(AbstractControl):
     """The running averages of KHIG's factors as the control of a :class:`KroneckerPower`
     rule: its state is :class:`KroneckerAverages`, and each dense layer's direction is the
     power of the averaged factors (module docstring). ``curvature_ema = 0`` with
-    ``inverse_every = 1`` is the rule with fresh factors (HIG's way).
+    ``inverse_every = 1`` is the rule with fresh factors (HIG's way); ``curvature_every``
+    steps between factor updates (module docstring: what the other steps skip).
 
     The running factors are stored in the parameters' dtype; their eigendecompositions run
     in float64 as the fresh rule's. Float32 storage keeps eigenvalues down to ~1e-7 of a
@@ -230,6 +249,9 @@ class AveragedKronecker(AbstractOptaxMethod):
         optimizer: applies the direction (``optax.sgd(η)``: HIG's step).
         curvature_ema: β, the weight of the past factors (K-FAC's ``curvature_ema``).
         inverse_every: steps between eigendecompositions (K-FAC's ``inverse_update_period``).
+        curvature_every: steps between factor updates (K-FAC's ``curvature_update_period``;
+            divides ``inverse_every``). On convolution layers or with probes the other steps
+            compute the gradient alone.
     """
 
     rule: KroneckerPower
