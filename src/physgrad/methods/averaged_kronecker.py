@@ -195,15 +195,17 @@ def _signal_direct(rule: KroneckerPower, plan, params, batch, state: KroneckerAv
                              f"(out, in, *window) with in·window < {CONV_SIDE_MAX}")  # fmt: skip
     run = layer_pass(structure, dense, convs, params, batch, plan.jacobian.loss_and_gradient, rule.probes)
     shapes = jax.eval_shape(run.curvature)
-    fresh = jax.lax.cond(collect, run.curvature, lambda: jax.tree.map(lambda m: jnp.zeros(m.shape, m.dtype), shapes))
+    fresh: list = jax.lax.cond(
+        collect, run.curvature, lambda: jax.tree.map(lambda m: jnp.zeros(m.shape, m.dtype), shapes)
+    )
     grads, y, loss, g = run.grads, run.y, run.loss, run.g
     factors, eigen, averages = list(state.factors), list(state.eigen), []
     for (leaf, sides, *_), (A, G) in zip(layout, fresh):
         slots = list(factors[leaf])
         for side, m in zip(sides, (G, A)):
             n = m.shape[0]
-            stored = slots[side][:n, :n].astype(m.dtype)
-            average = jnp.where(collect, beta * stored + (1 - beta) * m, stored)
+            old = slots[side][:n, :n].astype(m.dtype)
+            average = jnp.where(collect, beta * old + (1 - beta) * m, old)
             slots[side] = slots[side].at[:n, :n].set(average.astype(slots[side].dtype))
             averages.append(average)
         factors[leaf] = tuple(slots)

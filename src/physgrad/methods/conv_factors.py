@@ -272,7 +272,7 @@ def _evaluate(structure: Structure, taps, leaves, sample_leaves, eps, kernels: d
     for v, x in zip(jaxpr.invars, list(leaves) + list(sample_leaves)):
         env[v] = x
     by_eqn = {e: k for k, (e, _) in enumerate(taps)}
-    taken = [None] * len(taps)
+    taken: list = [None] * len(taps)
     for e, eqn in enumerate(jaxpr.eqns):
         invals = [read(v) for v in eqn.invars]
         if kernels and e in kernels:
