@@ -130,8 +130,8 @@ def test_khig_with_running_factors_trains_a_unet_problem(tmp_path):
     from physgrad.harness.cli import main
     from test_kronecker_conv import UNET_SMALL
 
-    settings = {**UNET_SMALL["poisson"], "batch_size": "8", "eval_every": "4", "probes": "4", "lr": "0.01",
-                "damping": "0.01", "curvature_ema": "0.9", "inverse_every": "4", "curvature_every": "4"}  # fmt: skip
+    settings = {**UNET_SMALL["poisson"], "batch_size": "8", "eval_every": "4", "probes": "4", "lr": "0.001",
+                "damping": "0.1", "curvature_ema": "0.9", "inverse_every": "4", "curvature_every": "4"}  # fmt: skip
     argv = ["train", "poisson", "--method", "khig", "--steps", "8", "--out", str(tmp_path / "run")]
     assert main(argv + [f"--set={k}={v}" for k, v in settings.items()]) == 0
     with open(tmp_path / "run" / "metrics.csv") as f:
