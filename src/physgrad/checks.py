@@ -154,8 +154,8 @@ TEXT = Text()
 SHARED: dict[str, Check] = {
     **dict.fromkeys(("batch_size", "hidden", "width", "filters", "levels", "n_train", "n_test", "resolution",
                      "n_steps", "n_oscillators", "n_grid", "blocks", "lanczos_steps", "steps", "n", "n_ics", "frames",
-                     "substeps", "poles", "drivers", "evaders", "nx", "max_steps", "inverse_every", "damping_interval",
-                     "eval_horizon", "long_horizon", "iterations", "refinement", "horizon"), POSITIVE_INT),
+                     "substeps", "poles", "drivers", "evaders", "nx", "max_steps", "inverse_every", "curvature_every",
+                     "damping_interval", "eval_horizon", "long_horizon", "iterations", "refinement", "horizon"), POSITIVE_INT),
     **dict.fromkeys(("lr", "dt", "tol", "clip_threshold", "length", "size", "time", "amount", "pole_mass",
                      "total_mass", "half_length", "eta", "stage_epochs", "box", "swirl_sigma", "falloff", "rc",
                      "min_damping"), POSITIVE),

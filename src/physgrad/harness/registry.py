@@ -134,7 +134,8 @@ def _lm(*, lr: float = 1.0, damping: float = 1e-3, truncation: float = 1e-6, rou
 
 
 def _khig(*, lr: float = 1.0, power: float = -0.75, truncation: float = 1e-6, damping: float = 1e-4,
-          explicit_max: int = 1024, curvature_ema: float = 0.0, inverse_every: int = 1, probes: int = 0):  # fmt: skip
+          explicit_max: int = 1024, curvature_ema: float = 0.0, inverse_every: int = 1, curvature_every: int = 1,
+          probes: int = 0):  # fmt: skip
     """Kronecker-factored HIG: −η b^{−p} G^p ∇W A^p per dense layer (K-FAC's factors, HIG's power p = −3/4), by SGD.
 
     ``power`` −1 is Kronecker-factored Gauss–Newton; ``truncation`` τ drops eigenvalue products
@@ -145,11 +146,14 @@ def _khig(*, lr: float = 1.0, power: float = -0.75, truncation: float = 1e-6, da
     KFC's factors; ``probes`` s > 0 estimates G from s random output directions per sample
     instead of every output row (fields of outputs: the U-Nets). The factors are fresh per batch (HIG's way) unless ``curvature_ema`` β > 0
     or ``inverse_every`` k > 1: then running averages β·old + (1 − β)·new, eigendecomposed
-    every k steps (K-FAC's way)."""
+    every k steps (K-FAC's way), the factors collected every ``curvature_every`` steps (a divisor of k;
+    on conv layers and with probes the other steps cost a plain gradient)."""
     rule = KroneckerPower(power, truncation, damping, explicit_max, probes)
-    if curvature_ema == 0.0 and inverse_every == 1:
+    if curvature_ema == 0.0 and inverse_every == 1 and curvature_every == 1:
         return Method(rule, optax.sgd(lr))
-    return AveragedKronecker(rule, optax.sgd(lr), curvature_ema=curvature_ema, inverse_every=inverse_every)  # pyright: ignore[reportCallIssue]  (control is a property)
+    return AveragedKronecker(
+        rule, optax.sgd(lr), curvature_ema=curvature_ema, inverse_every=inverse_every, curvature_every=curvature_every
+    )  # pyright: ignore[reportCallIssue]  (control is a property)
 
 
 def _ekhig(*, lr: float = 1.0, power: float = -0.75, truncation: float = 1e-6, damping: float = 1e-4,

@@ -257,9 +257,10 @@ def layer_signals(structure: Structure, dense: tuple[DenseUse, ...], convs: tupl
     return Signals(tuple(taken), tuple(d_g), tuple(d_v)), y, loss, g  # pyright: ignore[reportArgumentType]
 
 
-def _evaluate(structure: Structure, taps, leaves, sample_leaves, eps):
-    """Run the per-sample program with ``eps[k]`` added to tapped equation k's output;
-    return the outputs and the tapped operands (a dense layer's vector, a convolution's input)."""
+def _evaluate(structure: Structure, taps, leaves, sample_leaves, eps, kernels: dict | None = None):
+    """Run the per-sample program with ``eps[k]`` added to tapped equation k's output (and
+    ``kernels[e]`` to convolution e's kernel operand); return the outputs and the tapped
+    operands (a dense layer's vector, a convolution's input)."""
     jaxpr = structure.jaxpr.jaxpr
     env = {}
 
@@ -271,9 +272,11 @@ def _evaluate(structure: Structure, taps, leaves, sample_leaves, eps):
     for v, x in zip(jaxpr.invars, list(leaves) + list(sample_leaves)):
         env[v] = x
     by_eqn = {e: k for k, (e, _) in enumerate(taps)}
-    taken = [None] * len(taps)
+    taken: list = [None] * len(taps)
     for e, eqn in enumerate(jaxpr.eqns):
         invals = [read(v) for v in eqn.invars]
+        if kernels and e in kernels:
+            invals[1] = invals[1] + kernels[e]
         out = _bind(eqn, invals)
         if e in by_eqn:
             k = by_eqn[e]

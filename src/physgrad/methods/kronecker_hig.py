@@ -93,7 +93,6 @@ matrix does in HIG's Gram route) and the direction is cast back to each leaf's d
 
 from __future__ import annotations
 
-import functools
 from collections.abc import Callable
 from typing import ClassVar, NamedTuple
 
@@ -107,6 +106,7 @@ from ..routes import JointJacobian, structured
 from ..routes.base import DenseUse, Structure
 from ..routes.structured import explicit_rows
 from . import conv_factors as kfc
+from . import layer_terms
 from .base import AbstractJacobianRule, Estimator, Objective, required
 
 _F64 = 8
@@ -304,8 +304,8 @@ class KroneckerPower(AbstractJacobianRule):
         plan = self.plan(objective, params, batch)
         if plan.convs or self.probes:
             if dense is not None:
-                raise ValueError("khig: running factor averages cover dense layers with every output row; "
-                                 "convolution layers and probes need fresh factors (curvature_ema=0, inverse_every=1)")  # fmt: skip
+                raise ValueError("khig: a per-layer direction hook covers dense layers with every output row; "
+                                 "convolution layers and probes take khig's own factors (fresh, or running averages)")  # fmt: skip
             return self._signal_directions(plan, params, batch)
         structure = plan.structure
         block, y = structured.factors(structure, params, batch, groups=(0,) if plan.explicit else ())
@@ -336,30 +336,14 @@ class KroneckerPower(AbstractJacobianRule):
 
     def _signal_directions(self, plan: Plan, params, batch):
         """Dense and convolution layers from the signals of one pass per cotangent (every
-        output row, or ``probes`` random ones: :func:`~physgrad.methods.conv_factors.layer_signals`)."""
-        structure, dense, convs = plan.structure, plan.structure.dense, plan.convs
-        sig, y, loss, g = kfc.layer_signals(structure, dense, convs, params, batch, plan.jacobian.loss_and_gradient,
-                                        self.probes)  # fmt: skip
-        patches = [kfc.conv_patches(structure, c, x) for c, x in zip(convs, sig.x[len(dense) :])]
+        output row, or ``probes`` random ones: :func:`~physgrad.methods.layer_terms.layer_curvature`)."""
+        structure, dense = plan.structure, plan.structure.dense
+        layers, y, loss, g = layer_terms.layer_curvature(structure, dense, plan.convs, params, batch,
+                                                         plan.jacobian.loss_and_gradient, self.probes)  # fmt: skip
         J = explicit_rows(plan.jacobian.predict, structure, params, batch, 0) if plan.explicit else None
-        sig, g, patches, J = jax.lax.stop_gradient((sig, g, patches, J))
-        scale = 1.0 / (self.probes or 1)  # probes: G is the mean over them
-        # The products run in the inputs' dtype (XLA's float64 products on a CPU are ~10x
-        # slower, and A's b·T patch products dominate the step); float32's rounding, 1e-7 of
-        # a factor's top, sits below the default damping; the eigh and the power are float64.
-        dot = functools.partial(jnp.matmul, precision=jax.lax.Precision.HIGHEST)
-        layers = []  # (A, G, ∇W̄, count) per layer
-        for use, x, d_g, d_v in zip(dense, sig.x, sig.d_g, sig.d_v):
-            a, d_v = _with_bias(x, use.bias is not None), d_v.reshape(-1, use.d_out)
-            layers.append((dot(a.T, a), dot(d_v.T, d_v), dot(d_g.T, a), a.shape[0]))
-        for c, p, d_g, d_v in zip(convs, patches, sig.d_g[len(dense) :], sig.d_v[len(dense) :]):
-            p = _with_bias(p, c.bias is not None)
-            d_v = kfc.conv_signals(structure, c, d_v).reshape(-1, c.d_out)
-            d_g = kfc.conv_signals(structure, c, d_g).reshape(-1, c.d_out)
-            layers.append((dot(p.T, p), dot(d_v.T, d_v), dot(d_g.T, p), p.shape[0]))  # KFC's count: b·T
+        J = jax.lax.stop_gradient(J)
         with float64_scope():
-            eig = kfc.eigh_all([to_float64(m) for A, G, _, _ in layers for m in (A, scale * to_float64(G))],
-                               self._stacked)  # fmt: skip
+            eig = kfc.eigh_all([to_float64(m) for A, G, _, _ in layers for m in (A, G)], self._stacked)
             deltas = [self._power(to_float64(grad), eig, k, count) for k, (_, _, grad, count) in enumerate(layers)]
             J64 = None if J is None else to_float64(J)
             return self._assemble(plan, params, deltas[: len(dense)], deltas[len(dense) :], J64, to_float64(g),
