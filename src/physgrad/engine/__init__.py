@@ -46,6 +46,7 @@ Errors are :class:`physgrad.ConfigError` lines in the library's words (``resume=
 """
 
 from .callbacks import Callback
+from .cpu_clock import run_cpu_time
 from .record import identity as _identity  # noqa: F401 — resume identity (tests compare records with it)
 from .recording import (
     ENV_PACKAGES,
@@ -94,5 +95,6 @@ __all__ = [
     "MetricsLog", "Phase", "Placement", "Recorder", "Setup", "Stage", "Steps", "StopRule", "Strategies",
     "TrainSettings", "TrainState", "abstract_data", "abstract_setup", "build_setup", "build_stages", "environment",
     "finish", "fit", "grouped_order", "history_from_metrics", "initial_network", "is_complete", "loop",
-    "make_evaluate", "make_step", "preflight", "read_metrics", "read_summary", "scalar_loss", "write_json",
+    "make_evaluate", "make_step", "preflight", "read_metrics", "read_summary", "run_cpu_time", "scalar_loss",
+    "write_json",
 ]  # fmt: skip

@@ -27,6 +27,9 @@ A thread's CPU is read from Linux's per-thread CPU clock (``clock_gettime`` of t
 the kernel derives from the thread's id, the encoding glibc's ``pthread_getcpuclockid``
 uses; nanoseconds, one system call, an error once the thread has ended). Elsewhere
 (macOS, Windows) :func:`run_cpu_time` is ``time.process_time``.
+
+Internal module: the public names are those :mod:`physgrad.engine` and ``physgrad``
+export (their ``__all__``); import them from there.
 """
 
 from __future__ import annotations
