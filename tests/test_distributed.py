@@ -257,6 +257,7 @@ def test_lanczos_and_blockgram_inside_the_hig_method_match_the_gram_route():
     assert "lanczos_change" in steps["lanczos"][1]
 
 
+@pytest.mark.unchecked("wrong devices on purpose: make_mesh's own one-line error")
 def test_devices_setting_errors_are_one_line():
     with pytest.raises(ConfigError, match="devices"):
         make_mesh(jax.device_count() + 1)
@@ -264,6 +265,7 @@ def test_devices_setting_errors_are_one_line():
         make_mesh("many")
 
 
+@pytest.mark.unchecked("deprecated string devices on purpose: their warning")
 def test_devices_are_a_number_a_sequence_or_none_and_strings_are_deprecated():
     everything = make_mesh(None)
     assert (1 if everything is None else everything.devices.size) == jax.device_count()

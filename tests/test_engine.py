@@ -124,6 +124,7 @@ def test_the_abstract_setup_has_the_shapes_of_the_built_one():
 
 
 # --- errors in the library's words -------------------------------------------------------------
+@pytest.mark.unchecked("wrong fit arguments on purpose: fit's own one-line errors")
 def test_fit_errors_name_fit_arguments_and_carry_the_flags_line(tmp_path):
     physgrad.fit(Cubic(), ADAM, budget=Budget(steps=2), out=tmp_path / "run", batch_size=32)
     with pytest.raises(ConfigError) as exists:

@@ -77,6 +77,7 @@ def test_a_meter_object_is_used_as_it_is(monkeypatch):
     assert buffer.getvalue() == ""  # no bar of fit's own beside it
 
 
+@pytest.mark.unchecked("a wrong progress on purpose: fit's own one-line error")
 def test_a_wrong_progress_is_one_line():
     with pytest.raises(physgrad.ConfigError, match="progress must be None .* got 'yes'"):
         short_fit(progress="yes")

@@ -140,6 +140,7 @@ def test_a_compiled_refusal_confirms_its_batch_size_by_compiling(tmp_path, avail
     assert summary["status"] == "finished"
 
 
+@pytest.mark.unchecked("a stand-in GPU device on purpose")
 def test_lighter_routes_and_more_devices_are_suggested(monkeypatch):
     """On accelerators more devices add memory: the guard names a device count; and a
     lighter route at this batch size (the GPU path of available_bytes, with a fake device)."""

@@ -140,6 +140,7 @@ def test_checks_name_their_range():
 
 
 # --- the Python API: its own arguments, in its own words -----------------------------------
+@pytest.mark.unchecked("wrong amounts on purpose: Budget's own one-line error")
 def test_budget_refuses_nan_infinite_and_fractional_amounts():
     for kind, amount in [("seconds", math.nan), ("seconds", math.inf), ("seconds", 0), ("steps", 2.5),
                          ("steps", 0), ("epochs", -1), ("steps", True)]:  # fmt: skip
@@ -151,6 +152,7 @@ def test_budget_refuses_nan_infinite_and_fractional_amounts():
     assert Budget(seconds=1).amount == 1 and Budget(steps=3).kind == "steps"
 
 
+@pytest.mark.unchecked("wrong field values on purpose: TrainSettings' own one-line error")
 def test_train_settings_refuse_out_of_range_fields():
     for field, value, says in [("eval_every", -1, "an integer >= 0"), ("eval_samples", -5, "an integer >= 0"),
                                ("checkpoint_seconds", math.nan, "a finite number >= 0"),
@@ -160,6 +162,7 @@ def test_train_settings_refuse_out_of_range_fields():
     assert TrainSettings(shuffle=None).shuffle is None
 
 
+@pytest.mark.unchecked("wrong arguments on purpose: fit's own one-line errors")
 def test_fit_refuses_bad_arguments_before_any_work(tmp_path):
     budget = Budget(steps=2)
     with pytest.raises(ConfigError, match=r"budget must be a physgrad.Budget, e.g. Budget\(steps=100\), got 100"):
