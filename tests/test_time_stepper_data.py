@@ -213,6 +213,7 @@ def test_windows_are_the_overlapping_slices():
     np.testing.assert_array_equal(w, np.stack(expected))
 
 
+@pytest.mark.costly("the fast tier's one generation of KS data through exponax: two seeds, six domain sizes each")
 def test_data_generation_is_deterministic_per_seed_and_cached(tmp_path, monkeypatch):
     settings = dict(frames=20, warmup_frames=10, n_ics=1, n_test=1, long_horizon=12, dataset_fraction=1.0)
     monkeypatch.setenv("PHYSGRAD_CACHE", str(tmp_path / "a"))
