@@ -348,6 +348,7 @@ def test_learning_rate_warmup_and_decay_schedule():
     np.testing.assert_allclose(sizes[10:], 5e-3, rtol=1e-3)
 
 
+@pytest.mark.costly("the fast tier's one curriculum run: three stages, each its own compiled step")
 def test_curriculum_expands_into_stages_with_their_rollout_and_learning_rate(tmp_path):
     config = adv_config("wig", steps=40, m=4, curriculum="1,2,4", stage_epochs=1.0, stage_lr="1e-2,1e-3,1e-4",
                         batch_size=4)  # fmt: skip
