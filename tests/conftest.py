@@ -137,6 +137,10 @@ def _unchecked(request):
 COSTLY_CPU_S = 5.0
 _CPU_START = pytest.StashKey[float]()
 _unexplained: list[tuple[float, str]] = []  # (CPU seconds, test id), filled where reports arrive
+# PHYSGRAD_TEST_CPU_TABLE=file: every test's CPU seconds, slowest first, written there at the end
+# of the run (tab-separated: seconds, worker, test id), to rank a cold suite's costs.
+_CPU_TABLE = os.environ.get("PHYSGRAD_TEST_CPU_TABLE", "")
+_all_cpu: list[tuple[float, str, str]] = []  # (CPU seconds, worker, test id), every test
 
 
 def _cpu_seconds() -> float:
@@ -165,9 +169,16 @@ def pytest_runtest_logreport(report):
         props = dict(report.user_properties)
         if props.get("cpu_s", 0.0) > COSTLY_CPU_S and not props.get("cpu_explained", True):
             _unexplained.append((props["cpu_s"], report.nodeid))
+        if _CPU_TABLE and "cpu_s" in props:
+            node = getattr(report, "node", None)  # pytest-xdist's worker, on the controller
+            _all_cpu.append((props["cpu_s"], node.gateway.id if node is not None else "-", report.nodeid))
 
 
 def pytest_terminal_summary(terminalreporter):
+    if _CPU_TABLE and _all_cpu:
+        with open(_CPU_TABLE, "w") as f:
+            for cpu, worker, nodeid in sorted(_all_cpu, reverse=True):
+                f.write(f"{cpu:.2f}\t{worker}\t{nodeid}\n")
     if _unexplained:
         terminalreporter.write_sep("=", f"tests over {COSTLY_CPU_S:g} s of CPU that say no reason")
         for cpu, nodeid in sorted(_unexplained, reverse=True):

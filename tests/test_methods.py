@@ -38,7 +38,8 @@ def test_dp_gradient_and_adam_step_against_hand_written_adam():
     lr, b1, b2, eps = 0.01, 0.9, 0.999, 1e-7
     m, v = (1 - b1) * g, (1 - b2) * g**2
     want = theta - lr * (m / (1 - b1)) / (np.sqrt(v / (1 - b2)) + eps)
-    params, state, stats = setup.method.step(setup.objective, params, state, batch)
+    # jitted as the engine runs it: one program, where an eager step compiles op by op
+    params, state, stats = jax.jit(lambda p, s, b: setup.method.step(setup.objective, p, s, b))(params, state, batch)
     np.testing.assert_allclose(np.asarray(ravel_pytree(params)[0]), want, rtol=1e-6, atol=1e-9)
     assert float(stats["loss"]) == pytest.approx(float(setup.objective.batch_loss(setup.params, batch)))
 
@@ -60,7 +61,8 @@ def test_jacobian_power_step_against_numpy(method, exponent, route):
     u, s, vt = np.linalg.svd(jac, full_matrices=False)
     keep = s > 1e-3 * s.max()
     want = np.asarray(flat) - 0.5 * vt[keep].T @ (s[keep] ** exponent * (u[:, keep].T @ g))
-    params, _, _ = setup.method.step(setup.objective, setup.params, setup.method.init(setup.params), batch)
+    step = jax.jit(lambda p, b: setup.method.step(setup.objective, p, setup.method.init(p), b))
+    params, _, _ = step(setup.params, batch)
     np.testing.assert_allclose(np.asarray(ravel_pytree(params)[0]), want, rtol=1e-4, atol=1e-6)
 
 

@@ -40,7 +40,7 @@ def test_cartpole_step_equals_a_numpy_loop():
     problem = CartPole(poles=3)
     s = problem.make_data(None)["train"][5]
     for force in (0.0, 3.7, -12.0):
-        got = problem.physics(s, jnp.float32(force))
+        got = jax.jit(problem.physics)(s, jnp.float32(force))
         np.testing.assert_allclose(got, cartpole_numpy(s, force), rtol=2e-5, atol=2e-6)
 
 
@@ -118,7 +118,7 @@ def test_guidance_step_equals_a_numpy_loop():
     s = problem.make_data(None)["train"][3]
     s = s.at[:, 1].set(jax.random.normal(jax.random.key(1), (6, 2), jnp.float32))  # non-zero velocities
     c = jax.random.normal(jax.random.key(2), (2, 2), jnp.float32)
-    np.testing.assert_allclose(problem.physics(s, c), guidance_numpy(s, c, problem), rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(jax.jit(problem.physics)(s, c), guidance_numpy(s, c, problem), rtol=1e-5, atol=1e-5)
 
 
 def test_guidance_data_network_and_the_degenerate_stopped_gradient():
@@ -133,9 +133,10 @@ def test_guidance_data_network_and_the_degenerate_stopped_gradient():
     # later, and the control term vanishes at a zero output, so the gradient is exactly 0.
     setup = build(make_config("guidance", "no_temporal", budget=Budget(steps=1), settings={"rc": "0.01"}))
     system, batch = setup.objective.rollout, setup.data["train"][:8]
-    _, g = physgrad.rollout.value_and_grad(system, setup.params, batch, physgrad.rollout.S())
+    grad = jax.jit(lambda p, b, policy: physgrad.rollout.value_and_grad(system, p, b, policy)[1], static_argnums=2)
+    g = grad(setup.params, batch, physgrad.rollout.S())
     assert all(float(jnp.max(jnp.abs(x))) == 0.0 for x in jax.tree.leaves(g))
-    _, g = physgrad.rollout.value_and_grad(system, setup.params, batch, physgrad.rollout.R())
+    g = grad(setup.params, batch, physgrad.rollout.R())
     assert max(float(jnp.max(jnp.abs(x))) for x in jax.tree.leaves(g)) > 0
 
 
@@ -221,6 +222,7 @@ def one_update(problem, method, settings=None):
         pytest.param("quantum_control", marks=pytest.mark.slow),
     ],
 )
+@pytest.mark.costly("the fast tier's one check of the one-pass combination: two setups, four gradient programs")
 def test_one_pass_and_two_pass_combination_give_the_same_gradient(problem):
     # Not zero-initialised: at a zero last kernel ∂N/∂s = 0 and g_M = g_R, masking nothing.
     settings = {"poles": "2", "zero_init": "false"} if problem == "cartpole" else {}

@@ -84,13 +84,20 @@ def _batch(n_in, n_out, b=6, key=1, complex_target=False):
 
 
 def _numpy_reference(objective, params, batch, exponent, truncation):
-    """``V Σ^κ Uᵀ g`` with σ ≤ τ σ_max dropped, from the explicit J in NumPy float64."""
-    jac, y = stacked_jacobian(objective.predict, params, batch)
-    _, g = JointJacobian.of(objective, params, batch).loss_and_gradient(y)
+    """``V Σ^κ Uᵀ g`` with σ ≤ τ σ_max dropped, from the explicit J in NumPy float64 (J and
+    g jitted: one program each, where eager calls compile op by op)."""
+    jac, y = jax.jit(lambda p, b: stacked_jacobian(objective.predict, p, b))(params, batch)
+    _, g = jax.jit(lambda p, b, y: JointJacobian.of(objective, p, b).loss_and_gradient(y))(params, batch, y)
     j, g = np.asarray(jac, np.float64), np.asarray(g, np.float64)
     u, s, vt = np.linalg.svd(j, full_matrices=False)
     keep = s > truncation * s.max()
     return vt[keep].T @ (s[keep] ** exponent * (u[:, keep].T @ g)), s
+
+
+def _direction(route, objective, params, batch, exponent, truncation):
+    """The route's direction, jitted as the engine runs it (one program, where an eager call
+    compiles op by op)."""
+    return jax.jit(lambda p, b: route(objective, p, b, exponent, truncation)[0])(params, batch)
 
 
 def _between(s, k):
@@ -114,12 +121,10 @@ def test_structured_gram_equals_the_explicit_gram(name):
     batch = _batch(3, OUTPUTS[name])
     rows = 6 * OUTPUTS[name]
     plan = find_structure(objective.predict, params, jax.tree.map(lambda a: a[0], batch), rows)
-    block, _ = factors(plan, params, batch)
-    jac, _ = stacked_jacobian(objective.predict, params, batch)
+    gram = jax.jit(lambda p, b: (lambda block: cross_gram(plan, block, block))(factors(plan, p, b)[0]))
+    jac, _ = jax.jit(lambda p, b: stacked_jacobian(objective.predict, p, b))(params, batch)
     j = np.asarray(jac)
-    np.testing.assert_allclose(
-        np.asarray(cross_gram(plan, block, block)), j @ j.T, rtol=1e-12, atol=1e-12 * np.abs(j @ j.T).max()
-    )
+    np.testing.assert_allclose(np.asarray(gram(params, batch)), j @ j.T, rtol=1e-12, atol=1e-12 * np.abs(j @ j.T).max())
 
 
 def test_dense_layers_are_found_in_the_program_and_the_rest_is_explicit():
@@ -171,8 +176,8 @@ def test_structured_update_equals_the_gram_route_in_float32(name):
     net = jax.tree.map(lambda a: a.astype(jnp.float32) if eqx.is_inexact_array(a) else a, NETWORKS[name]())
     objective, params = _objective(net)
     batch = jax.tree.map(lambda a: a.astype(jnp.float32), _batch(3, 2))
-    want = routes.Gram()(objective, params, batch, -0.5, 1e-3)[0]
-    got = routes.Structured()(objective, params, batch, -0.5, 1e-3)[0]
+    want = _direction(routes.Gram(), objective, params, batch, -0.5, 1e-3)
+    got = _direction(routes.Structured(), objective, params, batch, -0.5, 1e-3)
     assert got.dtype == jnp.float32
     np.testing.assert_allclose(np.asarray(got), np.asarray(want), rtol=2e-4, atol=2e-5 * float(jnp.abs(want).max()))
 
@@ -193,8 +198,8 @@ def test_mixed_conv_dense_network_equals_the_gram_route(chunk):
     assert len(plan.dense) == 2 and plan.explicit_parameters == 2 * 3 + 2  # the convolution's kernel and bias
     assert (len(plan.groups) > 1) == (chunk == 4)
     for exponent in (-0.5, -1.0):
-        want = routes.Gram()(objective, params, batch, exponent, 1e-6)[0]
-        got = routes.Structured(chunk_elements=chunk * rows)(objective, params, batch, exponent, 1e-6)[0]
+        want = _direction(routes.Gram(), objective, params, batch, exponent, 1e-6)
+        got = _direction(routes.Structured(chunk_elements=chunk * rows), objective, params, batch, exponent, 1e-6)
         np.testing.assert_allclose(
             np.asarray(got), np.asarray(want), rtol=1e-8, atol=1e-10 * float(jnp.abs(want).max())
         )
@@ -212,7 +217,7 @@ def test_complex_outputs_equal_the_gram_route():
     batch = _batch(3, 2, complex_target=True)
     for exponent in (-0.5, -1.0):
         want, _ = _numpy_reference(objective, params, batch, exponent, 1e-6)
-        got = routes.Structured()(objective, params, batch, exponent, 1e-6)[0]
+        got = _direction(routes.Structured(), objective, params, batch, exponent, 1e-6)
         np.testing.assert_allclose(np.asarray(got), want, rtol=1e-8, atol=1e-10 * np.abs(want).max())
 
 
@@ -220,7 +225,7 @@ def test_tall_jacobian_goes_to_the_gram_route():
     objective, params = _objective(MLP((3, 2, 2), jax.nn.tanh, key=jax.random.key(8), dtype=jnp.float64))
     batch = _batch(3, 2, b=20)  # 40 rows, 14 parameters
     want, _ = _numpy_reference(objective, params, batch, -0.5, 1e-6)
-    got = routes.Structured()(objective, params, batch, -0.5, 1e-6)[0]
+    got = _direction(routes.Structured(), objective, params, batch, -0.5, 1e-6)
     np.testing.assert_allclose(np.asarray(got), want, rtol=1e-8, atol=1e-10 * np.abs(want).max())
 
 
@@ -255,7 +260,7 @@ def test_structured_route_sharded_over_4_devices_equals_one_device(case):
             net, physics=lambda u: jnp.exp(1j * u) * (1 + u), loss=lambda y, s: jnp.sum(jnp.abs(y - s["t"]) ** 2)
         )
         batch = _batch(3, 2, b=8, complex_target=True)
-    want = routes.Structured()(objective, params, batch, -0.5, 1e-6)[0]
+    want = _direction(routes.Structured(), objective, params, batch, -0.5, 1e-6)
     mesh = make_mesh(4)
     with use_mesh(mesh):
         step = jax.jit(lambda p, b: routes.Structured()(objective, replicated(p), shard_batch(b), -0.5, 1e-6)[0])
