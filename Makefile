@@ -4,7 +4,7 @@ VENV   ?= .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: demo test test-slow test-all lint format typecheck docs install bench dist clean
+.PHONY: demo test test-typed test-slow test-all lint format typecheck docs install bench dist clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -29,6 +29,12 @@ PYTEST := $(BIN)/python -m pytest -n auto --dist loadfile --durations=30
 
 test: $(STAMP)
 	$(PYTEST) -m "not slow"
+
+# the fast tier again with physgrad's jaxtyping annotations checked at run time (beartype
+# through jaxtyping's import hook, tests/conftest.py); a test that passes a wrong type on
+# purpose, to check physgrad's own one-line error, is marked unchecked. CI runs it.
+test-typed: $(STAMP)
+	$(PYTEST) -m "not slow" --jaxtyping
 
 test-slow: $(STAMP)
 	$(PYTEST) -m slow

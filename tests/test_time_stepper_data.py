@@ -93,6 +93,7 @@ def advection():
         ]
 
 
+@pytest.mark.unchecked("a stand-in setup (problem, data, batch sizes): the sample order reads nothing else")
 def test_a_time_stepper_batch_is_not_consecutive_windows_of_one_trajectory(advection):
     config, train = advection
     setup = stand_in_setup(config, train)
@@ -116,6 +117,7 @@ def test_a_time_stepper_batch_is_not_consecutive_windows_of_one_trajectory(advec
     np.testing.assert_array_equal(np.asarray(library.order(0, 0)), order)
 
 
+@pytest.mark.unchecked("a stand-in setup (problem, data, batch sizes): the sample order reads nothing else")
 def test_orders_differ_between_epochs_are_reproducible_per_seed_and_see_every_sample_once(advection):
     config, train = advection
     setup = stand_in_setup(config, train)
@@ -129,6 +131,7 @@ def test_orders_differ_between_epochs_are_reproducible_per_seed_and_see_every_sa
     assert all(not np.array_equal(a, b) for a, b in zip(orders, other))
 
 
+@pytest.mark.unchecked("a stand-in setup (problem, data, batch sizes): the sample order reads nothing else")
 def test_ks_batches_hold_one_domain_size_each_with_the_sizes_interleaved_at_random(monkeypatch):
     from physgrad.problems.ks import TRAIN_FACTORS
 
