@@ -6,12 +6,13 @@ import argparse
 import contextlib
 import math
 import os
+import platform
 import statistics
 
 import jax
 import jax.numpy as jnp
 
-import physgrad  # noqa: F401
+import physgrad
 from physgrad import Budget
 from physgrad.harness.calibration import time_programs
 from physgrad.harness.config import make_config
@@ -45,6 +46,36 @@ def settings_from(args: argparse.Namespace) -> dict[str, str]:
     if args.batch_size:
         settings["batch_size"] = str(args.batch_size)
     return settings
+
+
+def machine_line() -> str:
+    """``physgrad … | jax … | device | processor | N core(s)``: the versions and the machine a
+    step table was measured on (the cores this process may run on, not the machine's count)."""
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    return (f"physgrad {physgrad.__version__} | jax {jax.__version__} | {jax.devices()[0]} | "
+            f"{platform.processor() or platform.machine()} | {cores} core(s)")  # fmt: skip
+
+
+def load_average() -> str:
+    """The 1-, 5- and 15-minute load averages, printed beside a timing (the load distorts wall time)."""
+    return " ".join(f"{x:.2f}" for x in os.getloadavg())
+
+
+def warmed_steps(methods, prepare) -> tuple[dict, dict[str, str]]:
+    """``(steps, refused)``: ``steps[method]`` = ``prepare(method)``, a tuple ``(setup, step,
+    step_args)`` whose step has been called once (compiled and warmed up); a method whose
+    ``prepare`` or first call raises (it refuses the problem) is left out of ``steps``, its
+    error's first line in ``refused[method]``, so a table can print the reason in its row."""
+    steps, refused = {}, {}
+    for method in methods:
+        try:
+            prepared = prepare(method)
+            jax.block_until_ready(prepared[1](*prepared[2]))
+        except Exception as error:  # a method that refuses this problem: its one-line reason
+            refused[method] = str(error).splitlines()[0]
+            continue
+        steps[method] = prepared
+    return steps, refused
 
 
 def training_step(problem: str, method: str, settings: dict[str, str]):

@@ -17,7 +17,7 @@ import argparse
 import platform
 
 import jax
-from common import half_inverse_floor, median_seconds, step_bytes, training_step
+from common import half_inverse_floor, median_seconds, settings_from, step_bytes, training_step
 
 import physgrad
 
@@ -33,9 +33,7 @@ def main():
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--set", action="append", default=[], metavar="NAME=VALUE")
     args = parser.parse_args()
-    base = dict(s.split("=", 1) for s in args.set)
-    if args.batch_size:
-        base["batch_size"] = str(args.batch_size)
+    base = settings_from(args)
 
     print(f"physgrad {physgrad.__version__} | jax {jax.__version__} | {jax.devices()[0]} | "
           f"{platform.processor() or platform.machine()}; median of {args.repeats} steps")  # fmt: skip

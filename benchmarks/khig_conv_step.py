@@ -38,12 +38,11 @@ os.environ.setdefault("PHYSGRAD_THREADS", "1")  # read by common, before JAX's b
 
 import argparse  # noqa: E402
 import dataclasses  # noqa: E402
-import platform  # noqa: E402
 import statistics  # noqa: E402
 import time  # noqa: E402
 
 import jax  # noqa: E402
-from common import problem_precision, training_step  # noqa: E402
+from common import load_average, machine_line, problem_precision, settings_from, training_step, warmed_steps  # noqa: E402
 
 import physgrad  # noqa: E402
 from physgrad.engine.step import make_step  # noqa: E402
@@ -74,42 +73,36 @@ def main():
     args = parser.parse_args()
     methods, k = args.methods.split(","), args.period
 
-    affinity = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
     pools = physgrad.cpu.report().get("setting") or {}
-    print(f"physgrad {physgrad.__version__} | jax {jax.__version__} | {jax.devices()[0]} | "
-          f"{platform.processor() or platform.machine()} | {affinity} core(s) | threads {pools.get('requested')} | "
-          f"load {_load()}; median of {args.repeats} interleaved rounds of {k} steps (hig: {args.hig_repeats}); "
+    print(f"{machine_line()} | threads {pools.get('requested')} | "
+          f"load {load_average()}; median of {args.repeats} interleaved rounds of {k} steps (hig: {args.hig_repeats}); "
           f"khig probes={args.probes}; khig-k: curvature_ema={args.ema}, curvature_every=inverse_every={k}")  # fmt: skip
     print("| problem | batch | parameters | method | CPU ms/step | × Adam (CPU) | wall ms/step | × Adam (wall) |")
     print("|---|---|---|---|---|---|---|---|")
     summary = []
     for problem in args.problems.split(","):
-        base = {**SIZES.get(problem, {}), **dict(s.split("=", 1) for s in args.set),
-                "batch_size": str(args.batch_size)}  # fmt: skip
+        base = {**SIZES.get(problem, {}), **settings_from(args)}
+
+        def prepare(method, problem=problem, base=base):
+            name = "khig" if method.startswith("khig") else method
+            settings = {**base, "probes": str(args.probes)} if name == "khig" else base
+            if method == "khig-k":
+                settings = {**settings, "curvature_ema": str(args.ema), "inverse_every": str(k),
+                            "curvature_every": str(k)}  # fmt: skip
+            _, setup, step, step_args = training_step(problem, name, settings)
+            if method == "khig-stacked":  # the same rule, same-size factors in one eigh call
+                rule = dataclasses.replace(setup.method.rule, eigh_batched=True)
+                step = make_step(setup, args.batch_size, dataclasses.replace(setup.method, rule=rule))
+            return setup, step, list(step_args)  # a list: the state is carried from step to step
+
         with problem_precision(problem, base):
-            steps, refused, size = {}, {}, 0
-            for method in methods:
-                name = "khig" if method.startswith("khig") else method
-                settings = {**base, "probes": str(args.probes)} if name == "khig" else base
-                if method == "khig-k":
-                    settings = {**settings, "curvature_ema": str(args.ema), "inverse_every": str(k),
-                                "curvature_every": str(k)}  # fmt: skip
-                try:
-                    _, setup, step, step_args = training_step(problem, name, settings)
-                    if method == "khig-stacked":  # the same rule, same-size factors in one eigh call
-                        rule = dataclasses.replace(setup.method.rule, eigh_batched=True)
-                        step = make_step(setup, args.batch_size, dataclasses.replace(setup.method, rule=rule))
-                    jax.block_until_ready(step(*step_args))  # compile and warm up
-                    size = physgrad.nets.parameter_count(setup.params)
-                except Exception as error:  # a method that refuses this problem: its one-line reason
-                    refused[method] = str(error).splitlines()[0]
-                    continue
-                steps[method] = (step, list(step_args))
+            steps, refused = warmed_steps(methods, prepare)
+            size = physgrad.nets.parameter_count(next(iter(steps.values()))[0].params) if steps else 0
             cpu: dict[str, list[float]] = {m: [] for m in steps}
             wall: dict[str, list[float]] = {m: [] for m in steps}
             split: dict[str, list[float]] = {"refresh": [], "reuse": []}
             for r in range(args.repeats):
-                for method, (step, step_args) in steps.items():
+                for method, (_, step, step_args) in steps.items():
                     if method == "hig" and r >= args.hig_repeats:
                         continue
                     c0, w0 = time.process_time(), time.perf_counter()
@@ -139,11 +132,7 @@ def main():
                          f"{statistics.median(split['reuse']) * 1e3:.1f} ms CPU")  # fmt: skip
             summary.append(line)
     print("\n".join(summary))
-    print(f"load after: {_load()}")
-
-
-def _load() -> str:
-    return " ".join(f"{x:.2f}" for x in os.getloadavg())
+    print(f"load after: {load_average()}")
 
 
 if __name__ == "__main__":

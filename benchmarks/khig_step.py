@@ -15,15 +15,11 @@ ratio to Adam's median from the same rounds, and the load average before and aft
 from __future__ import annotations
 
 import argparse
-import os
-import platform
 import statistics
 import time
 
 import jax
-from common import training_step
-
-import physgrad
+from common import load_average, machine_line, settings_from, training_step, warmed_steps
 
 PROBLEMS = ("oscillators", "quantum_dipole", "poisson_hig")
 METHODS = ("adam", "khig", "hig", "kfac")
@@ -38,28 +34,18 @@ def main():
     parser.add_argument("--hig-repeats", type=int, default=3)
     parser.add_argument("--set", action="append", default=[], metavar="NAME=VALUE")
     args = parser.parse_args()
-    base = {**dict(s.split("=", 1) for s in args.set), "batch_size": str(args.batch_size)}
+    base = settings_from(args)
     methods = args.methods.split(",")
 
-    affinity = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
-    print(f"physgrad {physgrad.__version__} | jax {jax.__version__} | {jax.devices()[0]} | "
-          f"{platform.processor() or platform.machine()} | {affinity} core(s) | load {_load()}; "
-          f"median of {args.repeats} interleaved rounds (hig: {args.hig_repeats})")  # fmt: skip
+    print(f"{machine_line()} | load {load_average()}; median of {args.repeats} interleaved rounds "
+          f"(hig: {args.hig_repeats})")  # fmt: skip
     print("| problem | batch | method | ms/step | × Adam |")
     print("|---|---|---|---|---|")
     for problem in args.problems.split(","):
-        steps, refused = {}, {}
-        for method in methods:
-            try:
-                _, _, step, step_args = training_step(problem, method, base)
-                jax.block_until_ready(step(*step_args))  # compile and warm up
-            except Exception as error:  # a method that refuses this problem: its one-line reason
-                refused[method] = str(error).splitlines()[0]
-                continue
-            steps[method] = (step, step_args)
+        steps, refused = warmed_steps(methods, lambda method: training_step(problem, method, base)[1:])
         times: dict[str, list[float]] = {m: [] for m in steps}
         for r in range(args.repeats):
-            for method, (step, step_args) in steps.items():
+            for method, (_, step, step_args) in steps.items():
                 if method == "hig" and r >= args.hig_repeats:
                     continue
                 t0 = time.perf_counter()
@@ -73,11 +59,7 @@ def main():
                 continue
             ratio = f"{medians[method] / floor:.1f}" if floor else ""
             print(f"| {problem} | {args.batch_size} | {method} | {medians[method] * 1e3:.2f} | {ratio} |", flush=True)
-    print(f"load after: {_load()}")
-
-
-def _load() -> str:
-    return " ".join(f"{x:.2f}" for x in os.getloadavg())
+    print(f"load after: {load_average()}")
 
 
 if __name__ == "__main__":

@@ -8,8 +8,6 @@ case, the diagonal of ``Uᵀ (JᵀJ) U`` with J each layer's Jacobian from ``jax
 gradient from ``jax.grad``.
 """
 
-import csv
-
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -17,7 +15,7 @@ import optax
 import pytest
 
 import physgrad
-from physgrad.harness.cli import main
+from cli_training import cli_test_losses
 from physgrad.harness.registry import METHODS, PROBLEMS, describe, paper_defaults
 from physgrad.methods import KroneckerPower
 from physgrad.methods.eigen_kronecker import EigenCorrectedKronecker, KeptEigenbasis, layer_corrections
@@ -206,11 +204,7 @@ def test_ekhig_is_registered_with_hig_defaults_and_trains_oscillators_from_the_c
     assert paper_defaults(PROBLEMS["oscillators"], "ekhig") == paper_defaults(PROBLEMS["oscillators"], "hig")
     method = METHODS["ekhig"](basis_every=3)
     assert isinstance(method, EigenCorrectedKronecker) and method.basis_every == 3
-    out = tmp_path / "run"
-    argv = ["train", "oscillators", "--method", "ekhig", "--steps", "16", "--out", str(out),
-            "--set", "n_train=64", "--set", "n_test=64", "--set", "batch_size=16", "--set", "eval_every=8"]  # fmt: skip
-    assert main(argv) == 0
-    with open(out / "metrics.csv") as f:
-        test = [float(r["value"]) for r in csv.DictReader(f) if r["split"] == "test" and r["metric"] == "loss"]
+    settings = {"n_train": "64", "n_test": "64", "batch_size": "16", "eval_every": "8"}
+    test = cli_test_losses(tmp_path / "run", "oscillators", "ekhig", 16, settings)
     assert len(test) == 3 and all(np.isfinite(test))
     assert test[0] > test[1] > test[2], test

@@ -10,7 +10,6 @@ case the power of the explicit Kronecker matrix ``kron(G, A)/(b T)`` (``numpy.li
 applied to the gradient from ``jax.grad``.
 """
 
-import csv
 import itertools
 
 import equinox as eqx
@@ -301,13 +300,10 @@ UNET_SMALL = {
 @pytest.mark.parametrize("problem", sorted(UNET_SMALL))
 def test_khig_trains_the_unet_problems(problem, tmp_path):
     """8 steps of khig (KFC factors, G from 4 probes) lower the test loss on each U-Net problem."""
-    from physgrad.harness.cli import main
+    from cli_training import cli_test_losses
 
     settings = {**UNET_SMALL[problem], "batch_size": "8", "eval_every": "4", "probes": "4", "lr": "0.01",
                 "damping": "0.01"}  # fmt: skip
-    argv = ["train", problem, "--method", "khig", "--steps", "8", "--out", str(tmp_path / "run")]
-    assert main(argv + [f"--set={k}={v}" for k, v in settings.items()]) == 0
-    with open(tmp_path / "run" / "metrics.csv") as f:
-        test = [float(r["value"]) for r in csv.DictReader(f) if r["split"] == "test" and r["metric"] == "loss"]
+    test = cli_test_losses(tmp_path / "run", problem, "khig", 8, settings)
     assert len(test) == 3 and all(np.isfinite(test)), test
     assert test[-1] < test[0], test

@@ -9,8 +9,6 @@ power of the explicit Kronecker matrix ``kron(G, A)/b`` (``numpy.linalg.eigh``) 
 the gradient from ``jax.grad``.
 """
 
-import csv
-
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -18,8 +16,8 @@ import numpy as np
 import pytest
 
 import physgrad
+from cli_training import cli_test_losses
 from physgrad import routes
-from physgrad.harness.cli import main
 from physgrad.harness.registry import METHODS, PROBLEMS, describe, paper_defaults
 from physgrad.methods.kronecker_hig import layer_factors
 
@@ -248,12 +246,8 @@ def test_leftover_parameters_form_one_exact_block_and_grouped_convolutions_are_r
 def test_khig_is_registered_with_hig_defaults_and_trains_oscillators_from_the_cli(tmp_path):
     assert "khig" in METHODS and describe("khig").startswith("Kronecker-factored HIG")
     assert paper_defaults(PROBLEMS["oscillators"], "khig") == paper_defaults(PROBLEMS["oscillators"], "hig")
-    out = tmp_path / "run"
-    argv = ["train", "oscillators", "--method", "khig", "--steps", "16", "--out", str(out),
-            "--set", "n_train=64", "--set", "n_test=64", "--set", "batch_size=16", "--set", "eval_every=8"]  # fmt: skip
-    assert main(argv) == 0
-    with open(out / "metrics.csv") as f:
-        test = [float(r["value"]) for r in csv.DictReader(f) if r["split"] == "test" and r["metric"] == "loss"]
+    settings = {"n_train": "64", "n_test": "64", "batch_size": "16", "eval_every": "8"}
+    test = cli_test_losses(tmp_path / "run", "oscillators", "khig", 16, settings)
     assert len(test) == 3 and all(np.isfinite(test))
     assert test[0] > test[1] > test[2], test
 

@@ -125,16 +125,11 @@ def test_running_factors_refusals():
 @pytest.mark.slow  # minutes of compilation on a shared CPU; the directions are checked above
 def test_khig_with_running_factors_trains_a_unet_problem(tmp_path):
     """8 steps of khig with factors collected and eigendecomposed every 4 steps lower poisson's test loss."""
-    import csv
-
-    from physgrad.harness.cli import main
+    from cli_training import cli_test_losses
     from test_kronecker_conv import UNET_SMALL
 
     settings = {**UNET_SMALL["poisson"], "batch_size": "8", "eval_every": "4", "probes": "4", "lr": "0.001",
                 "damping": "0.1", "curvature_ema": "0.9", "inverse_every": "4", "curvature_every": "4"}  # fmt: skip
-    argv = ["train", "poisson", "--method", "khig", "--steps", "8", "--out", str(tmp_path / "run")]
-    assert main(argv + [f"--set={k}={v}" for k, v in settings.items()]) == 0
-    with open(tmp_path / "run" / "metrics.csv") as f:
-        test = [float(r["value"]) for r in csv.DictReader(f) if r["split"] == "test" and r["metric"] == "loss"]
+    test = cli_test_losses(tmp_path / "run", "poisson", "khig", 8, settings)
     assert len(test) == 3 and all(np.isfinite(test)), test
     assert test[-1] < test[0], test

@@ -108,8 +108,9 @@ def test_jacobian_rules_in_a_user_loop_with_clipping_and_a_schedule(name, expone
 
 
 def test_mlp_takes_its_activation_as_a_function_and_names_are_deprecated():
-    with pytest.warns(DeprecationWarning, match="MLP"):
+    with pytest.warns(DeprecationWarning, match="MLP") as warned:
         named = physgrad.MLP((2, 6, 3), "tanh", key=jax.random.key(0))
+    assert warned[0].filename == __file__  # the warning names the user's line, not Equinox's
     assert named == network(jax.random.key(0))
     x = jnp.ones(2)
     np.testing.assert_allclose(named(x), network(jax.random.key(0))(x))

@@ -242,7 +242,8 @@ def test_unet_takes_its_activation_as_a_function():
 
     key, x = jax.random.key(0), jax.random.uniform(jax.random.key(1), (2, 8, 8))
     leaky = UNet(2, 2, levels=2, filters=4, key=key, activation=jax.nn.leaky_relu)
-    with pytest.warns(DeprecationWarning, match="jax.nn.leaky_relu"):
+    with pytest.warns(DeprecationWarning, match="jax.nn.leaky_relu") as warned:
         named = UNet(2, 2, levels=2, filters=4, key=key, activation="leaky_relu")
+    assert warned[0].filename == __file__  # the warning names the user's line, not Equinox's
     np.testing.assert_array_equal(np.asarray(leaky(x)), np.asarray(named(x)))
     assert not np.array_equal(np.asarray(leaky(x)), np.asarray(UNet(2, 2, levels=2, filters=4, key=key)(x)))

@@ -68,17 +68,7 @@ class MLP(eqx.Module):
     def __init__(
         self, sizes: Sequence[int], activation: Callable[[Array], Array] | str, *, key: PRNGKeyArray, dtype=jnp.float32
     ):
-        if isinstance(activation, str):
-            warnings.warn(
-                f"MLP(..., {activation!r}) is deprecated; pass the function, e.g. activation=jax.nn.tanh",
-                DeprecationWarning,
-                stacklevel=2,
-            )
-            if activation not in _ACTIVATION_NAMES:
-                raise ValueError(f"unknown activation {activation!r}; valid choices: {', '.join(_ACTIVATION_NAMES)}")
-            activation = _ACTIVATION_NAMES[activation]
-        if not callable(activation):
-            raise TypeError(f"activation must be a function (e.g. jax.nn.tanh), got {activation!r}")
+        activation = _activation_function(activation, _ACTIVATION_NAMES, f"MLP(..., {activation!r})", "jax.nn.tanh")
         keys = jax.random.split(key, len(sizes) - 1)
         self.layers = tuple(
             Dense(n_in, n_out, key=k, dtype=dtype) for n_in, n_out, k in zip(sizes[:-1], sizes[1:], keys)
@@ -100,19 +90,23 @@ def parameter_count(module) -> int:
 _UNET_ACTIVATION_NAMES = {"relu": jax.nn.relu, "leaky_relu": jax.nn.leaky_relu}
 
 
-def _unet_activation(activation: Callable[[Array], Array] | str) -> Callable[[Array], Array]:
-    """``activation`` itself, or the function of a deprecated name with a ``DeprecationWarning``."""
+def _activation_function(
+    activation: Callable[[Array], Array] | str, names: dict[str, Callable[[Array], Array]], call: str, example: str
+) -> Callable[[Array], Array]:
+    """``activation`` itself, or the function of a deprecated name in ``names`` (MLP's and
+    UNet's, one release) with a ``DeprecationWarning`` that names the ``call`` and suggests
+    the function ``example``."""
     if isinstance(activation, str):
         warnings.warn(
-            f"UNet(..., activation={activation!r}) is deprecated; pass the function, e.g. jax.nn.leaky_relu",
+            f"{call} is deprecated; pass the function, e.g. activation={example}",
             DeprecationWarning,
-            stacklevel=3,
+            stacklevel=5,  # the user's line: above this function, the network's __init__ and Equinox's two wrappers
         )
-        if activation not in _UNET_ACTIVATION_NAMES:
-            raise ValueError(f"unknown activation {activation!r}; valid choices: {', '.join(_UNET_ACTIVATION_NAMES)}")
-        return _UNET_ACTIVATION_NAMES[activation]
+        if activation not in names:
+            raise ValueError(f"unknown activation {activation!r}; valid choices: {', '.join(names)}")
+        return names[activation]
     if not callable(activation):
-        raise TypeError(f"activation must be a function (e.g. jax.nn.relu), got {activation!r}")
+        raise TypeError(f"activation must be a function (e.g. {example}), got {activation!r}")
     return activation
 
 
@@ -215,7 +209,9 @@ class UNet(eqx.Module):
     def __init__(self, c_in: int, c_out: int, *, levels: int = 4, filters: int = 16, key: PRNGKeyArray,
                  dtype=jnp.float32, activation: Callable[[Array], Array] | str = jax.nn.relu,
                  weight_standardisation: bool = False):  # fmt: skip
-        activation = _unet_activation(activation)
+        activation = _activation_function(
+            activation, _UNET_ACTIVATION_NAMES, f"UNet(..., activation={activation!r})", "jax.nn.leaky_relu"
+        )
         keys = jax.random.split(key, 2 * levels)
         self.levels = levels
         kw = dict(dtype=dtype, activation=activation, standardise=weight_standardisation)
