@@ -46,10 +46,28 @@ brought back to the leaf as a gradient is, by the transposed derivative of f:
 it is ΔK projected off the directions the standardisation removes (each output channel's
 mean and scale) and scaled by √(2/fan_in)/std(θ) (about 1 at He's initialisation).
 
+Shared kernels
+--------------
+A kernel leaf read by several convolutions (a network applied at every step of an unrolled
+rollout, as the KS corrector's; one network applied twice) is one layer whose uses are more
+positions: with ``D^u_{i,t}`` and ``p̄^u_{i,t}`` the signals and patches of use u,
+
+    (1/(b T)) G ⊗ A,   G = Σ_u Σ_i Σ_t D^uᵀ D^u,   A = Σ_u Σ_i Σ_t p̄^u p̄^uᵀ,   T = Σ_u T_u,
+
+and the gradient ``∇K̄ = Σ_u Σ_i Σ_t (D^uᵀ g_i) p̄^uᵀ`` sums over the uses as any gradient
+does. This assumes, besides KFC's three, that the uses are independent: the cross terms
+``D^uᵀ D^{u'} ⊗ p̄^u p̄^{u'}ᵀ`` between uses are dropped, as between positions (the simplest
+option of Martens, Ba & Johnson, *Kronecker-factored curvature approximations for recurrent
+neural networks*, ICLR 2018, which treats the time steps of a recurrent network as
+independent; their other options model the correlation across steps). Every use must
+convolve with the same kernel computed the same way from the leaf (the same chain of
+equations, shape and layout); the bias is the layer's when every use adds the same bias
+leaf and nothing else reads it (else the bias leaves join the exact leftover block).
+
 Refused in one line, naming the convolution: grouped convolutions (``feature_group_count``
 or ``batch_group_count`` > 1: each group is its own layer, not factored here), a kernel
-computed from more than one parameter leaf or from the sample, and a kernel leaf used
-elsewhere too (a shared kernel).
+computed from more than one parameter leaf or from the sample, a kernel leaf read other
+than as these convolutions' kernels, and a shared leaf whose uses compute different kernels.
 """
 
 from __future__ import annotations
@@ -89,9 +107,47 @@ class ConvUse(NamedTuple):
     bias: int | None = None
 
 
+class ConvLayer(NamedTuple):
+    """One kernel leaf's convolutions as one KFC layer: its ``uses`` (one :class:`ConvUse`
+    per convolution reading the kernel, in program order; several where the kernel is
+    shared, e.g. a network applied at every step of an unrolled rollout), with the layer's
+    kernel and bias leaves, widths and ``positions`` = Σ_uses T_u."""
+
+    uses: tuple[ConvUse, ...]
+
+    @property
+    def leaf(self) -> int:
+        return self.uses[0].leaf
+
+    @property
+    def bias(self) -> int | None:
+        return self.uses[0].bias
+
+    @property
+    def d_in(self) -> int:
+        return self.uses[0].d_in
+
+    @property
+    def d_out(self) -> int:
+        return self.uses[0].d_out
+
+    @property
+    def positions(self) -> int:
+        return sum(u.positions for u in self.uses)
+
+
+def conv_layers(convs: tuple[ConvUse, ...]) -> tuple[ConvLayer, ...]:
+    """The convolutions grouped by kernel leaf, layers in the order of their first use."""
+    by_leaf: dict[int, list[ConvUse]] = {}
+    for c in convs:
+        by_leaf.setdefault(c.leaf, []).append(c)
+    return tuple(ConvLayer(tuple(uses)) for uses in by_leaf.values())
+
+
 def find_convolutions(structure: Structure) -> tuple[ConvUse, ...]:
-    """The convolution layers of the traced per-sample program (convolutions of fixed
-    stencils, with no parameter in the kernel, are physics and are skipped), or a one-line
+    """The convolutions of the traced per-sample program that KHIG factors, one per
+    equation (convolutions of fixed stencils, with no parameter in the kernel, are physics
+    and are skipped; :func:`conv_layers` groups those of one kernel leaf), or a one-line
     ``ValueError`` naming the first one KHIG cannot factor."""
     jaxpr = structure.jaxpr.jaxpr
     n = len(structure.leaf_sizes)
@@ -110,7 +166,7 @@ def find_convolutions(structure: Structure) -> tuple[ConvUse, ...]:
             taint[v] = seen
             producer[v] = e
     outputs = {v for v in jaxpr.outvars if not isinstance(v, Literal)}
-    found = []
+    found: list[ConvUse] = []
     for e, eqn in enumerate(jaxpr.eqns):
         if eqn.primitive.name != "conv_general_dilated":
             continue
@@ -119,7 +175,7 @@ def find_convolutions(structure: Structure) -> tuple[ConvUse, ...]:
         if not sources:
             continue
         rhs, out = _shape(kernel), _shape(eqn.outvars[0])
-        where = f"khig: convolution {e} (kernel {rhs})"
+        where = _where(e, rhs)
         params = eqn.params
         if params["feature_group_count"] != 1 or params["batch_group_count"] != 1:
             raise ValueError(f"{where} is grouped; grouped convolutions have no Kronecker factors here; use hig")
@@ -129,20 +185,54 @@ def find_convolutions(structure: Structure) -> tuple[ConvUse, ...]:
         chain = _backward_slice(kernel, producer, jaxpr)
         if any(taint[v] - {leaf} for c in chain for v in jaxpr.eqns[c].invars if not isinstance(v, Literal)):
             raise ValueError(f"{where}: its kernel mixes leaf {leaf} with other values; use hig")
-        # every value computed from the leaf without passing through this convolution
-        reach = {jaxpr.invars[leaf]}
-        for e2, other in enumerate(jaxpr.eqns):
-            if e2 != e and any(v in reach for v in other.invars if not isinstance(v, Literal)):
-                reach.update(other.outvars)
-        allowed = set(chain) | {e}
-        shared = any(v in outputs or any(u not in allowed for u in users[v]) for v in reach)
-        if shared or eqn.invars[0] in reach:
-            raise ValueError(f"{where}: parameter leaf {leaf} is also used elsewhere (a shared kernel); use hig")
         dims = params["dimension_numbers"]
         d_out, d_in = rhs[dims.rhs_spec[0]], math.prod(rhs) // rhs[dims.rhs_spec[0]]
         bias = _bias_of(eqn, dims.out_spec[1], users, jaxpr, structure, n, outputs)
         found.append(ConvUse(e, leaf, chain, d_in, d_out, math.prod(out) // d_out, bias))
-    return tuple(found)
+    out: list[ConvUse] = []
+    for layer in conv_layers(tuple(found)):
+        out.extend(_checked_layer(layer, jaxpr, users, outputs))
+    return tuple(sorted(out, key=lambda c: c.eqn))
+
+
+def _where(e: int, rhs) -> str:
+    return f"khig: convolution {e} (kernel {tuple(rhs)})"
+
+
+def _checked_layer(layer: ConvLayer, jaxpr, users: dict, outputs: set) -> tuple[ConvUse, ...]:
+    """The uses of one kernel leaf, refused in one line unless the leaf reaches nothing but
+    these convolutions' kernels, every use computes the same kernel from it, and no use
+    convolves a value computed from the kernel; the bias kept only where every use adds the
+    same bias leaf and nothing else reads it."""
+    first = jaxpr.eqns[layer.uses[0].eqn]
+    where = _where(layer.uses[0].eqn, _shape(first.invars[1]))
+    convs = {u.eqn for u in layer.uses}
+    # every value computed from the leaf without passing through one of its convolutions
+    reach = {jaxpr.invars[layer.leaf]}
+    for e2, other in enumerate(jaxpr.eqns):
+        if e2 not in convs and any(v in reach for v in other.invars if not isinstance(v, Literal)):
+            reach.update(other.outvars)
+    allowed = convs.union(*(u.chain for u in layer.uses))
+    elsewhere = any(v in outputs or any(u not in allowed for u in users[v]) for v in reach)
+    if elsewhere or any(jaxpr.eqns[u.eqn].invars[0] in reach for u in layer.uses):
+        raise ValueError(f"{where}: parameter leaf {layer.leaf} is also used outside its convolutions' kernels; "
+                         "use hig")  # fmt: skip
+    if len({_kernel_signature(u, jaxpr) for u in layer.uses}) > 1:
+        raise ValueError(f"{where}: parameter leaf {layer.leaf} reaches its {len(layer.uses)} convolutions as "
+                         "differently computed kernels; use hig")  # fmt: skip
+    biases = {u.bias for u in layer.uses}
+    bias = biases.pop() if len(biases) == 1 else None
+    if bias is not None and len(users[jaxpr.invars[bias]]) != len(layer.uses):
+        bias = None  # the bias leaf is read elsewhere too: it joins the leftover block
+    return tuple(u._replace(bias=bias) for u in layer.uses)
+
+
+def _kernel_signature(use: ConvUse, jaxpr) -> tuple:
+    """What makes the kernel operand of ``use`` the same function of its leaf as another
+    use's: the chain's primitives and parameters, and the kernel's shape and layout."""
+    eqn = jaxpr.eqns[use.eqn]
+    chain = tuple((jaxpr.eqns[c].primitive.name, str(jaxpr.eqns[c].params)) for c in use.chain)
+    return chain, _shape(eqn.invars[1]), eqn.params["dimension_numbers"].rhs_spec
 
 
 def _shape(v) -> tuple[int, ...]:
@@ -164,7 +254,8 @@ def _backward_slice(var, producer: dict, jaxpr) -> tuple[int, ...]:
 
 def _bias_of(eqn, feature_axis: int, users: dict, jaxpr, structure: Structure, n: int, outputs) -> int | None:
     """The leaf ``c`` of ``z + c`` right after the convolution (through squeezes), broadcast
-    along every axis but the output channels', when that sum is z's only use."""
+    along every axis but the output channels', when that sum is z's only use (the caller
+    checks that nothing but its layer's sums reads ``c``)."""
     z = eqn.outvars[0]
     shape = list(z.aval.shape)
     axis: int | None = feature_axis  # where the channels are in the current value's shape
@@ -187,7 +278,8 @@ def _bias_of(eqn, feature_axis: int, users: dict, jaxpr, structure: Structure, n
         if nxt.primitive.name != "add":
             return None
         other = nxt.invars[1] if nxt.invars[0] is z else nxt.invars[0]
-        if isinstance(other, Literal) or other not in leaves or len(users.get(other, ())) != 1 or other in outputs:
+        # a bias leaf read elsewhere too is refused by the caller (a shared kernel's uses all read it)
+        if isinstance(other, Literal) or other not in leaves or other in outputs:
             return None
         c = other.aval.shape
         if len(c) != len(shape) or math.prod(c) != d_out:
@@ -403,8 +495,9 @@ class ConvFactors(NamedTuple):
 
 def conv_layer_factors(predict, params: PyTree, batch: PyTree, probes: int = 0) -> list[ConvFactors]:
     """The factors ``A = Σ_i Σ_t p̄ p̄ᵀ`` and ``G = Σ_i Σ_t D_{i,t}ᵀ D_{i,t}`` of every convolution
-    layer of ``predict`` (``params``: arrays only) for this batch, in program order, computed
-    as KHIG computes them (``probes`` as its setting); for inspection and tests."""
+    layer of ``predict`` (``params``: arrays only) for this batch, in program order (a shared
+    kernel: one layer, the sums also over its uses), computed as KHIG computes them
+    (``probes`` as its setting); for inspection and tests."""
     structure = JointJacobian.of(Objective(predict), params, batch).structure
     convs = find_convolutions(structure)
 
@@ -412,13 +505,18 @@ def conv_layer_factors(predict, params: PyTree, batch: PyTree, probes: int = 0) 
         return jnp.zeros((), y.dtype), jnp.zeros((y.size,), y.dtype)
 
     sig, *_ = layer_signals(structure, (), convs, params, batch, no_loss, probes)
-    patches = [conv_patches(structure, c, x) for c, x in zip(convs, sig.x)]
+    index = {c.eqn: k for k, c in enumerate(convs)}
     out = []
     with float64_scope():
-        for c, p, d_v in zip(convs, patches, sig.d_v):
-            p = to_float64(p)
-            if c.bias is not None:
-                p = jnp.concatenate([p, jnp.ones((p.shape[0], 1), p.dtype)], axis=1)
-            d = to_float64(conv_signals(structure, c, d_v)).reshape(-1, c.d_out)
-            out.append(ConvFactors(c.leaf, c.bias, p.T @ p, d.T @ d / (probes or 1), p.shape[0]))
+        for layer in conv_layers(convs):
+            A = G = jnp.zeros((), jnp.float64)
+            for c in layer.uses:  # a shared kernel: its uses are more positions of one layer
+                k = index[c.eqn]
+                p = to_float64(conv_patches(structure, c, sig.x[k]))
+                if c.bias is not None:
+                    p = jnp.concatenate([p, jnp.ones((p.shape[0], 1), p.dtype)], axis=1)
+                d = to_float64(conv_signals(structure, c, sig.d_v[k])).reshape(-1, c.d_out)
+                A, G = A + p.T @ p, G + d.T @ d / (probes or 1)
+            b = jax.tree.leaves(batch)[0].shape[0]
+            out.append(ConvFactors(layer.leaf, layer.bias, A, G, b * layer.positions))
     return out
