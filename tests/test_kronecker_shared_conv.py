@@ -1,5 +1,9 @@
 """KHIG on a convolution kernel shared by several convolutions (a network unrolled over steps).
 
+The rollout is written twice: as a Python loop (one convolution equation per step) and as
+a ``lax.scan`` over a jitted step (the convolution inside nested programs, inlined by
+``physgrad.methods.conv_program``); both must give the same factors and direction.
+
 References: per use u of the kernel, its input patches written out by hand in NumPy
 (``numpy.pad(mode="wrap")``, as the KS corrector's circular padding) and its signals
 ``D^u = ∂y/∂z_u`` from ``jax.jacfwd`` with respect to a perturbation of that use's output
@@ -44,10 +48,15 @@ def _rollout():
     def predict(p, s):
         return run(p, s["x"])[0]
 
+    def scanned(p, s):  # the same rollout as a lax.scan over a jitted step: the convolutions are inlined
+        step = jax.jit(lambda x: x + 0.5 * jnp.tanh(eqx.combine(p, static)(x)))
+        _, states = jax.lax.scan(lambda x, _: (lambda y: (y, y))(step(x)), s["x"], None, length=STEPS)
+        return jnp.sin(M @ states.ravel())
+
     def loss(y, s):
         return jnp.sum((y - s["t"]) ** 2)
 
-    return params, batch, predict, loss, run
+    return params, batch, {"loop": predict, "scan": scanned}, loss, run
 
 
 def _explicit(params, batch, run):
@@ -78,8 +87,10 @@ def _explicit(params, batch, run):
     return A, G
 
 
-def test_shared_kernel_factors_sum_over_its_uses():
-    params, batch, predict, _, run = _rollout()
+@pytest.mark.parametrize("form", ["loop", "scan"])
+def test_shared_kernel_factors_sum_over_its_uses(form):
+    params, batch, predicts, _, run = _rollout()
+    predict = predicts[form]
     (found,) = jax.jit(lambda p, b: kfc.conv_layer_factors(predict, p, b))(params, batch)
     A, G = _explicit(params, batch, run)
     assert (int(found.kernel), int(found.bias)) == (0, 1)  # leaves: weight, bias (shared too)
@@ -88,11 +99,12 @@ def test_shared_kernel_factors_sum_over_its_uses():
     np.testing.assert_allclose(np.asarray(found.G), G, rtol=1e-10, atol=1e-12)
 
 
-@pytest.mark.parametrize("running", [False, True])
-def test_shared_kernel_direction_is_the_power_of_its_summed_block(running):
+@pytest.mark.parametrize(("form", "running"), [("loop", False), ("scan", False), ("loop", True)])
+def test_shared_kernel_direction_is_the_power_of_its_summed_block(form, running):
     """ΔK̄ = φ(kron(G, A)/(b Σ_u T_u)) vec(∇K̄), ∇K̄ from jax.grad (the sum over uses); the
     running factors with β = 0 and every period 1 give the same step."""
-    params, batch, predict, loss, run = _rollout()
+    params, batch, predicts, loss, run = _rollout()
+    predict = predicts[form]
     power, damping = -0.75, 1e-3
     rule = KroneckerPower(power, 0.0, damping)
     objective = physgrad.Objective(predict, loss)
@@ -112,7 +124,8 @@ def test_shared_kernel_direction_is_the_power_of_its_summed_block(running):
 
 
 def test_shared_kernel_read_elsewhere_or_computed_differently_is_refused():
-    params, batch, predict, loss, _ = _rollout()
+    params, batch, predicts, loss, _ = _rollout()
+    predict = predicts["loop"]
 
     def also_summed(p, s):  # the kernel also enters the output directly
         return predict(p, s) + jnp.sum(p.weight)

@@ -72,7 +72,6 @@ than as these convolutions' kernels, and a shared leaf whose uses compute differ
 
 from __future__ import annotations
 
-import contextlib
 import itertools
 import math
 from collections import defaultdict
@@ -87,6 +86,8 @@ from ..jacobian import flat_output
 from ..precision import float64_scope, to_float64
 from ..routes.base import DenseUse, JointJacobian, Structure
 from .base import Objective
+from .conv_program import bind as _bind
+from .conv_program import checked_layer, conv_layers, unrolled_structure
 
 _SQUEEZING = {"squeeze", "reshape", "expand_dims"}
 
@@ -105,43 +106,6 @@ class ConvUse(NamedTuple):
     d_out: int
     positions: int
     bias: int | None = None
-
-
-class ConvLayer(NamedTuple):
-    """One kernel leaf's convolutions as one KFC layer: its ``uses`` (one :class:`ConvUse`
-    per convolution reading the kernel, in program order; several where the kernel is
-    shared, e.g. a network applied at every step of an unrolled rollout), with the layer's
-    kernel and bias leaves, widths and ``positions`` = Σ_uses T_u."""
-
-    uses: tuple[ConvUse, ...]
-
-    @property
-    def leaf(self) -> int:
-        return self.uses[0].leaf
-
-    @property
-    def bias(self) -> int | None:
-        return self.uses[0].bias
-
-    @property
-    def d_in(self) -> int:
-        return self.uses[0].d_in
-
-    @property
-    def d_out(self) -> int:
-        return self.uses[0].d_out
-
-    @property
-    def positions(self) -> int:
-        return sum(u.positions for u in self.uses)
-
-
-def conv_layers(convs: tuple[ConvUse, ...]) -> tuple[ConvLayer, ...]:
-    """The convolutions grouped by kernel leaf, layers in the order of their first use."""
-    by_leaf: dict[int, list[ConvUse]] = {}
-    for c in convs:
-        by_leaf.setdefault(c.leaf, []).append(c)
-    return tuple(ConvLayer(tuple(uses)) for uses in by_leaf.values())
 
 
 def find_convolutions(structure: Structure) -> tuple[ConvUse, ...]:
@@ -175,7 +139,7 @@ def find_convolutions(structure: Structure) -> tuple[ConvUse, ...]:
         if not sources:
             continue
         rhs, out = _shape(kernel), _shape(eqn.outvars[0])
-        where = _where(e, rhs)
+        where = f"khig: convolution {e} (kernel {rhs})"
         params = eqn.params
         if params["feature_group_count"] != 1 or params["batch_group_count"] != 1:
             raise ValueError(f"{where} is grouped; grouped convolutions have no Kronecker factors here; use hig")
@@ -191,48 +155,8 @@ def find_convolutions(structure: Structure) -> tuple[ConvUse, ...]:
         found.append(ConvUse(e, leaf, chain, d_in, d_out, math.prod(out) // d_out, bias))
     out: list[ConvUse] = []
     for layer in conv_layers(tuple(found)):
-        out.extend(_checked_layer(layer, jaxpr, users, outputs))
+        out.extend(checked_layer(layer, jaxpr, users, outputs))
     return tuple(sorted(out, key=lambda c: c.eqn))
-
-
-def _where(e: int, rhs) -> str:
-    return f"khig: convolution {e} (kernel {tuple(rhs)})"
-
-
-def _checked_layer(layer: ConvLayer, jaxpr, users: dict, outputs: set) -> tuple[ConvUse, ...]:
-    """The uses of one kernel leaf, refused in one line unless the leaf reaches nothing but
-    these convolutions' kernels, every use computes the same kernel from it, and no use
-    convolves a value computed from the kernel; the bias kept only where every use adds the
-    same bias leaf and nothing else reads it."""
-    first = jaxpr.eqns[layer.uses[0].eqn]
-    where = _where(layer.uses[0].eqn, _shape(first.invars[1]))
-    convs = {u.eqn for u in layer.uses}
-    # every value computed from the leaf without passing through one of its convolutions
-    reach = {jaxpr.invars[layer.leaf]}
-    for e2, other in enumerate(jaxpr.eqns):
-        if e2 not in convs and any(v in reach for v in other.invars if not isinstance(v, Literal)):
-            reach.update(other.outvars)
-    allowed = convs.union(*(u.chain for u in layer.uses))
-    elsewhere = any(v in outputs or any(u not in allowed for u in users[v]) for v in reach)
-    if elsewhere or any(jaxpr.eqns[u.eqn].invars[0] in reach for u in layer.uses):
-        raise ValueError(f"{where}: parameter leaf {layer.leaf} is also used outside its convolutions' kernels; "
-                         "use hig")  # fmt: skip
-    if len({_kernel_signature(u, jaxpr) for u in layer.uses}) > 1:
-        raise ValueError(f"{where}: parameter leaf {layer.leaf} reaches its {len(layer.uses)} convolutions as "
-                         "differently computed kernels; use hig")  # fmt: skip
-    biases = {u.bias for u in layer.uses}
-    bias = biases.pop() if len(biases) == 1 else None
-    if bias is not None and len(users[jaxpr.invars[bias]]) != len(layer.uses):
-        bias = None  # the bias leaf is read elsewhere too: it joins the leftover block
-    return tuple(u._replace(bias=bias) for u in layer.uses)
-
-
-def _kernel_signature(use: ConvUse, jaxpr) -> tuple:
-    """What makes the kernel operand of ``use`` the same function of its leaf as another
-    use's: the chain's primitives and parameters, and the kernel's shape and layout."""
-    eqn = jaxpr.eqns[use.eqn]
-    chain = tuple((jaxpr.eqns[c].primitive.name, str(jaxpr.eqns[c].params)) for c in use.chain)
-    return chain, _shape(eqn.invars[1]), eqn.params["dimension_numbers"].rhs_spec
 
 
 def _shape(v) -> tuple[int, ...]:
@@ -382,14 +306,6 @@ def _evaluate(structure: Structure, taps, leaves, sample_leaves, eps, kernels: d
     return jax.tree.unflatten(structure.out_tree, [read(v) for v in jaxpr.outvars]), taken
 
 
-def _bind(eqn, invals):
-    bind = eqn.primitive.get_bind_params(eqn.params)
-    subfuns, params = bind if isinstance(bind, tuple) else ((), bind)  # (subfuns, params) in older JAX
-    context = getattr(getattr(eqn, "ctx", None), "manager", None) or contextlib.nullcontext()
-    with context:
-        return eqn.primitive.bind(*subfuns, *invals, **params)
-
-
 def conv_patches(structure: Structure, use: ConvUse, x: Array) -> Array:
     """The input patches ``p_t`` (b · T, in·k₁⋯k_d) of convolution ``use`` for the inputs
     ``x`` (b, *lhs shape), channel-major as the kernel reshaped by :func:`kernel_matrix`.
@@ -499,6 +415,7 @@ def conv_layer_factors(predict, params: PyTree, batch: PyTree, probes: int = 0) 
     kernel: one layer, the sums also over its uses), computed as KHIG computes them
     (``probes`` as its setting); for inspection and tests."""
     structure = JointJacobian.of(Objective(predict), params, batch).structure
+    structure = unrolled_structure(structure, params, jax.tree.map(lambda a: a[0], batch))
     convs = find_convolutions(structure)
 
     def no_loss(y):

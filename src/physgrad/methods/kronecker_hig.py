@@ -110,6 +110,7 @@ from ..routes.structured import explicit_rows
 from . import conv_factors as kfc
 from . import layer_terms
 from .base import AbstractJacobianRule, Estimator, Objective, required
+from .conv_program import unrolled_structure
 
 _F64 = 8
 
@@ -248,8 +249,10 @@ class KroneckerPower(AbstractJacobianRule):
         required(objective.predict, "predict")
         jacobian = JointJacobian.of(objective, params, batch)
         rows = jacobian.rows
-        # One explicit group: the leftover block is one Jacobian of all its leaves.
-        structure = jacobian.structure.regrouped(rows, 2**62)
+        # Convolutions inside nested calls or scans inlined (an unrolled network's steps), and
+        # one explicit group: the leftover block is one Jacobian of all its leaves.
+        sample = jax.tree.map(lambda a: a[0], batch)
+        structure = unrolled_structure(jacobian.structure, params, sample).regrouped(rows, 2**62)
         convs = kfc.find_convolutions(structure)
         layers = {c.leaf for c in convs} | {c.bias for c in convs if c.bias is not None}
         explicit = tuple(k for group in structure.groups for k in group if k not in layers)
