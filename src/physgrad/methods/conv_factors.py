@@ -153,10 +153,10 @@ def find_convolutions(structure: Structure) -> tuple[ConvUse, ...]:
         d_out, d_in = rhs[dims.rhs_spec[0]], math.prod(rhs) // rhs[dims.rhs_spec[0]]
         bias = _bias_of(eqn, dims.out_spec[1], users, jaxpr, structure, n, outputs)
         found.append(ConvUse(e, leaf, chain, d_in, d_out, math.prod(out) // d_out, bias))
-    out: list[ConvUse] = []
+    checked: list[ConvUse] = []
     for layer in conv_layers(tuple(found)):
-        out.extend(checked_layer(layer, jaxpr, users, outputs))
-    return tuple(sorted(out, key=lambda c: c.eqn))
+        checked.extend(checked_layer(layer, jaxpr, users, outputs))
+    return tuple(sorted(checked, key=lambda c: c.eqn))
 
 
 def _shape(v) -> tuple[int, ...]:

@@ -99,15 +99,15 @@ def layer_pass(structure: Structure, dense: tuple[DenseUse, ...], convs: tuple[k
     index = {c.eqn: len(dense) + k for k, c in enumerate(convs)}  # a use's tap
     kernel_grads = {c.eqn: k for c, k in zip(convs, d_k)}
     for layer in layers:  # a shared kernel's gradient sums over its uses
-        grad = 0.0
+        terms = []
         for c in layer.uses:
             spec = jaxpr.eqns[c.eqn].params["dimension_numbers"].rhs_spec
             use = jnp.transpose(kernel_grads[c.eqn], spec).reshape(c.d_out, c.d_in)  # channel-major as the patches
             if c.bias is not None:
                 bias = kfc.conv_signals(structure, c, d_g[index[c.eqn]]).reshape(-1, c.d_out).sum(axis=0)
                 use = jnp.concatenate([use, bias[:, None]], axis=1)
-            grad = grad + use
-        grads.append(grad)
+            terms.append(use)
+        grads.append(sum(terms[1:], terms[0]))
     counts = [b] * len(dense) + [b * layer.positions for layer in layers]
 
     def curvature() -> list:
