@@ -86,26 +86,10 @@ from ..jacobian import flat_output
 from ..precision import float64_scope, to_float64
 from ..routes.base import DenseUse, JointJacobian, Structure
 from .base import Objective
+from .conv_program import ConvUse, checked_layer, conv_layers, unrolled_structure
 from .conv_program import bind as _bind
-from .conv_program import checked_layer, conv_layers, unrolled_structure
 
 _SQUEEZING = {"squeeze", "reshape", "expand_dims"}
-
-
-class ConvUse(NamedTuple):
-    """A convolution layer found in the per-sample program: equation ``eqn`` convolves its
-    input with a kernel computed from parameter leaf ``leaf`` alone by the equations
-    ``chain`` (reshaping, or a reparametrisation); ``bias`` the leaf added right after it.
-    ``d_out`` = out channels, ``d_in`` = in·k₁⋯k_d (without the bias column), ``positions``
-    the output positions T of one sample."""
-
-    eqn: int
-    leaf: int
-    chain: tuple[int, ...]
-    d_in: int
-    d_out: int
-    positions: int
-    bias: int | None = None
 
 
 def find_convolutions(structure: Structure) -> tuple[ConvUse, ...]:

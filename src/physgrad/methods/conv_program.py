@@ -11,7 +11,7 @@ Two steps before :func:`physgrad.methods.conv_factors.find_convolutions`:
   result computes the same values; each step of an unrolled network is then its own
   convolutions, reading the same kernel leaf.
 * :func:`conv_layers` and :func:`checked_layer` — the convolutions of one kernel leaf are one
-  layer (:class:`ConvLayer`, its uses more positions of it; the assumption is stated in
+  layer (:class:`ConvLayer`, its uses more positions of it; :class:`ConvUse` one convolution; the assumption is stated in
   :mod:`physgrad.methods.conv_factors`), refused in one line where the leaf is read other
   than as their kernels or the uses compute different kernels from it.
 """
@@ -19,7 +19,7 @@ Two steps before :func:`physgrad.methods.conv_factors.find_convolutions`:
 from __future__ import annotations
 
 import contextlib
-from typing import TYPE_CHECKING, NamedTuple
+from typing import NamedTuple
 
 import jax
 from jax.extend.core import ClosedJaxpr, Literal
@@ -27,9 +27,6 @@ from jaxtyping import PyTree
 
 from ..loops import MAX_UNROLL, primitives
 from ..routes.base import Structure, find_structure
-
-if TYPE_CHECKING:
-    from .conv_factors import ConvUse
 
 # Equations that call a nested program with the same inputs and outputs (inlined as they are)
 _CALLS = {"pjit", "jit", "closed_call", "core_call", "remat2", "checkpoint"}
@@ -113,6 +110,22 @@ def unrolled_structure(structure: Structure, params: PyTree, sample: PyTree) -> 
         return jax.tree.unflatten(structure.out_tree, outs)
 
     return find_structure(predict, params, sample, 1, 2**62)
+
+
+class ConvUse(NamedTuple):
+    """A convolution layer found in the per-sample program: equation ``eqn`` convolves its
+    input with a kernel computed from parameter leaf ``leaf`` alone by the equations
+    ``chain`` (reshaping, or a reparametrisation); ``bias`` the leaf added right after it.
+    ``d_out`` = out channels, ``d_in`` = in·k₁⋯k_d (without the bias column), ``positions``
+    the output positions T of one sample."""
+
+    eqn: int
+    leaf: int
+    chain: tuple[int, ...]
+    d_in: int
+    d_out: int
+    positions: int
+    bias: int | None = None
 
 
 class ConvLayer(NamedTuple):
