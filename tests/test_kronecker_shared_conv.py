@@ -141,3 +141,36 @@ def test_shared_kernel_read_elsewhere_or_computed_differently_is_refused():
     with pytest.raises(ValueError, match=r"^khig: .*parameter leaf 0 reaches its 2 convolutions as differently "
                                          r"computed kernels; use hig$"):  # fmt: skip
         plan(physgrad.Objective(flipped, loss), params, batch)
+
+
+def test_inlined_program_computes_the_same_values():
+    """``conv_program.inline`` of a reversed scan over inputs, holding a jitted convolution,
+    gives the original program's values and leaves no scan or nested call around the convolutions."""
+    from physgrad.loops import primitives
+    from physgrad.methods import conv_program
+
+    w = jax.random.normal(jax.random.key(41), (C, C, 3), jnp.float64)
+    xs = jax.random.normal(jax.random.key(42), (4, C, N), jnp.float64)
+    conv = jax.jit(lambda w, x: jax.lax.conv_general_dilated(x[None], w, (1,), [(1, 1)])[0])
+
+    def program(w, xs):
+        carry, ys = jax.lax.scan(lambda h, x: (jnp.tanh(conv(w, h) + x), jnp.sum(h)), xs[0], xs, reverse=True)
+        return carry, ys
+
+    closed = jax.make_jaxpr(program)(w, xs)
+    flat = jax.make_jaxpr(lambda *a: conv_program.inline(closed.jaxpr, closed.consts, a))(w, xs)
+    assert [e.primitive.name for e in flat.jaxpr.eqns].count("conv_general_dilated") == 4
+    assert "scan" not in [e.primitive.name for e in flat.jaxpr.eqns]
+    assert "conv_general_dilated" not in [
+        n for e in flat.jaxpr.eqns if e.params for n in _nested_primitives(e, primitives)
+    ]
+    for a, b in zip(program(w, xs), jax.core.eval_jaxpr(flat.jaxpr, flat.consts, w, xs)):
+        np.testing.assert_allclose(np.asarray(b), np.asarray(a), rtol=1e-13)
+
+
+def _nested_primitives(eqn, primitives):
+    """The primitives nested in one equation's parameters (its bodies)."""
+    for value in eqn.params.values():
+        inner = getattr(value, "jaxpr", value)
+        if hasattr(inner, "eqns"):
+            yield from primitives(inner)
