@@ -1,6 +1,7 @@
 """Time per training step of ``khig`` on the U-Net problems, against Adam (the floor), K-FAC and exact HIG.
 
-For each shipped U-Net problem at a CPU size (``SIZES``; ``--set`` overrides), the engine's
+For each shipped U-Net problem at a CPU size (``SIZES``; ``--set`` overrides; ``--problems ks``
+adds the KS corrector, whose unrolled network reads each kernel once per step), the engine's
 compiled step of
 
 * ``adam`` — the floor: one forward and one backward pass;
@@ -56,6 +57,10 @@ SIZES = {
     "heat": {"resolution": "32", "n_train": "32", "n_test": "8"},
     "navier_stokes": {"resolution": "32", "size": "64.0", "box": "28.0", "swirl_sigma": "10.0", "falloff": "40.0",
                       "n_train": "32", "n_test": "4"},
+    # the KS corrector at the paper's network (26 × 8, 33,125 parameters), unrolled m = 3 steps:
+    # each kernel is read once per step (one KFC layer, its uses more positions); small data
+    "ks": {"setup": "correction", "frames": "40", "warmup_frames": "20", "n_ics": "1", "n_test": "1",
+           "long_horizon": "12", "dataset_fraction": "1.0"},
 }  # fmt: skip
 
 

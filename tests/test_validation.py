@@ -227,22 +227,30 @@ def test_training_settings_are_defined_once():
 
 
 @pytest.mark.parametrize(
-    "problem,method,says",
+    "problem,method,extra,says",
     [
-        ("cartpole", "hig", "hig on cartpole: the Jacobian routes need predict(params, sample) to return one array"),
-        pytest.param(  # builds the KS data (exponax's reference solver): the slow tier
-            "ks",
+        (
+            "cartpole",
+            "hig",
+            [],
+            "hig on cartpole: the Jacobian routes need predict(params, sample) to return one array",
+        ),
+        pytest.param(  # builds the Poisson data at the paper's grid: the slow tier
+            "poisson",
             "khig",
-            "khig on ks: khig: 33125 parameters are outside the dense layers it sees",
+            ["--no-network", "--set=n_train=16", "--set=n_test=4", "--set=batch_size=4"],
+            "khig on poisson: khig: 16384 parameters are outside the dense layers it sees",
             marks=pytest.mark.slow,
         ),
     ],
 )
 def test_a_method_that_refuses_the_problem_in_the_memory_preflight_says_so_in_one_line(
-    tmp_path, capsys, problem, method, says
+    tmp_path, capsys, problem, method, extra, says
 ):
     """The memory guard's preflight computes footprints before the methods' checks; a
     method's refusal there (a closed loop's tuple of outputs for the Jacobian routes, KHIG's
-    explicit-block limit) is the same one-line error, not a traceback."""
-    assert main(["train", problem, "--method", method, "--steps", "1", "--out", str(tmp_path / "run")]) == 2
+    explicit-block limit: direct optimisation of a 128² field, no layer to factor) is the same
+    one-line error, not a traceback."""
+    argv = ["train", problem, "--method", method, "--steps", "1", "--out", str(tmp_path / "run"), *extra]
+    assert main(argv) == 2
     assert says in one_line_error(capsys.readouterr().err)

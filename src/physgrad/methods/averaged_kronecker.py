@@ -186,7 +186,9 @@ def _signal_direct(rule: KroneckerPower, plan, params, batch, state: KroneckerAv
     b = jax.tree.leaves(batch)[0].shape[0]
     # per layer: its leaf, the sides holding (G, A), d_out, d_in' and KFC's count (b or b·T)
     layout = [(u.leaf, (1, 0) if u.transposed else (0, 1), u.d_out, u.d_in + (u.bias is not None), b) for u in dense]
-    layout += [(c.leaf, (0, 1), c.d_out, c.d_in + (c.bias is not None), b * c.positions) for c in convs]
+    layout += [
+        (c.leaf, (0, 1), c.d_out, c.d_in + (c.bias is not None), b * c.positions) for c in kfc.conv_layers(convs)
+    ]
     for leaf, (g_side, a_side), d_out, d_in, _ in layout:
         slots = state.factors[leaf]
         if slots is None or slots[g_side].shape[0] < d_out or slots[a_side].shape[0] < d_in:

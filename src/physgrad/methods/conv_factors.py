@@ -46,15 +46,32 @@ brought back to the leaf as a gradient is, by the transposed derivative of f:
 it is ΔK projected off the directions the standardisation removes (each output channel's
 mean and scale) and scaled by √(2/fan_in)/std(θ) (about 1 at He's initialisation).
 
+Shared kernels
+--------------
+A kernel leaf read by several convolutions (a network applied at every step of an unrolled
+rollout, as the KS corrector's; one network applied twice) is one layer whose uses are more
+positions: with ``D^u_{i,t}`` and ``p̄^u_{i,t}`` the signals and patches of use u,
+
+    (1/(b T)) G ⊗ A,   G = Σ_u Σ_i Σ_t D^uᵀ D^u,   A = Σ_u Σ_i Σ_t p̄^u p̄^uᵀ,   T = Σ_u T_u,
+
+and the gradient ``∇K̄ = Σ_u Σ_i Σ_t (D^uᵀ g_i) p̄^uᵀ`` sums over the uses as any gradient
+does. This assumes, besides KFC's three, that the uses are independent: the cross terms
+``D^uᵀ D^{u'} ⊗ p̄^u p̄^{u'}ᵀ`` between uses are dropped, as between positions (the simplest
+option of Martens, Ba & Johnson, *Kronecker-factored curvature approximations for recurrent
+neural networks*, ICLR 2018, which treats the time steps of a recurrent network as
+independent; their other options model the correlation across steps). Every use must
+convolve with the same kernel computed the same way from the leaf (the same chain of
+equations, shape and layout); the bias is the layer's when every use adds the same bias
+leaf and nothing else reads it (else the bias leaves join the exact leftover block).
+
 Refused in one line, naming the convolution: grouped convolutions (``feature_group_count``
 or ``batch_group_count`` > 1: each group is its own layer, not factored here), a kernel
-computed from more than one parameter leaf or from the sample, and a kernel leaf used
-elsewhere too (a shared kernel).
+computed from more than one parameter leaf or from the sample, a kernel leaf read other
+than as these convolutions' kernels, and a shared leaf whose uses compute different kernels.
 """
 
 from __future__ import annotations
 
-import contextlib
 import itertools
 import math
 from collections import defaultdict
@@ -69,29 +86,16 @@ from ..jacobian import flat_output
 from ..precision import float64_scope, to_float64
 from ..routes.base import DenseUse, JointJacobian, Structure
 from .base import Objective
+from .conv_program import ConvUse, checked_layer, conv_layers, unrolled_structure
+from .conv_program import bind as _bind
 
 _SQUEEZING = {"squeeze", "reshape", "expand_dims"}
 
 
-class ConvUse(NamedTuple):
-    """A convolution layer found in the per-sample program: equation ``eqn`` convolves its
-    input with a kernel computed from parameter leaf ``leaf`` alone by the equations
-    ``chain`` (reshaping, or a reparametrisation); ``bias`` the leaf added right after it.
-    ``d_out`` = out channels, ``d_in`` = in·k₁⋯k_d (without the bias column), ``positions``
-    the output positions T of one sample."""
-
-    eqn: int
-    leaf: int
-    chain: tuple[int, ...]
-    d_in: int
-    d_out: int
-    positions: int
-    bias: int | None = None
-
-
 def find_convolutions(structure: Structure) -> tuple[ConvUse, ...]:
-    """The convolution layers of the traced per-sample program (convolutions of fixed
-    stencils, with no parameter in the kernel, are physics and are skipped), or a one-line
+    """The convolutions of the traced per-sample program that KHIG factors, one per
+    equation (convolutions of fixed stencils, with no parameter in the kernel, are physics
+    and are skipped; :func:`conv_layers` groups those of one kernel leaf), or a one-line
     ``ValueError`` naming the first one KHIG cannot factor."""
     jaxpr = structure.jaxpr.jaxpr
     n = len(structure.leaf_sizes)
@@ -110,7 +114,7 @@ def find_convolutions(structure: Structure) -> tuple[ConvUse, ...]:
             taint[v] = seen
             producer[v] = e
     outputs = {v for v in jaxpr.outvars if not isinstance(v, Literal)}
-    found = []
+    found: list[ConvUse] = []
     for e, eqn in enumerate(jaxpr.eqns):
         if eqn.primitive.name != "conv_general_dilated":
             continue
@@ -129,20 +133,14 @@ def find_convolutions(structure: Structure) -> tuple[ConvUse, ...]:
         chain = _backward_slice(kernel, producer, jaxpr)
         if any(taint[v] - {leaf} for c in chain for v in jaxpr.eqns[c].invars if not isinstance(v, Literal)):
             raise ValueError(f"{where}: its kernel mixes leaf {leaf} with other values; use hig")
-        # every value computed from the leaf without passing through this convolution
-        reach = {jaxpr.invars[leaf]}
-        for e2, other in enumerate(jaxpr.eqns):
-            if e2 != e and any(v in reach for v in other.invars if not isinstance(v, Literal)):
-                reach.update(other.outvars)
-        allowed = set(chain) | {e}
-        shared = any(v in outputs or any(u not in allowed for u in users[v]) for v in reach)
-        if shared or eqn.invars[0] in reach:
-            raise ValueError(f"{where}: parameter leaf {leaf} is also used elsewhere (a shared kernel); use hig")
         dims = params["dimension_numbers"]
         d_out, d_in = rhs[dims.rhs_spec[0]], math.prod(rhs) // rhs[dims.rhs_spec[0]]
         bias = _bias_of(eqn, dims.out_spec[1], users, jaxpr, structure, n, outputs)
         found.append(ConvUse(e, leaf, chain, d_in, d_out, math.prod(out) // d_out, bias))
-    return tuple(found)
+    checked: list[ConvUse] = []
+    for layer in conv_layers(tuple(found)):
+        checked.extend(checked_layer(layer, jaxpr, users, outputs))
+    return tuple(sorted(checked, key=lambda c: c.eqn))
 
 
 def _shape(v) -> tuple[int, ...]:
@@ -164,7 +162,8 @@ def _backward_slice(var, producer: dict, jaxpr) -> tuple[int, ...]:
 
 def _bias_of(eqn, feature_axis: int, users: dict, jaxpr, structure: Structure, n: int, outputs) -> int | None:
     """The leaf ``c`` of ``z + c`` right after the convolution (through squeezes), broadcast
-    along every axis but the output channels', when that sum is z's only use."""
+    along every axis but the output channels', when that sum is z's only use (the caller
+    checks that nothing but its layer's sums reads ``c``)."""
     z = eqn.outvars[0]
     shape = list(z.aval.shape)
     axis: int | None = feature_axis  # where the channels are in the current value's shape
@@ -187,7 +186,8 @@ def _bias_of(eqn, feature_axis: int, users: dict, jaxpr, structure: Structure, n
         if nxt.primitive.name != "add":
             return None
         other = nxt.invars[1] if nxt.invars[0] is z else nxt.invars[0]
-        if isinstance(other, Literal) or other not in leaves or len(users.get(other, ())) != 1 or other in outputs:
+        # a bias leaf read elsewhere too is refused by the caller (a shared kernel's uses all read it)
+        if isinstance(other, Literal) or other not in leaves or other in outputs:
             return None
         c = other.aval.shape
         if len(c) != len(shape) or math.prod(c) != d_out:
@@ -288,14 +288,6 @@ def _evaluate(structure: Structure, taps, leaves, sample_leaves, eps, kernels: d
         else:
             env[eqn.outvars[0]] = out
     return jax.tree.unflatten(structure.out_tree, [read(v) for v in jaxpr.outvars]), taken
-
-
-def _bind(eqn, invals):
-    bind = eqn.primitive.get_bind_params(eqn.params)
-    subfuns, params = bind if isinstance(bind, tuple) else ((), bind)  # (subfuns, params) in older JAX
-    context = getattr(getattr(eqn, "ctx", None), "manager", None) or contextlib.nullcontext()
-    with context:
-        return eqn.primitive.bind(*subfuns, *invals, **params)
 
 
 def conv_patches(structure: Structure, use: ConvUse, x: Array) -> Array:
@@ -403,22 +395,29 @@ class ConvFactors(NamedTuple):
 
 def conv_layer_factors(predict, params: PyTree, batch: PyTree, probes: int = 0) -> list[ConvFactors]:
     """The factors ``A = Σ_i Σ_t p̄ p̄ᵀ`` and ``G = Σ_i Σ_t D_{i,t}ᵀ D_{i,t}`` of every convolution
-    layer of ``predict`` (``params``: arrays only) for this batch, in program order, computed
-    as KHIG computes them (``probes`` as its setting); for inspection and tests."""
+    layer of ``predict`` (``params``: arrays only) for this batch, in program order (a shared
+    kernel: one layer, the sums also over its uses), computed as KHIG computes them
+    (``probes`` as its setting); for inspection and tests."""
     structure = JointJacobian.of(Objective(predict), params, batch).structure
+    structure = unrolled_structure(structure, params, jax.tree.map(lambda a: a[0], batch))
     convs = find_convolutions(structure)
 
     def no_loss(y):
         return jnp.zeros((), y.dtype), jnp.zeros((y.size,), y.dtype)
 
     sig, *_ = layer_signals(structure, (), convs, params, batch, no_loss, probes)
-    patches = [conv_patches(structure, c, x) for c, x in zip(convs, sig.x)]
+    index = {c.eqn: k for k, c in enumerate(convs)}
     out = []
     with float64_scope():
-        for c, p, d_v in zip(convs, patches, sig.d_v):
-            p = to_float64(p)
-            if c.bias is not None:
-                p = jnp.concatenate([p, jnp.ones((p.shape[0], 1), p.dtype)], axis=1)
-            d = to_float64(conv_signals(structure, c, d_v)).reshape(-1, c.d_out)
-            out.append(ConvFactors(c.leaf, c.bias, p.T @ p, d.T @ d / (probes or 1), p.shape[0]))
+        for layer in conv_layers(convs):
+            A = G = jnp.zeros((), jnp.float64)
+            for c in layer.uses:  # a shared kernel: its uses are more positions of one layer
+                k = index[c.eqn]
+                p = to_float64(conv_patches(structure, c, sig.x[k]))
+                if c.bias is not None:
+                    p = jnp.concatenate([p, jnp.ones((p.shape[0], 1), p.dtype)], axis=1)
+                d = to_float64(conv_signals(structure, c, sig.d_v[k])).reshape(-1, c.d_out)
+                A, G = A + p.T @ p, G + d.T @ d / (probes or 1)
+            b = jax.tree.leaves(batch)[0].shape[0]
+            out.append(ConvFactors(layer.leaf, layer.bias, A, G, b * layer.positions))
     return out

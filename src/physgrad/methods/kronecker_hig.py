@@ -75,7 +75,9 @@ wider than ``explicit_max``. Convolution layers (``eqx.nn.Conv``, the U-Nets' an
 kernels, strided, dilated, transposed, zero or circular padding) get the Kronecker factors
 of Grosse & Martens 2016, with the kernel reshaped (out, in·k₁⋯k_d) as the dense weight and
 ``b·T`` (T output positions per sample) in place of b (:mod:`physgrad.methods.conv_factors`);
-grouped convolutions and shared kernels are refused in one line. ``probes = s > 0``
+a kernel shared by several convolutions (a network unrolled over time steps) is one layer
+whose uses are more positions (uses assumed independent, as K-FAC for recurrent networks'
+simplest option); grouped convolutions are refused in one line. ``probes = s > 0``
 estimates every G from s random output directions per sample instead of every output row
 (K-FAC's Monte Carlo way; for fields of outputs, where a backward pass per row costs as much
 as exact HIG's Jacobian).
@@ -108,6 +110,7 @@ from ..routes.structured import explicit_rows
 from . import conv_factors as kfc
 from . import layer_terms
 from .base import AbstractJacobianRule, Estimator, Objective, required
+from .conv_program import unrolled_structure
 
 _F64 = 8
 
@@ -237,16 +240,19 @@ class KroneckerPower(AbstractJacobianRule):
 
     def plan(self, objective: Objective, params: PyTree, batch: PyTree) -> Plan:
         """The dense layers and the leftover block for these shapes, or a one-line
-        ``ValueError`` for what KHIG refuses (complex parameters, grouped or shared
-        convolution kernels, a leftover block wider than ``explicit_max``)."""
+        ``ValueError`` for what KHIG refuses (complex parameters, grouped convolutions, a
+        kernel leaf read other than as convolution kernels, a leftover block wider than
+        ``explicit_max``)."""
         leaves = jax.tree.leaves(params)
         if any(jnp.iscomplexobj(x) for x in leaves):
             raise ValueError("khig: complex parameters have no real Kronecker factors; use hig")
         required(objective.predict, "predict")
         jacobian = JointJacobian.of(objective, params, batch)
         rows = jacobian.rows
-        # One explicit group: the leftover block is one Jacobian of all its leaves.
-        structure = jacobian.structure.regrouped(rows, 2**62)
+        # Convolutions inside nested calls or scans inlined (an unrolled network's steps), and
+        # one explicit group: the leftover block is one Jacobian of all its leaves.
+        sample = jax.tree.map(lambda a: a[0], batch)
+        structure = unrolled_structure(jacobian.structure, params, sample).regrouped(rows, 2**62)
         convs = kfc.find_convolutions(structure)
         layers = {c.leaf for c in convs} | {c.bias for c in convs if c.bias is not None}
         explicit = tuple(k for group in structure.groups for k in group if k not in layers)
@@ -265,7 +271,7 @@ class KroneckerPower(AbstractJacobianRule):
         "explicit_parameters": P_o, "jacobian": (rows, P)}`` for these shapes (nothing is computed)."""
         plan = self.plan(objective, params, batch)
         dense = [(u.d_out, u.d_in + (u.bias is not None), u.bias is not None) for u in plan.structure.dense]
-        conv = [(c.d_out, c.d_in + (c.bias is not None), c.positions) for c in plan.convs]
+        conv = [(c.d_out, c.d_in + (c.bias is not None), c.positions) for c in kfc.conv_layers(plan.convs)]
         return {"dense": dense, "conv": conv, "explicit_parameters": plan.explicit_parameters,
                 "jacobian": plan.jacobian.shape}  # fmt: skip
 
@@ -284,13 +290,13 @@ class KroneckerPower(AbstractJacobianRule):
             z = sum(u.d_out for u in dense) + sum(u.d_out * u.positions for u in plan.convs)
             patches = sum(u.positions * (u.d_in + 1) for u in plan.convs)
             signals += ((c + 1) * b * z + b * patches) * (itemsize + _F64)
-            squares += sum(u.d_out**2 + (u.d_in + 1) ** 2 for u in plan.convs) * 3 * _F64
+            squares += sum(u.d_out**2 + (u.d_in + 1) ** 2 for u in kfc.conv_layers(plan.convs)) * 3 * _F64
         return signals + squares + leftover
 
     def footprint_note(self, objective, params, batch):
         plan = self.plan(objective, params, batch)
         widths = "+".join(str(u.d_out) for u in plan.structure.dense) or "0"
-        convs = f", {len(plan.convs)} convolution layers" if plan.convs else ""
+        convs = f", {len(kfc.conv_layers(plan.convs))} convolution layers" if plan.convs else ""
         return f"khig: {plan.rows} rows × ({widths}) signals{convs}, {plan.explicit_parameters} leftover parameters"
 
     def __call__(self, objective, params, batch):
@@ -360,7 +366,8 @@ class KroneckerPower(AbstractJacobianRule):
             pieces[use.leaf] = (weight.T if use.transposed else weight).astype(leaves[use.leaf].dtype)
             if use.bias is not None:
                 pieces[use.bias] = delta[:, use.d_in].astype(leaves[use.bias].dtype)
-        for use, (delta, _) in zip(plan.convs, conv):
+        for layer, (delta, _) in zip(kfc.conv_layers(plan.convs), conv):
+            use = layer.uses[0]  # every use computes the same kernel from the leaf (find_convolutions)
             kernel = kfc.kernel_matrix(structure, use, delta[:, : use.d_in]).astype(leaves[use.leaf].dtype)
             pieces[use.leaf] = kfc.kernel_pullback(structure, use, jax.lax.stop_gradient(leaves[use.leaf]), kernel)
             if use.bias is not None:

@@ -9,7 +9,9 @@ per-sample program, layers in the order dense then convolutions:
 * :func:`layer_pass` — one forward and one backward pass of the batch, as a plain gradient
   costs, give every layer's gradient ``∇W̄ = Σ D_gᵀ ā``: a convolution's kernel gradient is
   taken on the kernel operand itself (the backward pass's own kernel product, with no input
-  patches), its bias column is the signal summed over positions. Its ``curvature()`` adds
+  patches), its bias column is the signal summed over positions; a kernel shared by several
+  convolutions is one layer, its gradient and factors summed over its uses (their positions
+  added to T: :mod:`physgrad.methods.conv_factors`). Its ``curvature()`` adds
   the factors from the same forward pass and one backward pass per cotangent (every output
   row, or ``probes`` Rademacher directions per sample):
 
@@ -93,14 +95,20 @@ def layer_pass(structure: Structure, dense: tuple[DenseUse, ...], convs: tuple[k
     loss, g = loss_and_gradient(y)
     d_g, d_k = pullback(g.reshape(y.shape).astype(y.dtype))
     grads = [_dot(d.T, with_bias(x, u.bias is not None)) for u, x, d in zip(dense, taken, d_g)]
-    for c, d, k in zip(convs, d_g[len(dense) :], d_k):
-        spec = jaxpr.eqns[c.eqn].params["dimension_numbers"].rhs_spec
-        grad = jnp.transpose(k, spec).reshape(c.d_out, c.d_in)  # (O, I·k₁⋯k_d), channel-major as the patches
-        if c.bias is not None:
-            bias = kfc.conv_signals(structure, c, d).reshape(-1, c.d_out).sum(axis=0)
-            grad = jnp.concatenate([grad, bias[:, None]], axis=1)
-        grads.append(grad)
-    counts = [b] * len(dense) + [b * c.positions for c in convs]
+    layers = kfc.conv_layers(convs)
+    index = {c.eqn: len(dense) + k for k, c in enumerate(convs)}  # a use's tap
+    kernel_grads = {c.eqn: k for c, k in zip(convs, d_k)}
+    for layer in layers:  # a shared kernel's gradient sums over its uses
+        terms = []
+        for c in layer.uses:
+            spec = jaxpr.eqns[c.eqn].params["dimension_numbers"].rhs_spec
+            use = jnp.transpose(kernel_grads[c.eqn], spec).reshape(c.d_out, c.d_in)  # channel-major as the patches
+            if c.bias is not None:
+                bias = kfc.conv_signals(structure, c, d_g[index[c.eqn]]).reshape(-1, c.d_out).sum(axis=0)
+                use = jnp.concatenate([use, bias[:, None]], axis=1)
+            terms.append(use)
+        grads.append(sum(terms[1:], terms[0]))
+    counts = [b] * len(dense) + [b * layer.positions for layer in layers]
 
     def curvature() -> list:
         dim = y.shape[1]
@@ -114,10 +122,13 @@ def layer_pass(structure: Structure, dense: tuple[DenseUse, ...], convs: tuple[k
         for u, x, d in zip(dense, taken, d_v):
             a, d = with_bias(x, u.bias is not None), d.reshape(-1, u.d_out)
             out.append((_dot(a.T, a), scale * _dot(d.T, d)))
-        for c, x, d in zip(convs, taken[len(dense) :], d_v[len(dense) :]):
-            p = with_bias(kfc.conv_patches(structure, c, x), c.bias is not None)
-            d = kfc.conv_signals(structure, c, d).reshape(-1, c.d_out)
-            out.append((_dot(p.T, p), scale * _dot(d.T, d)))
+        for layer in layers:  # a shared kernel: its uses' patches and signals are more positions
+            A = G = 0.0
+            for c in layer.uses:
+                p = with_bias(kfc.conv_patches(structure, c, taken[index[c.eqn]]), c.bias is not None)
+                d = kfc.conv_signals(structure, c, d_v[index[c.eqn]]).reshape(-1, c.d_out)
+                A, G = A + _dot(p.T, p), G + scale * _dot(d.T, d)
+            out.append((A, G))
         return jax.lax.stop_gradient(out)
 
     grads, y, loss, g = jax.lax.stop_gradient((grads, y, loss, g))
