@@ -10,23 +10,12 @@ import numpy as np
 import optax
 import pytest
 
-from physgrad.harness.config import Budget, ConfigError, make_config
+from physgrad.harness.config import ConfigError
 from physgrad.harness.registry import METHODS
 from physgrad.harness.train import build, train
 from physgrad.methods.base import with_extra_args
 from physgrad.methods.unrolling import Plateau, schedule
-
-
-@pytest.fixture(autouse=True)
-def data_cache(tmp_path_factory, monkeypatch):
-    monkeypatch.setenv("PHYSGRAD_CACHE", str(tmp_path_factory.getbasetemp() / "physgrad-cache"))
-
-
-SMALL_ADV = {"n_train": 4, "n_test": 3, "horizon": 16, "iterations": 6}
-
-
-def adv_config(method, steps=5, **settings):
-    return make_config("advection_1d", method, budget=Budget(steps=steps), settings={**SMALL_ADV, **settings})
+from small_advection import adv_config, data_cache  # noqa: F401 — data_cache: an autouse fixture
 
 
 def torch_reduce_on_plateau(epoch_losses, lr, factor, patience, cooldown, threshold=1e-4):

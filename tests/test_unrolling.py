@@ -28,20 +28,7 @@ from physgrad.problems.sim.steppers import (
     Solver,
 )
 from physgrad.rollout import value_and_grad
-
-
-@pytest.fixture(autouse=True)
-def data_cache(tmp_path_factory, monkeypatch):
-    """Generated datasets go to a per-session directory, not the user's cache."""
-    monkeypatch.setenv("PHYSGRAD_CACHE", str(tmp_path_factory.getbasetemp() / "physgrad-cache"))
-
-
-SMALL_ADV = {"n_train": 4, "n_test": 3, "horizon": 16, "iterations": 6}
-
-
-def adv_config(method, steps=5, **settings):
-    return make_config("advection_1d", method, budget=Budget(steps=steps), settings={**SMALL_ADV, **settings})
-
+from small_advection import adv_config, data_cache  # noqa: F401 — data_cache: an autouse fixture
 
 # --- the modalities against independent references ------------------------------------------
 
