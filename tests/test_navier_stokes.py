@@ -217,8 +217,9 @@ def test_strategies_are_objects_and_the_command_line_keeps_its_names():
     assert built == objects
     with pytest.raises(ValueError, match="valid choices: fft, cg"):
         make_problem(NavierStokes, {"projection": "spectral"})
-    with pytest.warns(DeprecationWarning, match="is deprecated; pass the object"):
+    with pytest.warns(DeprecationWarning, match="is deprecated; pass the object") as warned:
         assert NavierStokes(projection="cg", limiter="cells", simulator="phiflow", activation="relu") == objects
+    assert {w.filename for w in warned} == {__file__}  # each names this line, with or without --jaxtyping
     with pytest.raises(ValueError, match=r"FFTProjection\(\) or CGProjection\(\)"):
         NavierStokes(projection=fluid.CellLimiter())  # pyright: ignore[reportArgumentType]
     with warnings.catch_warnings():

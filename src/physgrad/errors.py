@@ -11,6 +11,8 @@ module of the core names a flag.
 
 from __future__ import annotations
 
+import sys
+import warnings
 from typing import Any
 
 
@@ -164,3 +166,18 @@ class ProgressInvalid(ConfigError):
             f"progress must be None (a bar in a terminal), True, False or a progress meter "
             f"(physgrad.engine.progress.AbstractProgressMeter), got {progress!r}"
         )
+
+
+# Frames a deprecation warning looks past to find the user's line: this package's own, and
+# the wrappers that run a Module's __init__ (Equinox) or check its types (jaxtyping and the
+# checkers it calls), whose depth varies with how the user imported physgrad.
+_LIBRARY_FRAMES = ("physgrad.", "equinox", "jaxtyping", "typeguard", "beartype")
+
+
+def warn_deprecated(message: str) -> None:
+    """A ``DeprecationWarning`` that names the first line outside physgrad and the wrappers
+    above (Python 3.12's ``skip_file_prefixes``, by module name, for 3.11)."""
+    frame, level = sys._getframe(1), 2  # stacklevel 2 is warn_deprecated's caller
+    while frame is not None and frame.f_globals.get("__name__", "").startswith(_LIBRARY_FRAMES):
+        frame, level = frame.f_back, level + 1
+    warnings.warn(message, DeprecationWarning, stacklevel=level)

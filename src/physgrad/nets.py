@@ -8,13 +8,14 @@ The HIG paper's networks are Keras ``Dense`` stacks: glorot-uniform kernels,
 from __future__ import annotations
 
 import math
-import warnings
 from collections.abc import Callable, Sequence
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float, PRNGKeyArray
+
+from .errors import warn_deprecated
 
 
 def identity(x: Array) -> Array:
@@ -97,11 +98,7 @@ def _activation_function(
     UNet's, one release) with a ``DeprecationWarning`` that names the ``call`` and suggests
     the function ``example``."""
     if isinstance(activation, str):
-        warnings.warn(
-            f"{call} is deprecated; pass the function, e.g. activation={example}",
-            DeprecationWarning,
-            stacklevel=5,  # the user's line: above this function, the network's __init__ and Equinox's two wrappers
-        )
+        warn_deprecated(f"{call} is deprecated; pass the function, e.g. activation={example}")
         if activation not in names:
             raise ValueError(f"unknown activation {activation!r}; valid choices: {', '.join(names)}")
         return names[activation]

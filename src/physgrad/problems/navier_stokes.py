@@ -77,7 +77,6 @@ Differences from the authors' code (all documented in docs/reproductions/sip.md)
 
 from __future__ import annotations
 
-import warnings
 from collections.abc import Callable
 from typing import Any, ClassVar
 
@@ -86,6 +85,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..errors import warn_deprecated
 from ..nets import UNet
 from .base import AbstractProblem
 from .poisson_hig import phiflow_noise
@@ -123,10 +123,8 @@ def _spelt(setting: str, accepts: Callable[[Any], bool], expected: str) -> Calla
             return value
         if value not in _SPELLINGS[setting]:
             raise ValueError(f"unknown {setting} {value!r}; valid choices: {', '.join(_SPELLINGS[setting])}")
-        warnings.warn(
-            f"NavierStokes({setting}={value!r}) is deprecated; pass the object, {setting}={_spelling(setting, value)}",
-            DeprecationWarning,
-            stacklevel=4,
+        warn_deprecated(
+            f"NavierStokes({setting}={value!r}) is deprecated; pass the object, {setting}={_spelling(setting, value)}"
         )
         return _SPELLINGS[setting][value]
 

@@ -25,12 +25,12 @@ Internal module: the public names are those :mod:`physgrad.problems.sim.phiflow`
 from __future__ import annotations
 
 import abc
-import sys
-import warnings
 from typing import Any, ClassVar
 
 import equinox as eqx
 import jax.numpy as jnp
+
+from ...errors import warn_deprecated
 
 AXES = "xyz"
 
@@ -74,13 +74,7 @@ BOUNDARIES: dict[str, AbstractBoundary] = {"periodic": Periodic(), "zero": Zero(
 
 
 def _deprecated(what: str, spelling: str, instead: Any) -> None:
-    # The warning points at the user's line: past this package's frames and Equinox's
-    # (a Module's __init__ runs __post_init__ through several of them).
-    frame, level = sys._getframe(1), 2
-    while frame is not None and frame.f_globals.get("__name__", "").startswith(("physgrad.problems.sim", "equinox")):
-        frame, level = frame.f_back, level + 1
-    warnings.warn(f"{what}={spelling!r} is deprecated; pass physgrad.problems.sim.phiflow.{instead!r}",
-                  DeprecationWarning, stacklevel=level)  # fmt: skip
+    warn_deprecated(f"{what}={spelling!r} is deprecated; pass physgrad.problems.sim.phiflow.{instead!r}")
 
 
 class Domain(eqx.Module):
