@@ -12,6 +12,11 @@ with no evaluation after the first are left out of the figure. Studies of the st
 paper are drawn smoothed as the paper's plots (a 30-epoch moving average), and a study may
 ask for log–log axes (Poisson, as the authors plot it).
 
+A tune lane (one ``physgrad tune`` directory per method) is read the same way: its chosen
+configuration's runs (``METHOD/final``) are the curves, and the trial table of each method
+follows once its trials have finished. A study with nothing evaluated yet (a lane that has
+just started) gets no section and no figure: one line at the end names it.
+
     python docs/reproductions/long/report.py [STUDY ...]     # default: every study under data/
 """
 
@@ -63,6 +68,9 @@ class Study:
     reference: str | None = None
 
 
+# the sub-directory of a `physgrad tune` output that holds the chosen configuration's runs
+TUNED = "final"
+
 STUDIES = {
     "oscillators_60min": Study("oscillators", 60),
     "quantum_dipole_90min": Study("quantum_dipole", 90),
@@ -98,6 +106,14 @@ STUDIES = {
     # Kronecker-factored HIG's power ablation (−½, −¾, −1) against the long studies' HIG/Adam
     "khig_oscillators": Study("oscillators", baseline="hig", reference="oscillators_60min"),
     "khig_quantum_dipole": Study("quantum_dipole", baseline="hig", reference="quantum_dipole_90min"),
+    # the blog's 80 KS epochs with a plateau schedule (lanes ks80, ks80_prediction)
+    "ks_correction_80ep_plateau": Study("ks", metric="rel_error", baseline="one", axis="steps"),
+    "ks_prediction_80ep_plateau": Study("ks", metric="rel_error", baseline="one", axis="steps"),
+    # H4 with every rule tuned (lanes dipole_tuned, dipole_tuned_90min): one `physgrad tune`
+    # directory per method; its chosen configuration's seeds are the runs under METHOD/final,
+    # at HIG's default (structured) route of the pinned physgrad
+    "quantum_dipole_tuned_150s": Study("quantum_dipole", 2.5, baseline=f"adam/{TUNED}", route="auto (structured)"),
+    "quantum_dipole_tuned_90min": Study("quantum_dipole", 90, baseline=f"adam/{TUNED}", route="auto (structured)"),
 }
 
 
@@ -136,6 +152,7 @@ def seconds(cal, study: str, method: str, step):
     change the work of an update (a learning rate ``hig-higlr01``, a truncation
     ``hig-higtruncation0001``); any other setting (a batch size) has none of its own (NaN)."""
     spec = study_of(study)
+    method = method.removesuffix(f"/{TUNED}")  # a tune lane's chosen configuration: its method's rate
 
     def rate(m):
         return cal.get((spec.problem, m, spec.route if m in ("gn", "hig") else ""), math.nan)
@@ -280,9 +297,7 @@ def figure(study: Path, data: dict, cal, out: Path):
     any_partial = False
     for k, (m, rs) in enumerate(sorted(data.items())):
         for r in rs:
-            # no data: nothing evaluated after the first evaluation (a diverged run's one
-            # point is kept: its label says that it diverged)
-            if not len(r["loss"]) or (len(r["loss"]) < 2 and r["status"] != "diverged"):
+            if not drawable(r):  # nothing evaluated after the first evaluation
                 continue
             t = np.asarray(r["t"], float) / 60 if spec.axis == "calibrated" else r["step"]
             label = f"{m} seed {r['seed']}" + (" (diverged)" if r["status"] == "diverged" else "")
@@ -330,13 +345,53 @@ def main(names: list[str]):
         raise SystemExit(2)
     studies = [DATA / n for n in (names or kept)]
     cal = calibration()
+    waiting = []
     for study in studies:
         lines, data = table(study, cal)
-        out = FIGURES / f"long_{study.name}.png"
-        figure(study, data, cal, out)
+        tuning = tune_tables(study)
+        drawn = any(drawable(r) for rs in data.values() for r in rs)
+        if not drawn and not tuning:  # a lane that has not evaluated anything yet: no section
+            waiting.append(study.name)
+            continue
         print(f"### {study.name}\n")
-        print("\n".join(lines))
-        print(f"\n![{study.name}](figures/{out.name})\n")
+        if data:
+            print("\n".join(lines))
+        for text in tuning:
+            print(f"\n{text}")
+        if drawn:  # a figure with no curve would say nothing (and leave a new file behind)
+            out = FIGURES / f"long_{study.name}.png"
+            figure(study, data, cal, out)
+            print(f"\n![{study.name}](figures/{out.name})\n")
+        else:
+            print()
+    if waiting:
+        print(f"Not drawn yet, no evaluation kept (their lanes in long/studies.sh add them): {', '.join(waiting)}")
+
+
+def drawable(run: dict) -> bool:
+    """A run the figure draws: evaluated after its first evaluation, or diverged (its one
+    point is kept, and its label says that it diverged)."""
+    return len(run["loss"]) >= 2 or (len(run["loss"]) == 1 and run["status"] == "diverged")
+
+
+def tune_tables(study: Path) -> list[str]:
+    """The trial table of each ``physgrad tune`` directory in ``study`` (one per method, a
+    tune lane's layout) whose trials have all finished (``trials.csv`` is written then), as
+    ``physgrad report DIR`` prints it, without its figure: redrawing would write into the
+    kept data."""
+    dirs = [d for d in sorted(study.iterdir()) if (d / "tune.json").exists() and kept_path(d / "trials.csv").exists()]
+    if not dirs:
+        return []
+    from physgrad.harness.tune_report import table as tune_table  # only a tune lane needs the harness
+
+    out = []
+    for d in dirs:
+        rows = tune_table(d)
+        lines = [f"Tuning trials, `{d.relative_to(study).as_posix()}` (validation loss; the chosen configuration's "
+                 f"runs are `{d.name}/{TUNED}` above):", "", "| " + " | ".join(rows[0]) + " |",
+                 "|" + "---|" * len(rows[0])] + ["| " + " | ".join(r) + " |" for r in rows[1:]]  # fmt: skip
+        out.append("\n".join(lines))
+    return out
 
 
 if __name__ == "__main__":
