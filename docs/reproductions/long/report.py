@@ -259,7 +259,11 @@ def table(study: Path, cal) -> tuple[list[str], dict]:
         # the docs' per-seed ratios are read from here
         seeds = " / ".join(f"{r['seed']}: " + (f"{final_value(r, spec.tail):.3g}" if r["status"] == "finished" and len(r["loss"])
                                                else r["status"]) for r in sorted(rs, key=lambda r: r["seed"])) or "-"  # fmt: skip
-        name, source = (m.split(" (")[0], spec.reference) if m not in own else (m.removesuffix(f" {TOP}"), study.name)
+        name, source = (
+            (m.split(" (")[0], spec.reference or study.name)
+            if m not in own
+            else (m.removesuffix(f" {TOP}"), study.name)
+        )
         # calibration.csv holds one CPU core's step times: none applies to a run on a GPU
         cpu = method_of(name)[1] is None and not on_gpu(study)
         per_step = float(seconds(cal, source, name, 1)) if cpu else math.nan
