@@ -22,7 +22,13 @@ single-threaded pure-Python loop (``threads.py``'s) timed in the same condition.
 The goal (issue 53, item 3): ``threads=1`` beside one busy neighbour within 1.5× of idle.
 
     python benchmarks/fit_under_load.py [--problem oscillators] [--batch-size 128]
-        [--seconds 4] [--rounds 3] [--matrix 1000]
+        [--seconds 4] [--rounds 3] [--matrix 1000] [--xla-threads 1]
+
+``--xla-threads 1`` calls :func:`physgrad.cpu.start_xla` first, as a script may at its top:
+XLA sizes its intra-op pool (its matrix products) once, when JAX's backend starts, from the
+CPUs the process may use, and ``fit``'s ``threads=1`` cannot change it afterwards. With
+XLA's default pool (two threads on two cores) a step waits for whichever of its threads a
+neighbour has preempted.
 """
 
 from __future__ import annotations
@@ -53,7 +59,15 @@ def main():
     parser.add_argument("--seconds", type=float, default=4.0, help="training seconds per fit")
     parser.add_argument("--rounds", type=int, default=3, help="fits per condition and mode, alternating the modes")
     parser.add_argument("--matrix", type=int, default=1000, help="the neighbour's matrix size N")
+    parser.add_argument("--xla-threads", type=int, default=None,
+                        help="size XLA's intra-op pool first (physgrad.cpu.start_xla), as a script may at its top; "
+                             "default: XLA's pool as JAX starts it (one thread per usable CPU)")  # fmt: skip
     args = parser.parse_args()
+    xla = "XLA's default pool"
+    if args.xla_threads is not None:  # before anything computes with JAX, as a user's script would
+        import physgrad.cpu
+
+        xla = f"XLA's pool: {physgrad.cpu.start_xla(args.xla_threads)}"
 
     import jax
     import optax
@@ -86,7 +100,7 @@ def main():
           f"{cores} usable of {os.cpu_count()} cores | load average before {os.getloadavg()[0]:.2f}")  # fmt: skip
     print(f"HIG on {args.problem}, batch {batch}, {args.seconds:g} s of training per fit, {args.rounds} fits per "
           f"cell; this process's BLAS pools by default: {pools}; neighbour: {args.matrix}x{args.matrix} float64 "
-          f"matmul loop, default threads")  # fmt: skip
+          f"matmul loop, default threads; {xla}")  # fmt: skip
 
     environment = {k: v for k, v in os.environ.items() if k not in POOL_VARIABLES}
     modes = {"threads=1": 1, "threads=None": None}

@@ -19,9 +19,9 @@ beside the neighbours: the floor for any one-thread step). A cell stops after
 
 ``--default-threads N`` sets the "default" mode's BLAS pools to N (e.g. 2, a 2-core
 machine's default, when the script is pinned to one core with ``taskset -c 0``: OpenBLAS
-then sizes its pool from the one core it sees). ``--xla-threads 1`` makes XLA's own Eigen
-kernels single-threaded through ``XLA_FLAGS`` before JAX's backend starts
-(``physgrad.threads`` cannot change them later; the ``physgrad`` command line sets both,
+then sizes its pool from the one core it sees). ``--xla-threads N`` sizes XLA's own intra-op pool to N
+threads with ``physgrad.cpu.start_xla(N)`` before JAX's backend starts
+(``physgrad.threads`` cannot change it later; the ``physgrad`` command line sets both,
 ``--threads``).
 """
 
@@ -66,9 +66,9 @@ def main():
     parser.add_argument("--set", action="append", default=[], metavar="NAME=VALUE")
     args = parser.parse_args()
     if args.xla_threads is not None:  # before JAX's backend starts (it has not: nothing ran yet)
-        from physgrad.cpu import xla_thread_flags
+        from physgrad.cpu import start_xla
 
-        os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} {xla_thread_flags(args.xla_threads)}".strip()
+        print(f"XLA's pool: {start_xla(args.xla_threads)}")
 
     os.environ.pop("PHYSGRAD_THREADS", None)  # common.py must leave the pools alone: both modes are set here
     import jax

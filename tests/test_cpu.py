@@ -1,7 +1,7 @@
 """Thread pools (physgrad.cpu): the scoped opt-in limits and restores the BLAS/LAPACK pools,
-the command line's process setting makes XLA's Eigen kernels single-threaded too when it
-comes first (the only XLA thread setting XLA has), restores what
-it can, and every run records its threads in env.json. Importing physgrad changes nothing
+start_xla sizes XLA's intra-op pool when it comes before JAX's backend starts, the command
+line's process setting does both and restores what it can, and every run records its
+threads in env.json. Importing physgrad changes nothing
 (tests/test_side_effects.py)."""
 
 from __future__ import annotations
@@ -12,6 +12,7 @@ import subprocess
 import sys
 import textwrap
 
+import jax
 import pytest
 from threadpoolctl import threadpool_info
 
@@ -39,6 +40,58 @@ def test_threads_limits_the_blas_pools_in_the_block_and_restores_them():
     with pytest.raises(ValueError, match="positive integer"):
         with physgrad.threads(0):
             pass
+
+
+# One thread's CPU ticks per thread of a fresh interpreter over three 1200² float64 products
+# (utime + stime from /proc), and whether every thread may run on every CPU again.
+_POOL_PROBE = """
+import os, sys
+import physgrad
+mask = os.sched_getaffinity(0)
+if sys.argv[1] == "1":
+    print(physgrad.cpu.start_xla(1), file=sys.stderr)
+import jax, jax.numpy as jnp
+def ticks():
+    out = {}
+    for t in os.listdir("/proc/self/task"):
+        fields = open(f"/proc/self/task/{t}/stat").read().rsplit(")", 1)[1].split()
+        out[t] = int(fields[11]) + int(fields[12])
+    return out
+a = jnp.ones((1200, 1200))
+product = jax.jit(lambda a: (a @ a) @ a).lower(a).compile()
+product(a).block_until_ready()
+before = ticks()
+for _ in range(3):
+    product(a).block_until_ready()
+after = ticks()
+busy = sorted((after[t] - before.get(t, 0) for t in after), reverse=True)
+print(busy[0], busy[1], all(os.sched_getaffinity(int(t)) == mask for t in after))
+"""
+
+
+@pytest.mark.costly("XLA sizes its pool when its backend starts: two fresh interpreters")
+@pytest.mark.skipif(not hasattr(os, "sched_setaffinity") or len(os.sched_getaffinity(0)) < 2, reason="Linux, 2+ CPUs")
+def test_start_xla_sizes_the_intra_op_pool_and_gives_the_cpus_back():
+    """XLA's default pool spreads a large product over several threads; after
+    ``start_xla(1)`` one thread does (nearly) all of it, and every thread may again run on
+    every CPU of the process (the pool is sized, not pinned)."""
+    env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
+    env["JAX_PLATFORMS"] = "cpu"
+
+    def probe(sized: bool) -> tuple[int, int, bool]:
+        result = subprocess.run([sys.executable, "-c", _POOL_PROBE, "1" if sized else "0"], capture_output=True,
+                                text=True, env=env, timeout=300)  # fmt: skip
+        assert result.returncode == 0, result.stderr[-3000:]
+        first, second, unpinned = result.stdout.split()
+        return int(first), int(second), unpinned == "True"
+
+    first, second, unpinned = probe(sized=True)
+    assert unpinned and second <= 0.1 * first  # one worker thread: the rest is bookkeeping
+    first, second, unpinned = probe(sized=False)
+    assert unpinned and second >= 0.15 * first  # the default pool shares the work
+    jax.numpy.zeros(1).block_until_ready()  # this test process has started JAX's backend
+    with pytest.raises(RuntimeError, match="before the first JAX computation"):
+        cpu.start_xla(1)
 
 
 def test_process_threads_sets_and_restores_the_variables(monkeypatch):
@@ -78,7 +131,8 @@ def test_the_command_line_sizes_xla_before_its_backend_starts(tmp_path):
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=300)
     assert result.returncode == 0, result.stderr[-3000:]
     threads = json.loads((tmp_path / "run" / "env.json").read_text())["threads"]
-    assert threads["setting"] == {"requested": 1, "blas": 1, "xla": "1 (XLA_FLAGS set before JAX's backend started)"}
+    assert threads["setting"]["requested"] == threads["setting"]["blas"] == 1
+    assert threads["setting"]["xla"].startswith(("1 (XLA's pool sized on 1 of", "XLA default (1 CPUs usable"))
     assert threads["environment"]["XLA_FLAGS"] == "--xla_cpu_multi_thread_eigen=false"
     assert threads["environment"]["OPENBLAS_NUM_THREADS"] == "1"
     pools = [p for p in threads["pools"] if p["internal_api"] == "openblas"]
