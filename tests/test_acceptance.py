@@ -244,8 +244,8 @@ def test_loss_aware_dp_is_a_constructor_of_a_method():
 def test_the_registry_names_each_method_once():
     from physgrad.harness import registry
 
-    assert list(registry.METHODS) == ["adam", "sgd", "rmsprop", "adagrad", "adadelta", "gn", "hig", "khig", "ekhig",
-                                      "lm", "kfac", "kfac_hig", "sip", "newton", "bptt", "sbptt_m", "sbptt_c",
+    assert list(registry.METHODS) == ["adam", "sgd", "rmsprop", "adagrad", "adadelta", "gn", "hig", "khig", "kgn",
+                                      "khig_half", "ekhig", "lm", "kfac", "kfac_hig", "sip", "newton", "bptt", "sbptt_m", "sbptt_c",
                                       "no_temporal", "one", "nog", "wig"]  # fmt: skip
     for name in ("hig", "sip", "bptt", "newton", "lm", "nog"):  # the library's names only
         assert not hasattr(registry, name), name

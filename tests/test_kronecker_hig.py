@@ -358,3 +358,21 @@ def test_khig_running_averages_from_the_registry():
     assert isinstance(METHODS["khig"](), physgrad.Method)  # fresh factors by default (HIG's way)
     with pytest.raises(ValueError, match=r"^curvature_ema must be in \[0, 1\), got 1.0$"):
         METHODS["khig"](curvature_ema=1.0)
+
+
+def test_the_power_ablation_arms_are_khig_at_their_power():
+    # kgn and khig_half exist so that one bench ranks the three powers side by side: each is
+    # khig with its power fixed, the same other settings, HIG's defaults and khig's search space.
+    from physgrad.harness.registry import hyperparameters
+    from physgrad.harness.spaces import space_of
+
+    settings = {"damping": 1e-3, "probes": 2, "curvature_ema": 0.9, "inverse_every": 4, "curvature_every": 2}
+    khig_settings = {k: v for k, v in hyperparameters("khig").items() if k != "power"}
+    for name, power in (("kgn", -1.0), ("khig_half", -0.5)):
+        assert hyperparameters(name) == khig_settings, name
+        assert METHODS[name]().rule == METHODS["khig"](power=power).rule
+        arm, reference = METHODS[name](**settings), METHODS["khig"](power=power, **settings)
+        assert (arm.rule, arm.curvature_ema, arm.inverse_every, arm.curvature_every) == (
+            reference.rule, reference.curvature_ema, reference.inverse_every, reference.curvature_every)  # fmt: skip
+        assert paper_defaults(PROBLEMS["quantum_dipole"], name) == paper_defaults(PROBLEMS["quantum_dipole"], "hig")
+        assert space_of(name) == space_of("khig")

@@ -156,6 +156,26 @@ def _khig(*, lr: float = 1.0, power: float = -0.75, truncation: float = 1e-6, da
     )  # pyright: ignore[reportCallIssue]  (control is a property)
 
 
+# KHIG at the other two powers of the power ablation (issue 51), as names of their own so that
+# one bench or tuned bench ranks the three powers side by side, each step timed in the same
+# calibration sitting (a --set khig.power=... changes khig everywhere in a bench). Everything
+# but the power is khig's, defaults and search space included.
+def _kgn(*, lr: float = 1.0, truncation: float = 1e-6, damping: float = 1e-4, explicit_max: int = 1024,
+         curvature_ema: float = 0.0, inverse_every: int = 1, curvature_every: int = 1, probes: int = 0):  # fmt: skip
+    """Kronecker-factored Gauss–Newton: ``khig`` at power −1, −η b G^{−1} ∇W A^{−1} per layer (settings as ``khig``)."""
+    return _khig(lr=lr, power=-1.0, truncation=truncation, damping=damping, explicit_max=explicit_max,
+                 curvature_ema=curvature_ema, inverse_every=inverse_every, curvature_every=curvature_every,
+                 probes=probes)  # fmt: skip
+
+
+def _khig_half(*, lr: float = 1.0, truncation: float = 1e-6, damping: float = 1e-4, explicit_max: int = 1024,
+               curvature_ema: float = 0.0, inverse_every: int = 1, curvature_every: int = 1, probes: int = 0):  # fmt: skip
+    """KHIG at power −½: ``khig`` with −η b^{½} G^{−½} ∇W A^{−½} per layer, the power ablation's third arm (settings as ``khig``)."""
+    return _khig(lr=lr, power=-0.5, truncation=truncation, damping=damping, explicit_max=explicit_max,
+                 curvature_ema=curvature_ema, inverse_every=inverse_every, curvature_every=curvature_every,
+                 probes=probes)  # fmt: skip
+
+
 def _ekhig(*, lr: float = 1.0, power: float = -0.75, truncation: float = 1e-6, damping: float = 1e-4,
            explicit_max: int = 1024, basis_every: int = 1):  # fmt: skip
     """Eigenvalue-corrected KHIG: KHIG's Kronecker eigenbasis per dense layer, its eigenvalues replaced by the exact Gauss–Newton diagonal there, by SGD.
@@ -396,16 +416,21 @@ PROBLEMS: Registry[type[AbstractProblem]] = Registry("problem", _BUILT_IN_PROBLE
 # ``physgrad.methods`` entry points' and import paths' factories (physgrad.harness.plugins).
 # The factories are private (`_hig`), so `hig` means the library's estimator (physgrad.hig) alone.
 METHODS: Registry[Callable[..., AbstractMethod]] = _Methods("method", {
-    **_DP, "gn": _gn, "hig": _hig, "khig": _khig, "ekhig": _ekhig, "lm": _lm, "kfac": kfac, "kfac_hig": _kfac_hig,
+    **_DP, "gn": _gn, "hig": _hig, "khig": _khig, "kgn": _kgn, "khig_half": _khig_half,
+    "ekhig": _ekhig, "lm": _lm, "kfac": kfac, "kfac_hig": _kfac_hig,
     "sip": _sip, "newton": _newton, "bptt": _bptt, "sbptt_m": _sbptt_m, "sbptt_c": _sbptt_c,
     "no_temporal": _no_temporal, "one": _one, "nog": _nog, "wig": _wig,
 }, METHOD_GROUP, method_factory)  # fmt: skip
 
 
+# The Kronecker-factored HIG forms: their η, batch and τ mean HIG's, and default to HIG's.
+KRONECKER_HIG = ("khig", "kgn", "khig_half", "ekhig")
+
+
 def paper_defaults(problem: type[AbstractProblem], method: str) -> dict[str, Any]:
     """The paper's hyperparameters for ``method`` on ``problem`` (batch size included; the
     table is :data:`physgrad.harness.papers.PROTOCOLS`); ``lm`` takes Gauss–Newton's where
-    the problem has none of its own, ``khig`` and ``ekhig`` HIG's, ``kfac`` and ``kfac_hig``
+    the problem has none of its own, the Kronecker-factored HIG forms (:data:`KRONECKER_HIG`) HIG's, ``kfac`` and ``kfac_hig``
     Adam's batch size; an optax zoo entry takes Adam's batch size, and Adam's learning rate when optax asks for one."""
     table = protocol(getattr(problem, "name", "")).defaults
 
@@ -414,7 +439,7 @@ def paper_defaults(problem: type[AbstractProblem], method: str) -> dict[str, Any
 
     if method == "lm" and method not in table:  # damped GN: GN's η, batch and τ
         return defaults_for("gn")
-    if method in ("khig", "ekhig") and method not in table:  # HIG's η, batch and τ (the same meaning)
+    if method in KRONECKER_HIG and method not in table:  # HIG's η, batch and τ (the same meaning)
         return defaults_for("hig")
     if method in ("kfac", "kfac_hig") and method not in table:  # its own adaptive step; Adam's batch
         return {"batch_size": defaults_for("adam")["batch_size"]}

@@ -11,7 +11,8 @@ method                       searched besides ``lr``
 ===========================  ==============================================================
 ``hig``, ``gn``              ``truncation`` τ (singular values σ ≤ τ σ_max dropped)
 ``lm``                       ``damping`` μ₀ (initial λ = μ σ_max², then Nielsen's rule)
-``khig``, ``ekhig``          ``damping`` (added as damping·λ_max before the power)
+``khig``, ``kgn``,           ``damping`` (added as damping·λ_max before the power)
+``khig_half``, ``ekhig``
 ``kfac``, ``kfac_hig``       ``damping`` λ (initial value of K-FAC's adaptive damping); its
                              ``lr`` only with ``adaptive=false`` (the adaptive step sets its own)
 ``sip``                      ``eta`` η (the step towards y* in y) and the inner lr
@@ -99,8 +100,7 @@ SPACES: dict[str, Space] = {
     "hig": {"lr": LEARNING_RATE, "truncation": TRUNCATION},
     "gn": {"lr": LEARNING_RATE, "truncation": TRUNCATION},
     "lm": {"lr": LEARNING_RATE, "damping": LogUniform(1e-6, 1.0)},
-    "khig": {"lr": LEARNING_RATE, "damping": LogUniform(1e-8, 1e-1)},
-    "ekhig": {"lr": LEARNING_RATE, "damping": LogUniform(1e-8, 1e-1)},
+    **{m: {"lr": LEARNING_RATE, "damping": LogUniform(1e-8, 1e-1)} for m in ("khig", "kgn", "khig_half", "ekhig")},
     "kfac": {"lr": LEARNING_RATE, "damping": LogUniform(1e-6, 1.0)},
     "kfac_hig": {"lr": LEARNING_RATE, "damping": LogUniform(1e-6, 1.0)},
     "sip": {"lr": LEARNING_RATE, "eta": LogUniform(1e-2, 1.0)},
