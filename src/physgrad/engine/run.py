@@ -127,11 +127,11 @@ def fit(
     0 writes.
 
     Keys: everything random derives from ``key = jax.random.key(seed)``:
-    the data ``problem.make_data(fold_in(key, 0))``, the initial network
+    the data ``split(problem.make_data(fold_in(key, 0)))``, the initial network
     ``problem.initial_network(fold_in(key, 1), data)``, a shuffled epoch's order from
     ``fold_in(fold_in(fold_in(key, 2), stage), epoch)`` and, with ``fresh_samples``, a
-    later epoch's training data ``make_data(fold_in(fold_in(fold_in(key, 3), stage),
-    epoch))["train"]`` (``fold_in`` is ``jax.random.fold_in``; stages and epochs count from
+    later epoch's training data ``split(make_data(fold_in(fold_in(fold_in(key, 3), stage),
+    epoch)))["train"]`` (``fold_in`` is ``jax.random.fold_in``; stages and epochs count from
     0). A hand-written loop given these keys takes the same steps.
 
     Steps between evaluations run as chunks of one compiled program
