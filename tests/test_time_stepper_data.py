@@ -305,6 +305,21 @@ def test_prdp_training_raises_the_iteration_count_and_counts_iterations(tmp_path
         train(make_config("ks", "nog", budget=Budget(steps=1), settings={"prdp": True}), tmp_path / "bad")
 
 
+@pytest.mark.slow  # trains through the engine
+def test_prdp_on_a_tuning_trial_reads_the_val_split_it_evaluates_as_test(tmp_path):
+    """A tuning trial (split=HoldOut) of a problem with a val split evaluates that split as
+    its test, once, and PRDP reads it as the run's val (the older Validation wrapper dropped
+    the val split, and PRDP then failed on the first evaluation)."""
+    from physgrad.engine import HoldOut
+
+    config = adv_config("wig", steps=12, setup="correction", prdp=True, eval_every=2, iterations=10)
+    summary = train(config, tmp_path / "trial", split=HoldOut(0.2))
+    assert summary["status"] == "finished" and summary["prdp"]["K"] >= 1
+    rows = list(csv_rows(tmp_path / "trial" / "metrics.csv"))
+    test = {(r["step"], r["metric"]): r["value"] for r in rows if r["split"] == "test"}
+    assert test and test == {(r["step"], r["metric"]): r["value"] for r in rows if r["split"] == "val"}
+
+
 # --- command line and statistics ------------------------------------------------------------
 
 

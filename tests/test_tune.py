@@ -1,6 +1,6 @@
 """physgrad tune: the declared search spaces, the validation split, trials on a tiny problem
 (library and command line), successive halving and the report (harness/tune.py, spaces.py,
-tune_report.py, problems/validation.py)."""
+tune_report.py, engine/splits.py)."""
 
 from __future__ import annotations
 
@@ -14,12 +14,12 @@ import pytest
 
 import physgrad
 from physgrad import Budget
+from physgrad.engine.splits import HoldOut, TestSplit, held_out_count
 from physgrad.errors import ConfigError
 from physgrad.harness import spaces
 from physgrad.harness.cli import main
 from physgrad.harness.registry import METHODS, PROBLEMS, hyperparameters
 from physgrad.harness.tune import NoPruning, SuccessiveHalving
-from physgrad.problems.validation import Validation, held_out_count
 
 
 def test_every_registered_method_has_a_space_resolved_against_its_defaults():
@@ -49,55 +49,94 @@ def test_a_space_naming_no_hyperparameter_or_a_sequence_is_refused_in_one_line()
         spaces.LogUniform(1.0, 0.1)
 
 
-def test_validation_holds_out_the_end_of_train_or_takes_the_val_split_and_never_builds_test():
+def test_holdout_holds_out_the_end_of_train_or_takes_the_val_split_and_drops_test():
     problem = PROBLEMS["hig_toy"]()
-    data, held = problem.make_data(jax.random.key(0)), Validation(problem, 0.25).make_data(jax.random.key(0))
-    n = data["train"]["x"].shape[0] if isinstance(data["train"], dict) else jax.tree.leaves(data["train"])[0].shape[0]
+    data = problem.make_data(jax.random.key(0))
+    held = HoldOut(0.25)(data)
+    n = jax.tree.leaves(data["train"])[0].shape[0]
     k = held_out_count(n, 0.25)
     train, test = jax.tree.leaves(held["train"])[0], jax.tree.leaves(held["test"])[0]
     assert train.shape[0] == n - k and test.shape[0] == k and "val" not in held
     np.testing.assert_array_equal(np.asarray(test), np.asarray(jax.tree.leaves(data["train"])[0][n - k :]))
-    assert (
-        Validation(problem).name == "hig_toy" and Validation(problem).default_batch_size == problem.default_batch_size
-    )
+    np.testing.assert_array_equal(np.asarray(train), np.asarray(jax.tree.leaves(data["train"])[0][: n - k]))
+    assert TestSplit()(data) is data
 
-    class WithVal(type(problem)):
-        def make_data(self, key):
-            out = super().make_data(key)
-            return {**out, "val": out["train"]}
-
-    own = Validation(WithVal()).make_data(jax.random.key(0))
-    assert jax.tree.leaves(own["test"])[0].shape[0] == n  # the problem's own val split, train untouched
+    own = HoldOut()({**data, "val": data["train"]})
+    assert own["test"] is own["val"] is data["train"] and own["train"] is data["train"]  # the problem's own val
     with pytest.raises(ValueError, match="fraction"):
         held_out_count(10, 1.5)
+    with pytest.raises(ValueError, match="fraction"):
+        HoldOut(1.5)
+
+
+def test_a_holdout_run_never_evaluates_or_trains_on_test(tmp_path):
+    """fit with split=HoldOut on the user's own problem object: its test split (here made
+    huge, so any use of it shows) reaches neither the training nor the evaluation; the
+    run's "test" loss is the held-out end of train, and every fresh draw is split too."""
+    import jax.numpy as jnp
+    import optax
+
+    from physgrad.engine import setup as engine_setup
+    from physgrad.methods import Gradient
+
+    class PoisonedTest(type(PROBLEMS["hig_toy"]())):
+        def make_data(self, key):
+            out = super().make_data(key)
+            return {**out, "test": jax.tree.map(lambda a: a * 1e6, out["test"])}
+
+    problem = PoisonedTest()
+    method = physgrad.Method(Gradient(), optax.adam(1e-2))
+    settings = physgrad.TrainSettings(fresh_samples=True, eval_every=2)
+    result = physgrad.fit(problem, method, budget=Budget(steps=4), batch_size=64, seed=3, settings=settings,
+                          split=HoldOut(0.25), out=tmp_path / "run")  # fmt: skip
+    data = engine_setup.run_data(problem, HoldOut(0.25), jax.random.fold_in(jax.random.key(3), 0))
+    held = data["test"]
+    losses = jax.vmap(lambda s: problem.loss(problem.predict(result.network, s), s))(held)
+    assert result.summary["final_test_loss"] == pytest.approx(float(jnp.mean(losses)), rel=1e-5)
+    assert result.summary["final_test_loss"] < 1e3  # the poisoned test split would give ~1e12
+    config = json.loads((tmp_path / "run" / "config.json").read_text())
+    assert config["validation"] == HoldOut(0.25).note and config["problem"].endswith(
+        "PoisonedTest()"
+    )  # the problem itself
+    # a fresh draw keeps the held-out fraction's size: the compiled step is reused on it
+    fresh = engine_setup.run_data(problem, HoldOut(0.25), jax.random.key(9), check=False)["train"]
+    assert jax.tree.leaves(fresh)[0].shape == jax.tree.leaves(data["train"])[0].shape
+
+
+def test_a_holdout_records_what_older_tuning_trials_recorded():
+    """A trial's record keeps the words the older Validation wrapper wrote (committed tuning
+    studies' config.json), so those records read, and compare, as the same runs."""
+    older = ("test split = the problem's val split, or else the last 0.2 of train (held out, not trained on); "
+             "the real test split is never built")  # fmt: skip
+    assert HoldOut(0.2).note == older and TestSplit().note is None
 
 
 def test_a_direct_optimisation_problem_is_validated_on_its_objective():
     """toy2d optimises its one sample directly (the same split object is train and test):
     there is nothing unseen to hold out, so a trial's validation data is that sample and
     its trials finish (a hold-out of one sample would be refused)."""
+    from physgrad.engine import abstract_data
     from physgrad.precision import float64_scope
 
     with float64_scope(True):
-        held = Validation(PROBLEMS["toy2d"](), 0.2).make_data(jax.random.key(0))
+        held = HoldOut(0.2)(PROBLEMS["toy2d"]().make_data(jax.random.key(0)))
+        shapes = abstract_data(PROBLEMS["toy2d"](), 0, HoldOut(0.2))  # traced whole: train is still test
     assert held["train"] is held["test"]
+    assert shapes is not None and jax.tree.leaves(shapes["test"])[0].shape[0] == 1
     with pytest.raises(ValueError, match="cannot hold out"):
         held_out_count(1, 0.2)
 
 
-def test_prdp_refines_the_solver_of_the_problem_a_trial_wraps():
-    """A tuning trial with prdp on trains its Validation wrapper; PRDP reads and refines the
-    wrapped problem's iteration count (it used to be refused: the wrapper declared none)."""
+def test_prdp_refines_the_solver_of_the_problem_a_trial_trains():
+    """A tuning trial's problem is the problem itself (the split is the run's), so PRDP reads
+    and refines its iteration count."""
     from physgrad.engine import TrainSettings
     from physgrad.engine.strategies import Fidelity
 
-    inner = PROBLEMS["advection_1d"](iterations=12)
-    wrapped = Validation(inner, 0.2)
-    fidelity = Fidelity.of(wrapped, TrainSettings(prdp=True, prdp_start=3))
+    problem = PROBLEMS["advection_1d"](iterations=12)
+    fidelity = Fidelity.of(problem, TrainSettings(prdp=True, prdp_start=3))
     assert (fidelity.name, fidelity.full) == ("iterations", 12)
-    refined = wrapped.with_refined(3)
-    assert isinstance(refined, Validation) and refined.holdout == 0.2
-    assert refined.problem.iterations == 3 and inner.iterations == 12
+    assert problem.with_refined(3).iterations == 3 and problem.iterations == 12
 
 
 def test_successive_halving_rungs():

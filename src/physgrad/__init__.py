@@ -26,7 +26,7 @@ if TYPE_CHECKING:
     from . import acceptance, cpu, distributed, inverse, routes, transforms
     from ._fit import fit  # the engine's fit with the BLAS/LAPACK pools limited (threads=1)
     from .cpu import threads
-    from .engine import Budget, Callback, FitResult, Phase, TrainSettings, TrainState
+    from .engine import AbstractSplit, Budget, Callback, FitResult, HoldOut, Phase, TestSplit, TrainSettings, TrainState
     from .engine.types import Epochs, Seconds, Steps
     from .errors import ConfigError
     from .harness.train import load_network
@@ -61,7 +61,20 @@ _PUBLIC: dict[str, str] = {
     **dict.fromkeys(("acceptance", "cpu", "distributed", "inverse", "routes", "transforms"), ""),
     "fit": "._fit",
     "threads": ".cpu",
-    **dict.fromkeys(("Budget", "Callback", "FitResult", "Phase", "TrainSettings", "TrainState"), ".engine"),
+    **dict.fromkeys(
+        (
+            "AbstractSplit",
+            "Budget",
+            "Callback",
+            "FitResult",
+            "HoldOut",
+            "Phase",
+            "TestSplit",
+            "TrainSettings",
+            "TrainState",
+        ),
+        ".engine",
+    ),
     **dict.fromkeys(("Epochs", "Seconds", "Steps"), ".engine.types"),
     "ConfigError": ".errors",
     "load_network": ".harness.train",
@@ -126,12 +139,14 @@ __all__ = [
     "AbstractMethod",
     "AbstractProblem",
     "AbstractRule",
+    "AbstractSplit",
     "Budget",
     "Callback",
     "ConfigError",
     "Epochs",
     "Estimator",
     "FitResult",
+    "HoldOut",
     "Method",
     "Objective",
     "Phase",
@@ -139,6 +154,7 @@ __all__ = [
     "Stepper",
     "Steps",
     "System",
+    "TestSplit",
     "TrainSettings",
     "TrainState",
     "UNet",

@@ -30,6 +30,7 @@ from .engine import run as _run
 from .engine.callbacks import Callback
 from .engine.progress import AbstractProgressMeter, NoProgressMeter, RichProgressMeter
 from .engine.result import FitResult
+from .engine.splits import TEST_SPLIT, AbstractSplit
 from .engine.types import Budget, Phase, TrainSettings
 from .errors import ProgressInvalid
 from .methods import AbstractMethod
@@ -48,6 +49,7 @@ def fit(
     seed: int = 0,
     batch_size: int | None = None,
     settings: TrainSettings = _run.DEFAULT_SETTINGS,
+    split: AbstractSplit = TEST_SPLIT,
     resume: bool = False,
     progress: AbstractProgressMeter | bool | None = None,
     devices: int | Sequence[jax.Device] | None = 1,  # pyright: ignore[reportInvalidTypeForm]
@@ -90,6 +92,7 @@ def fit(
             seed=seed,
             batch_size=batch_size,
             settings=settings,
+            split=split,
             resume=resume,
             progress=meter,
             devices=devices,

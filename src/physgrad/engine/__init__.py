@@ -7,7 +7,7 @@ too: no registry), ``method`` an engine method (:class:`physgrad.methods.Method`
 an optax transformation) or a sequence of :class:`Phase` (e.g. Adam for 1,413 steps, then
 HIG from those parameters). One run::
 
-    data    = problem.make_data(fold_in(key(seed), 0))
+    data    = split(problem.make_data(fold_in(key(seed), 0)))   # split: TestSplit() or HoldOut(f)
     network = problem.initial_network(fold_in(key(seed), 1), data)
     loop:  state = step(state, batch)                      # one jitted function per step
            every epoch / eval_every steps / eval_seconds: full train and test metrics
@@ -17,6 +17,8 @@ The package, in the order of a run:
 - :mod:`~physgrad.engine.types`: what the caller gives (:class:`Budget`, :class:`Phase`,
   :class:`TrainSettings`), what a run builds (:class:`Stage`, :class:`Setup`) and carries
   (:class:`TrainState`, what a checkpoint holds);
+- :mod:`~physgrad.engine.splits`: which data a run trains on and evaluates as test
+  (:class:`TestSplit`, the problem's own; :class:`HoldOut`, validation data for tuning);
 - :mod:`~physgrad.engine.setup`: data, network, objective and stages
   (:func:`build_setup`), the same from shapes alone (:func:`abstract_setup`, shared with
   the bench) and the memory guard's :func:`preflight`;
@@ -75,6 +77,7 @@ from .setup import (
     preflight,
     scalar_loss,
 )
+from .splits import AbstractSplit, HoldOut, TestSplit
 from .step import Steps, grouped_order, make_evaluate, make_step
 from .strategies import EvalSchedule, Fidelity, Placement, StopRule
 from .types import (
@@ -91,9 +94,9 @@ from .types import (
 
 __all__ = [
     "ADDED_SETTINGS", "ENV_PACKAGES", "FINAL_STATUSES", "METRICS_HEADER", "NOT_TRACEABLE", "UNGUARDED_SETTINGS",
-    "AbstractSetup", "Budget", "Callback", "Checkpointer", "Ending", "EvalSchedule", "Fidelity", "FitResult",
-    "MetricsLog", "Phase", "Placement", "Recorder", "Setup", "Stage", "Steps", "StopRule", "Strategies",
-    "TrainSettings", "TrainState", "abstract_data", "abstract_setup", "build_setup", "build_stages", "environment",
+    "AbstractSetup", "AbstractSplit", "Budget", "Callback", "Checkpointer", "Ending", "EvalSchedule", "Fidelity", "FitResult",
+    "HoldOut", "MetricsLog", "Phase", "Placement", "Recorder", "Setup", "Stage", "Steps", "StopRule", "Strategies",
+    "TestSplit", "TrainSettings", "TrainState", "abstract_data", "abstract_setup", "build_setup", "build_stages", "environment",
     "finish", "fit", "grouped_order", "history_from_metrics", "initial_network", "is_complete", "loop",
     "make_evaluate", "make_step", "preflight", "read_metrics", "read_summary", "run_cpu_time", "scalar_loss",
     "write_json",

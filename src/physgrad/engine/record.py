@@ -21,6 +21,7 @@ from typing import Any
 
 from ..problems import AbstractProblem
 from .hyperparams import optimizer_record
+from .splits import TEST_SPLIT, AbstractSplit
 from .types import ADDED_SETTINGS, UNGUARDED_SETTINGS, Budget, Phase, TrainSettings
 
 _ABSENT = object()
@@ -39,14 +40,17 @@ def describe(
     budget: Budget,
     settings: TrainSettings,
     name: str,
+    split: AbstractSplit = TEST_SPLIT,
 ) -> dict[str, Any]:
     """A readable record of a run given as objects (memory addresses removed, so the same
-    objects describe alike in every process and session): the method's ``name`` and each
-    phase's optimizer hyperparameters where optax exposes them (:func:`optimizer_record`)."""
+    objects describe alike in every process and session): the method's ``name``, each
+    phase's optimizer hyperparameters where optax exposes them (:func:`optimizer_record`)
+    and, for a split other than the problem's own, its note (key ``validation``)."""
     text = lambda obj: re.sub(r" at 0x[0-9a-f]+", "", repr(obj))  # noqa: E731
+    note = {} if split.note is None else {"validation": split.note}
     return {"problem": text(problem), "method": name, "phases": [text(p) for p in phases],
             "optimizers": [optimizer_record(p.method) for p in phases], "seed": seed,
-            "budget": budget.to_dict(), "settings": resolved(settings, problem)}  # fmt: skip
+            "budget": budget.to_dict(), "settings": resolved(settings, problem), **note}  # fmt: skip
 
 
 def like(record: dict[str, Any], old: dict[str, Any]) -> dict[str, Any]:

@@ -129,7 +129,9 @@ class Recorder:
         stride = max(1, n_train // n_eval) if n_eval and not settings.eval_samples else 1
         self.splits = {"train": placement.put(jax.tree.map(lambda a: a[::stride][:n_eval], train)),
                        "test": placement.put(setup.data["test"])}  # fmt: skip
-        self.val = placement.put(setup.data.get("val"))
+        # A HoldOut run's test split is the problem's val split, the same object: evaluated once
+        self.val_is_test = setup.data.get("val") is not None and setup.data.get("val") is setup.data["test"]
+        self.val = None if self.val_is_test else placement.put(setup.data.get("val"))
         self.use(setup)
 
     def use(self, setup: Setup):
@@ -172,6 +174,8 @@ class Recorder:
             for split, data in self.splits.items():
                 values.update({(split, k): float(v) for k, v in self.evaluate(state.params, data).items()})
             val = self.evaluate(state.params, self.val) if self.val is not None else {}
+        if self.val_is_test:
+            val = {metric: v for (split, metric), v in values.items() if split == "test"}
         if state.step > 0:
             values[("train", "time_per_step")] = state.train_time / state.step
         if self.fidelity.name:

@@ -3,11 +3,11 @@ and :func:`loop` steps with one bundle of strategies (:class:`Strategies`).
 
 From the caller's objects to the jitted step::
 
-    fit(problem, method | [Phase], budget=, out=, seed=, settings=, resume=, devices=, callbacks=)
+    fit(problem, method | [Phase], budget=, out=, seed=, settings=, split=, resume=, devices=, callbacks=)
       Request(...)                         the arguments checked, the phases settled
       with float64_scope(problem.needs_float64), the run directory's lock (out=None: none):
         preflight(problem, phases)         footprints from shapes alone   (setup.py)
-        build_setup(problem, phases, seed) data, network, objective, stages
+        build_setup(problem, phases, seed, split)  data (split(make_data)), network, objective, stages
         TrainState(params, opt_state)      or the checkpoint's             (types.py)
         Steps(...).compile(state, setup)   the jitted chunk of steps, memory-guarded (step.py)
         loop(state, setup=, compiled=, strategies=Strategies(...))
@@ -60,6 +60,7 @@ from .recording import (
 from .result import FitResult, history_from_metrics, history_of
 from .resume import budget_met, done_already, missing_final_files, recorded, write_environment
 from .setup import build_setup, preflight
+from .splits import TEST_SPLIT, AbstractSplit
 from .step import CHUNK, Steps
 from .strategies import ChunkSize, EvalSchedule, Fidelity, Placement, StopRule
 from .types import Budget, Ending, Phase, Setup, Stage, TrainSettings, TrainState
@@ -76,6 +77,7 @@ def fit(
     seed: int = 0,
     batch_size: int | None = None,
     settings: TrainSettings = DEFAULT_SETTINGS,
+    split: AbstractSplit = TEST_SPLIT,
     resume: bool = False,
     progress: AbstractProgressMeter | None = None,
     devices: int | Sequence[jax.Device] | None = 1,  # pyright: ignore[reportInvalidTypeForm]
@@ -97,8 +99,14 @@ def fit(
     record and, for a single method, in ``stage_steps`` (default: the phases' names joined
     by ``,``; a :class:`~physgrad.Method` without a name is called ``Method``).
 
+    ``split`` says which data the run trains on and evaluates as its test split
+    (:mod:`physgrad.engine.splits`): :class:`~physgrad.TestSplit`, the default, the
+    problem's own; :class:`~physgrad.HoldOut` validation data (the problem's ``val``, else
+    the last fraction of train, not trained on) in place of test, as a tuning trial needs.
+    The problem stays the caller's own: the split applies to ``make_data``'s output.
+
     ``record`` is written as ``config.json`` (default: a description of problem, method,
-    seed, budget and settings, with ``method`` the name and ``optimizers`` each phase's
+    seed, budget and settings (and a :class:`~physgrad.HoldOut`'s note, key ``validation``), with ``method`` the name and ``optimizers`` each phase's
     optax hyperparameters where the optimizer was made with ``optax.inject_hyperparams``,
     else a note that they cannot be recorded: :func:`physgrad.engine.hyperparams.optimizer_record`).
     With ``resume=True`` an existing run whose record matches (``same_run(old_record)``:
@@ -119,11 +127,11 @@ def fit(
     0 writes.
 
     Keys: everything random derives from ``key = jax.random.key(seed)``:
-    the data ``problem.make_data(fold_in(key, 0))``, the initial network
+    the data ``split(problem.make_data(fold_in(key, 0)))``, the initial network
     ``problem.initial_network(fold_in(key, 1), data)``, a shuffled epoch's order from
     ``fold_in(fold_in(fold_in(key, 2), stage), epoch)`` and, with ``fresh_samples``, a
-    later epoch's training data ``make_data(fold_in(fold_in(fold_in(key, 3), stage),
-    epoch))["train"]`` (``fold_in`` is ``jax.random.fold_in``; stages and epochs count from
+    later epoch's training data ``split(make_data(fold_in(fold_in(fold_in(key, 3), stage),
+    epoch)))["train"]`` (``fold_in`` is ``jax.random.fold_in``; stages and epochs count from
     0). A hand-written loop given these keys takes the same steps.
 
     Steps between evaluations run as chunks of one compiled program
@@ -141,14 +149,14 @@ def fit(
     label_all = name or ",".join(p.label for p in phases)
     # the record describes the phases as given (a name given to fit is the record's "method")
     record = record or records.describe(problem, phases=_phases(method, batch_size, ""), seed=seed, budget=budget,
-                                        settings=settings, name=label_all)  # fmt: skip
+                                        settings=settings, name=label_all, split=split)  # fmt: skip
     as_json = json.loads(json.dumps(record, default=str))
     same_run = same_run or (lambda old: records.differences(records.identity(old),
                                                             records.identity(records.like(as_json, old))))  # fmt: skip
     run_dir = None if out is None else Path(out)
     identity = {"problem": problem.name, "method": label_all, "seed": seed}
     request = Request(problem, phases, seed, budget, settings, run_dir, resume, record, same_run,
-                      label or (run_dir.name if run_dir is not None else label_all), identity, hooks)  # fmt: skip
+                      label or (run_dir.name if run_dir is not None else label_all), identity, hooks, split)  # fmt: skip
     with float64_scope(problem.needs_float64):
         placement = Placement(devices)
         if run_dir is None:  # in memory: no lock, no files, no signal handler to install
@@ -173,6 +181,7 @@ class Request:
     label: str  # the progress meter's
     identity: dict[str, Any]  # problem, method and seed: the summary's first keys
     callbacks: Callbacks = dataclasses.field(default_factory=Callbacks)
+    split: AbstractSplit = TEST_SPLIT  # which data it trains on and evaluates as test
 
 
 class Strategies(NamedTuple):
@@ -354,10 +363,10 @@ def _start(
     request: Request, *, placement: Placement, fidelity: Fidelity, checkpoint: Checkpointer | None
 ) -> tuple[Setup, TrainState]:
     """The setup and the first state: fresh, or ``checkpoint``'s (where resuming one)."""
-    problem, phases, seed = request.problem, request.phases, request.seed
+    problem, phases, seed, split = request.problem, request.phases, request.seed, request.split
     if request.settings.memory_guard:
-        preflight(problem, phases, seed=seed, mesh=placement.mesh)  # before minutes of data generation
-    setup = build_setup(problem, phases, seed)
+        preflight(problem, phases, seed=seed, mesh=placement.mesh, split=split)  # before minutes of data generation
+    setup = build_setup(problem, phases, seed, split)
     for stage in setup.stages:
         distributed.check_batch(stage.batch_size, placement.mesh)
     fresh = TrainState(setup.params, setup.method.init(setup.params), prdp=fidelity.initial())

@@ -30,6 +30,7 @@ from ..methods import AbstractMethod, Objective
 from ..methods.base import check_batch
 from ..problems import AbstractProblem
 from . import memory
+from .splits import TEST_SPLIT, AbstractSplit
 from .types import Phase, Setup, Stage
 
 # JAX's errors for host code given a tracer (NumPy on an array, ``float(x)``, ``if x:``):
@@ -38,27 +39,40 @@ NOT_TRACEABLE = (jax.errors.ConcretizationTypeError, jax.errors.TracerArrayConve
                  jax.errors.TracerBoolConversionError, jax.errors.TracerIntegerConversionError)  # fmt: skip
 
 
-def build_setup(problem: AbstractProblem, phases: Sequence[Phase], seed: int) -> Setup:
-    """Data, network and stages (deterministic per seed); every method is checked against
-    the problem's declared pieces, with one-line errors."""
+def build_setup(
+    problem: AbstractProblem, phases: Sequence[Phase], seed: int, split: AbstractSplit = TEST_SPLIT
+) -> Setup:
+    """Data (``split`` of the problem's, :func:`run_data`), network and stages
+    (deterministic per seed); every method is checked against the problem's declared
+    pieces, with one-line errors."""
     key = jax.random.key(seed)
-    data = _made_data(problem, problem.make_data, jax.random.fold_in(key, 0))
+    data = _made_data(problem, functools.partial(run_data, problem, split), jax.random.fold_in(key, 0))
     network = _made_network(problem, initial_network, jax.random.fold_in(key, 1), data)
     params, static = eqx.partition(network, eqx.is_inexact_array)
     objective = problem.objective(static)
     stages = build_stages(problem, phases, objective=objective, data=data)
-    return Setup(problem, data, params, static, objective, stages)
+    return Setup(problem, data, params, static, objective, stages, split)
+
+
+def run_data(problem: AbstractProblem, split: AbstractSplit, key, *, check: bool = True) -> dict[str, Any]:
+    """The data a run trains and evaluates on: ``split(problem.make_data(key))``, the one
+    place a split is applied (the first draw, its shapes, every fresh draw). With ``check``
+    the problem's own output is checked first (:func:`_check_data`), so a malformed one is
+    named as ``make_data``'s, whatever the split."""
+    data = problem.make_data(key)
+    if check:
+        _check_data(problem, data)
+    return split(data)
 
 
 def _made_data(problem: AbstractProblem, make: Callable, key) -> Any:
-    """``make(key)`` (the problem's ``make_data``, concrete or abstract), checked: a
-    ``ValueError`` (a setting the data cannot be made with) as a one-line ConfigError."""
+    """``make(key)`` (:func:`run_data`, concrete or abstract): a ``ValueError`` (a setting
+    the data cannot be made with, a split too small to hold out from) as a one-line
+    ConfigError."""
     try:
-        data = make(key)
+        return make(key)
     except ValueError as e:
         raise ConfigError(f"{problem.name}: {e}") from None
-    _check_data(problem, data)
-    return data
 
 
 def _made_network(problem: AbstractProblem, make: Callable, key, data) -> Any:
@@ -198,21 +212,24 @@ class AbstractSetup:
         return sum(math.prod(x.shape) for x in jax.tree.leaves(self.params))
 
 
-def abstract_data(problem: AbstractProblem, seed: int = 0) -> dict[str, Any] | None:
-    """``make_data``'s result as shapes (the key :func:`build_setup` uses), checked as it
-    checks it; None where the data need concrete values (:data:`NOT_TRACEABLE`)."""
-    make = functools.partial(eqx.filter_eval_shape, problem.make_data)
+def abstract_data(problem: AbstractProblem, seed: int = 0, split: AbstractSplit = TEST_SPLIT) -> dict[str, Any] | None:
+    """The run's data (:func:`run_data`) as shapes (the key :func:`build_setup` uses),
+    checked as it checks them; None where the data need concrete values (:data:`NOT_TRACEABLE`)."""
+    # traced whole: the split sees make_data's own objects (a direct problem's train *is* its test)
+    make = functools.partial(eqx.filter_eval_shape, functools.partial(run_data, problem, split))
     try:
         return _made_data(problem, make, jax.random.fold_in(jax.random.key(seed), 0))
     except NOT_TRACEABLE:
         return None
 
 
-def abstract_setup(problem: AbstractProblem, seed: int = 0, data: dict[str, Any] | None = None) -> AbstractSetup:
-    """The setup from shapes alone (``data``: :func:`abstract_data`, made here if not
-    given). A setting :func:`build_setup` refuses raises the same one-line ConfigError; a
-    network that needs concrete values raises JAX's error (:data:`NOT_TRACEABLE`)."""
-    data = abstract_data(problem, seed) if data is None else data
+def abstract_setup(
+    problem: AbstractProblem, seed: int = 0, data: dict[str, Any] | None = None, split: AbstractSplit = TEST_SPLIT
+) -> AbstractSetup:
+    """The setup from shapes alone (``data``: :func:`abstract_data` of ``split``, made here
+    if not given). A setting :func:`build_setup` refuses raises the same one-line
+    ConfigError; a network that needs concrete values raises JAX's error (:data:`NOT_TRACEABLE`)."""
+    data = abstract_data(problem, seed, split) if data is None else data
     key = jax.random.fold_in(jax.random.key(seed), 1)
     if data is not None:
         network = _made_network(problem, _abstract_network, key, data)
@@ -230,7 +247,9 @@ def _abstract_network(problem: AbstractProblem, key, data):
     return eqx.filter_eval_shape(problem.initial_network, key, data)
 
 
-def preflight(problem: AbstractProblem, phases: Sequence[Phase], *, seed: int, mesh=None) -> None:
+def preflight(
+    problem: AbstractProblem, phases: Sequence[Phase], *, seed: int, mesh=None, split: AbstractSplit = TEST_SPLIT
+) -> None:
     """The memory guard's first look, before any data exist: every stage's footprint
     (:meth:`~physgrad.AbstractMethod.footprint`) from the shapes of the data and the
     network alone (:func:`abstract_setup`), so a step that cannot fit is refused in
@@ -254,7 +273,7 @@ def preflight(problem: AbstractProblem, phases: Sequence[Phase], *, seed: int, m
     does); it is raised as that stage's one-line ConfigError, as :func:`build_stages` words it.
     """
     try:
-        data = abstract_data(problem, seed)
+        data = abstract_data(problem, seed, split)
         if data is None:
             return
         setup = abstract_setup(problem, seed, data)

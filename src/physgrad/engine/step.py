@@ -25,7 +25,7 @@ from ..errors import ConfigError
 from ..methods import AbstractMethod
 from ..precision import x64_enabled
 from . import memory, programs
-from .setup import mesh_devices, method_refusals, scalar_loss
+from .setup import mesh_devices, method_refusals, run_data, scalar_loss
 from .strategies import Placement
 from .types import Setup, Stage, TrainSettings, TrainState
 
@@ -226,7 +226,9 @@ class Steps:
         """The training data of a stage's epoch in ``self.data``: the first epoch of the first
         stage trains on ``setup.data``; with ``fresh_samples`` every later epoch on a new
         train split from ``make_data`` with a key of the seed, stage and epoch (so a resumed
-        run draws the same samples), of the same shapes, so the compiled step is reused."""
+        run draws the same samples), of the same shapes, so the compiled step is reused; the
+        run's split applies to each draw (:func:`~physgrad.engine.setup.run_data`: a
+        :class:`~physgrad.engine.splits.HoldOut` run never trains on the held-out part)."""
         if not self.fresh:
             return
         if stage == 0 and epoch == 0:
@@ -234,7 +236,7 @@ class Steps:
             return
         key = jax.random.fold_in(jax.random.fold_in(self.fresh_key, stage), epoch)
         try:
-            train = setup.problem.make_data(key)["train"]
+            train = run_data(setup.problem, setup.split, key, check=False)["train"]
         except ValueError as e:
             raise ConfigError(f"{setup.problem.name}: fresh_samples: {e}") from None
         self.data = self.placement.put(train)

@@ -181,7 +181,6 @@ class Fidelity:
 
     @classmethod
     def of(cls, problem: AbstractProblem, settings: TrainSettings) -> Fidelity:
-        problem = problem.refinable_problem()
         name = problem.refinable_setting
         if settings.prdp and name is None:
             raise ConfigError("prdp needs a problem with an iterative solver (one that declares refinable_setting)")
@@ -224,7 +223,7 @@ class Fidelity:
         if not self.settings.prdp:
             return setup
         name, k = self._setting()[0], self._controller(state)["K"]
-        if getattr(setup.problem.refinable_problem(), name) == k:
+        if getattr(setup.problem, name) == k:
             return setup
         return setup.with_problem(setup.problem.with_refined(k))
 

@@ -24,6 +24,7 @@ from .. import checks
 from ..errors import BudgetOutOfRange, ConfigError, NoBudget
 from ..methods import AbstractMethod, Objective
 from ..problems import AbstractProblem
+from .splits import TEST_SPLIT, AbstractSplit
 
 
 # --- what the caller gives -----------------------------------------------------------------
@@ -328,8 +329,8 @@ class Stage:
 
 @dataclasses.dataclass
 class Setup:
-    """Everything a run builds before the first step: problem, data, split network,
-    the problem's :class:`Objective` and the stages."""
+    """Everything a run builds before the first step: problem, data (``split`` of the
+    problem's), split network, the problem's :class:`Objective` and the stages."""
 
     problem: AbstractProblem
     data: dict[str, Any]
@@ -337,6 +338,7 @@ class Setup:
     static: Any
     objective: Objective
     stages: list[Stage]
+    split: AbstractSplit = TEST_SPLIT  # applied again to every fresh draw of training data
 
     @property
     def method(self) -> AbstractMethod:

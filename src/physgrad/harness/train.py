@@ -15,6 +15,7 @@ from typing import Any
 import equinox as eqx
 
 from ..engine import (
+    AbstractSplit,
     Phase,
     Setup,
     TrainSettings,
@@ -30,6 +31,7 @@ from ..engine import (
 from ..engine.programs import ProgramCache
 from ..engine.progress import AbstractProgressMeter
 from ..engine.record import differences
+from ..engine.splits import TEST_SPLIT
 from ..errors import NotRefinable, RunDirectoryRefused
 from ..problems.direct import DirectOptimisation
 from .config import ConfigError, RunConfig
@@ -103,8 +105,11 @@ def train(
     resume: bool = False,
     progress: AbstractProgressMeter | None = None,
     devices: int | str | None = 1,
+    split: AbstractSplit = TEST_SPLIT,
 ) -> dict[str, Any]:
     """Train one configured run into ``run_dir`` and return its summary (:func:`physgrad.fit`).
+    ``split`` as :func:`physgrad.fit`'s (a tuning trial's :class:`~physgrad.HoldOut`); its
+    note joins the record (``"validation"``), which keeps the configuration's identity.
 
     With ``resume=True`` an existing run continues from its last checkpoint up to
     ``config.budget`` (which may be larger than the original one); a finished run whose
@@ -113,11 +118,13 @@ def train(
     if config.settings.prdp and PROBLEMS[config.problem].refinable_setting is None:
         valid = [name for name, cls in PROBLEMS.items() if cls.refinable_setting]
         raise ConfigError(f"prdp needs a problem with an iterative solver; valid choices: {', '.join(valid)}")
+    record = config.to_dict() | ({} if split.note is None else {"validation": split.note})
     try:
         return fit(
             problem_of(config), phases_of(config), budget=config.budget, out=run_dir, seed=config.seed,
-            settings=settings_of(config), resume=resume, progress=progress, devices=edge_devices(devices),
-            record=config.to_dict(), same_run=lambda old: _same_run(old, config), name=config.method,
+            settings=settings_of(config), split=split, resume=resume, progress=progress,
+            devices=edge_devices(devices), record=record, same_run=lambda old: _same_run(old, config),
+            name=config.method,
         ).summary  # fmt: skip
     except NotRefinable as e:  # refused before any work; the remedy is a setting of the command line's
         raise ConfigError(command_line_words(e)) from None

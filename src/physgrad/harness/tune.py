@@ -14,10 +14,10 @@ and re-run on ≥ 3 seeds, reported on **test**.
   validation. It runs first, alone per method (QMC learns the space from a finished
   trial), then the other trials in parallel on the executor
   (:mod:`physgrad.harness.workers`): the same points, the same numbers with 1 or N workers.
-- **Validation.** Trials train and evaluate on :class:`physgrad.problems.validation.Validation`:
-  the problem's ``val`` split where it has one, else the last ``holdout`` of train, held
-  out; the test split is never built into a trial (a trial directory's "test" curves are
-  validation curves).
+- **Validation.** Trials run with :class:`physgrad.HoldOut` as :func:`physgrad.fit`'s
+  ``split``: the problem's ``val`` split where it has one, else the last ``holdout`` of
+  train, held out; the test split never reaches a trial (a trial directory's "test"
+  curves are validation curves).
 - **Budget.** A seconds budget is calibrated once per method on its untuned step
   (``calibration.json``; the searched settings do not change a step's cost), so every trial
   of a method trains the same number of steps.
@@ -44,7 +44,7 @@ from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any, NamedTuple
 
-from ..engine import Budget, TrainSettings, rundir
+from ..engine import Budget, HoldOut, TrainSettings, rundir
 from ..engine.types import Seconds, Steps
 from ..errors import ConfigError
 from .spaces import Space, describe_space, distributions
@@ -136,13 +136,17 @@ def tune(
 
     if trials < 1 or seeds < 1:
         raise ConfigError(f"trials and seeds must be at least 1, got {trials} and {seeds}")
+    try:
+        split = HoldOut(holdout)  # every trial's data: validation in place of test
+    except ValueError as e:
+        raise ConfigError(str(e)) from None
     out = Path(out)
     owned = executor is None
     executor = executor or executor_for(1)
     optuna.logging.set_verbosity(optuna.logging.WARNING)
     try:
         with rundir.one_writer(out, "tune"):
-            plans = _plan(problem, methods, budget, out, settings or {}, spaces, holdout, seed, echo)
+            plans = _plan(problem, methods, budget, out, settings or {}, spaces, split, seed, echo)
             store = open_storage(out, storage)
             name = problem if isinstance(problem, str) else problem.name
             for m in plans:
@@ -171,15 +175,15 @@ def tune(
 
 
 # --- planning -----------------------------------------------------------------------------------
-def _plan(problem, methods, budget, out, settings, spaces, holdout, seed, echo) -> list[_Method]:
+def _plan(problem, methods, budget, out, settings, spaces, split, seed, echo) -> list[_Method]:
     if not methods:
         raise ConfigError("tune needs at least one method")
     if isinstance(problem, str):
-        return _plan_registered(problem, list(methods), budget, out, settings, spaces, holdout, seed, echo)
-    return _plan_object(problem, list(methods), budget, settings, spaces, holdout, seed)
+        return _plan_registered(problem, list(methods), budget, out, settings, spaces, split, seed, echo)
+    return _plan_object(problem, list(methods), budget, settings, spaces, split, seed)
 
 
-def _plan_registered(problem, methods, budget, out, settings, spaces, holdout, seed, echo) -> list[_Method]:
+def _plan_registered(problem, methods, budget, out, settings, spaces, split, seed, echo) -> list[_Method]:
     from .calibration import study_calibration
     from .config import make_config
     from .study import calibrated_config, plan
@@ -208,7 +212,7 @@ def _plan_registered(problem, methods, budget, out, settings, spaces, holdout, s
                 c = calibrated_config(c, calibration, float(budget.amount))
             if steps is not None:
                 c = dataclasses.replace(c, budget=Steps(steps))
-            return ConfiguredRun(c, run_dir, validation=True, holdout=holdout)
+            return ConfiguredRun(c, run_dir, split=split)
 
         steps = calibration.steps(config.method, float(budget.amount)) if calibration is not None else (
             budget.amount if isinstance(budget, Steps) else None)  # fmt: skip
@@ -232,7 +236,7 @@ def object_settings(problem, method: str, settings: dict[str, Any]) -> tuple[int
     return int(batch), TrainSettings(**train)
 
 
-def _plan_object(problem, methods, budget, settings, spaces, holdout, seed) -> list[_Method]:
+def _plan_object(problem, methods, budget, settings, spaces, split, seed) -> list[_Method]:
     from .registry import METHODS, hyperparameters
 
     if isinstance(budget, Seconds):
@@ -250,7 +254,7 @@ def _plan_object(problem, methods, budget, settings, spaces, holdout, seed) -> l
         def make(params, steps, run_dir, method=method, defaults=defaults, batch=batch, train=train):
             run_budget = Steps(steps) if steps is not None else budget
             return ObjectRun(problem, method, {**defaults, **params}, batch, seed, run_budget, run_dir, train,
-                             validation=True, holdout=holdout)  # fmt: skip
+                             split=split)  # fmt: skip
 
         steps = budget.amount if isinstance(budget, Steps) else None
         plans.append(_Method(method, defaults, distributions(method, defaults, spaces), steps, make))

@@ -34,7 +34,8 @@ from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
-from ..engine import Budget, TrainSettings
+from ..engine import AbstractSplit, Budget, TrainSettings
+from ..engine.splits import TEST_SPLIT
 from ..errors import ConfigError
 
 Job = Callable[[], Any]
@@ -231,39 +232,25 @@ def executor_for(workers: int | None = 1, scheduler: str | None = None, client: 
 @dataclasses.dataclass(frozen=True)
 class ConfiguredRun:
     """A run of the command line's configuration (:class:`~physgrad.harness.config.RunConfig`)
-    into ``run_dir``, resumed where it stopped; with ``validation`` on the problem's
-    validation data in place of its test split (:class:`physgrad.problems.validation.Validation`,
-    ``holdout``: the fraction of train held out where the problem has no ``val``). Returns
-    the run's summary."""
+    into ``run_dir``, resumed where it stopped, on ``split`` (a tuning trial's
+    :class:`~physgrad.HoldOut`: validation data in place of the test split). Returns the
+    run's summary."""
 
     config: Any  # RunConfig
     run_dir: str
-    validation: bool = False
-    holdout: float = 0.2
+    split: AbstractSplit = TEST_SPLIT
     devices: int | str | None = 1
 
     def __call__(self) -> dict[str, Any]:
         from .train import train
 
-        if not self.validation:
-            return train(self.config, self.run_dir, resume=True, devices=self.devices)
-        from ..engine import fit
-        from ..problems.validation import Validation
-        from .train import _same_run, phases_of, problem_of, settings_of
-
-        record = {**self.config.to_dict(), "validation": validation_note(self.holdout)}
-        return fit(
-            Validation(problem_of(self.config), self.holdout), phases_of(self.config), budget=self.config.budget,
-            out=self.run_dir, seed=self.config.seed, settings=settings_of(self.config), resume=True,
-            devices=self.devices, record=record, same_run=lambda old: _same_run(old, self.config),
-            name=self.config.method,
-        ).summary  # fmt: skip
+        return train(self.config, self.run_dir, resume=True, devices=self.devices, split=self.split)
 
 
 @dataclasses.dataclass(frozen=True)
 class ObjectRun:
     """A run of a user's own problem object with a registered method (``hyperparameters``
-    complete), into ``run_dir``, resumed where it stopped; ``validation`` as in
+    complete), into ``run_dir``, resumed where it stopped, on ``split`` as in
     :class:`ConfiguredRun`."""
 
     problem: Any  # AbstractProblem
@@ -274,22 +261,20 @@ class ObjectRun:
     budget: Budget
     run_dir: str
     settings: TrainSettings = TrainSettings()
-    validation: bool = False
-    holdout: float = 0.2
+    split: AbstractSplit = TEST_SPLIT
 
     def __call__(self) -> dict[str, Any]:
         from ..engine import Phase, fit
-        from ..problems.validation import Validation
         from .registry import METHODS
 
-        problem = Validation(self.problem, self.holdout) if self.validation else self.problem
         phase = Phase(METHODS[self.method](**self.hyperparameters), None, self.batch_size, self.method)
         record = {"problem": self.problem.name, "method": self.method, "seed": self.seed,
                   "budget": self.budget.to_dict(), "hyperparameters": self.hyperparameters,
                   "batch_size": self.batch_size,
-                  "validation": validation_note(self.holdout) if self.validation else None}  # fmt: skip
-        return fit(problem, [phase], budget=self.budget, out=self.run_dir, seed=self.seed, settings=self.settings,
-                   resume=True, record=record, name=self.method).summary  # fmt: skip
+                  "validation": self.split.note}  # fmt: skip
+        return fit(self.problem, [phase], budget=self.budget, out=self.run_dir, seed=self.seed,
+                   settings=self.settings, split=self.split, resume=True, record=record,
+                   name=self.method).summary  # fmt: skip
 
 
 def run_pending(executor: Any, pending, log, *, record_failures: bool, echo, devices: int | str | None = 1) -> None:
@@ -311,12 +296,6 @@ def run_pending(executor: Any, pending, log, *, record_failures: bool, echo, dev
             continue
         log.clear(name)
         echo(f"{prefix}: {describe_run(summary)}")
-
-
-def validation_note(holdout: float) -> str:
-    """What a trial's run directory records about its test split."""
-    return (f"test split = the problem's val split, or else the last {holdout:g} of train (held out, not trained "
-            "on); the real test split is never built")  # fmt: skip
 
 
 def run_directory(path: str | Path) -> str:

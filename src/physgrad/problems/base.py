@@ -124,13 +124,8 @@ class AbstractProblem(eqx.Module):
     def check_refinable(self) -> None:
         """Raise ``ValueError`` if this instance's solver cannot be refined (PRDP)."""
 
-    def refinable_problem(self) -> AbstractProblem:
-        """The problem whose ``refinable_setting`` PRDP reads and checks: this one, or the one a
-        wrapper trains (:class:`physgrad.problems.validation.Validation`)."""
-        return self
-
     def with_refined(self, k: int) -> AbstractProblem:
-        """This problem with its refinable problem's setting at ``k`` (what PRDP trains on next)."""
+        """This problem with its ``refinable_setting`` at ``k`` (what PRDP trains on next)."""
         name = self.refinable_setting
         assert name is not None, "only for a problem that declares refinable_setting"
         return dataclasses.replace(self, **{name: k})
