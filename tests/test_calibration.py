@@ -412,7 +412,7 @@ def test_compare_calibrate_only_times_and_trains_nothing_and_the_study_then_reus
     printed = capsys.readouterr().out
     assert "nothing was trained" in printed and "adam: adam" in printed
     record = json.loads((out / "calibration.json").read_text())
-    assert not (out / "runs").exists() and record["version"] == 3
+    assert not (out / "runs").exists() and record["version"] == 4
     cost = record["methods"]["adam"]["stages"][0]["seconds"]
     assert main(argv) == 0
     assert "calibration: reusing" in capsys.readouterr().out
