@@ -23,6 +23,7 @@ each timed chunk starts as the run's does.
 from __future__ import annotations
 
 import math
+import os
 import statistics
 import tempfile
 import time
@@ -95,7 +96,8 @@ class Bookkeeping:
     appends the rows to ``metrics.csv``, and the :class:`~physgrad.engine.recording.Checkpointer`
     saves a checkpoint (the run saves one at every evaluation: ``state.eqx``,
     ``counters.json`` and the manifest, each synced to disk, then the renames); elsewhere it
-    saves one once ``checkpoint_seconds`` have passed (``Checkpointer.maybe``).
+    saves one once ``checkpoint_seconds`` have passed (``Checkpointer.maybe``). The
+    directory holds one checkpoint and one evaluation's rows at a time.
 
     Why (version 4 of the calibration): the chunk that follows this work costs more than
     the same chunk back to back, and the run counts it. Paired on ``hig_toy`` (one chunk
@@ -126,6 +128,8 @@ class Bookkeeping:
         if evaluated:
             state, _ = self.recorder(state, final=False)
             self.checkpointer.save(state)  # the run's "an evaluation is work too: never lost to a kill"
+            # the rows were appended as the run appends them; emptied, the directory stays one checkpoint's size
+            os.truncate(self.recorder.log.path, 0)
         else:
             self.checkpointer.maybe(state)
         self.state = state
