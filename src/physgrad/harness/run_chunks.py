@@ -112,8 +112,9 @@ class Bookkeeping:
 
         self.directory = tempfile.TemporaryDirectory(prefix="physgrad-calibration-")
         path = Path(self.directory.name)
+        self.metrics = path / "metrics.csv"
         self.recorder = Recorder(setup, settings=settings, placement=placement,
-                                 fidelity=Fidelity.of(setup.problem, settings), log=MetricsLog(path / "metrics.csv"))  # fmt: skip
+                                 fidelity=Fidelity.of(setup.problem, settings), log=MetricsLog(self.metrics))  # fmt: skip
         self.checkpointer = Checkpointer(path, settings.checkpoint_seconds, True)
         self.state: Any = None
 
@@ -129,7 +130,7 @@ class Bookkeeping:
             state, _ = self.recorder(state, final=False)
             self.checkpointer.save(state)  # the run's "an evaluation is work too: never lost to a kill"
             # the rows were appended as the run appends them; emptied, the directory stays one checkpoint's size
-            os.truncate(self.recorder.log.path, 0)
+            os.truncate(self.metrics, 0)
         else:
             self.checkpointer.maybe(state)
         self.state = state
