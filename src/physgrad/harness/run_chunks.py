@@ -113,8 +113,9 @@ class Bookkeeping:
         self.directory = tempfile.TemporaryDirectory(prefix="physgrad-calibration-")
         path = Path(self.directory.name)
         self.metrics = path / "metrics.csv"
-        self.recorder = Recorder(setup, settings=settings, placement=placement,
-                                 fidelity=Fidelity.of(setup.problem, settings), log=MetricsLog(self.metrics))  # fmt: skip
+        self.fidelity = Fidelity.of(setup.problem, settings)  # PRDP's controller starts as the run's
+        self.recorder = Recorder(setup, settings=settings, placement=placement, fidelity=self.fidelity,
+                                 log=MetricsLog(self.metrics))  # fmt: skip
         self.checkpointer = Checkpointer(path, settings.checkpoint_seconds, True)
         self.state: Any = None
 
@@ -123,7 +124,7 @@ class Bookkeeping:
         the statistics ``stats`` (on the host); ``evaluated``: the run evaluates here."""
         from ..engine.types import TrainState
 
-        state = self.state if self.state is not None else TrainState(params, opt_state)
+        state = self.state if self.state is not None else TrainState(params, opt_state, prdp=self.fidelity.initial())
         state = self.recorder.accumulate(state, stats, taken)
         state = state._replace(params=params, opt_state=opt_state, step=state.step + taken)
         if evaluated:
