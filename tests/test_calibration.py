@@ -115,7 +115,7 @@ def test_the_chunk_grows_until_a_call_takes_about_ten_milliseconds():
 
 def test_calibrate_times_a_chunk_of_the_runs_loop_on_a_real_problem(monkeypatch):
     """calibrate() on hig_toy: Adam's step (well below a millisecond) is timed in calls of
-    the run's own chunks, and the record says so (steps per chunk, the rule, version 3). Calls of
+    the run's own chunks, and the record says so (steps per chunk, the rule, version 4). Calls of
     0.2 s rather than 10 ms: on a loaded machine a one-step call alone can take 10 ms."""
     from physgrad.harness import calibration
     from physgrad.harness.calibration import VERSION, calibrate
@@ -125,7 +125,7 @@ def test_calibrate_times_a_chunk_of_the_runs_loop_on_a_real_problem(monkeypatch)
     (stage,) = record["methods"]["adam"]["stages"]
     # hig_toy shuffles 4 batches an epoch and evaluates every epoch: the run's chunks are 4 steps
     assert stage["steps_per_call"] == 4 and 0 < stage["seconds"] < 0.01 and stage["rounds"] == 3
-    assert "the run's own chunks between evaluations" in record["rule"] and record["version"] == VERSION == 3
+    assert "the run's own chunks between evaluations" in record["rule"] and record["version"] == VERSION == 4
 
 
 def test_calibrated_budgets_are_seconds_over_the_calibrated_step_time():
@@ -412,7 +412,7 @@ def test_compare_calibrate_only_times_and_trains_nothing_and_the_study_then_reus
     printed = capsys.readouterr().out
     assert "nothing was trained" in printed and "adam: adam" in printed
     record = json.loads((out / "calibration.json").read_text())
-    assert not (out / "runs").exists() and record["version"] == 3
+    assert not (out / "runs").exists() and record["version"] == 4
     cost = record["methods"]["adam"]["stages"][0]["seconds"]
     assert main(argv) == 0
     assert "calibration: reusing" in capsys.readouterr().out

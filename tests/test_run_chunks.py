@@ -62,30 +62,32 @@ def test_a_replay_times_each_chunk_from_dispatch_to_read_back_with_the_state_car
     assert time_programs({"m": [replay]}, repeats=1, clock=clock)["m"][0][0] < 2e-3
 
 
-def test_a_replay_evaluates_where_the_run_evaluates_untimed():
+def test_a_replay_does_the_runs_work_between_chunks_untimed():
     """The cycle marks the chunks the run evaluates after (every 6 steps, and at the cycle's
-    end); the replay evaluates the parameters there, between chunks, and an evaluation's
-    10 s on the clock are not the chunks' time."""
+    end); the replay hands every chunk's parameters, statistics and steps to ``between``,
+    with whether the run evaluates there, and the 10 s ``between`` spends on the clock are
+    not the chunks' time."""
     from physgrad.harness.run_chunks import chunk_cycle
 
     cycle = chunk_cycle(steps_per_epoch=4, epoch_end=True, stage_steps=None, program_chunk=1024, eval_every=6,
                         eval_seconds=0.0, per_step=1e-4)  # fmt: skip
     assert cycle == [((0, 0, 4), False), ((1, 0, 2), True), ((1, 2, 2), False), ((2, 0, 4), True)]
-    now, evaluated = [0.0], []
+    now, seen = [0.0], []
 
     def dispatch(params, opt_state, data, order, batch, count):
         now[0] += 2**-9  # ~2 ms, exact in binary
-        return params + count, opt_state, count, False, {}
+        return params + count, opt_state, count, False, {"loss": [0.0] * count}
 
-    def evaluate(params):
-        evaluated.append(params)
+    def between(params, opt_state, stats, taken, evaluated):
+        seen.append((params, len(stats["loss"]), taken, evaluated))
         now[0] += 10.0
 
     replay = Replay(dispatch, lambda r: r, lambda e: ("data", e), (0, "opt"), [c for c, _ in cycle],
-                    clock=lambda: now[0], evaluate=evaluate, evaluated=[e for _, e in cycle])  # fmt: skip
+                    clock=lambda: now[0], between=between, evaluated=[e for _, e in cycle])  # fmt: skip
     steps, seconds = replay()
-    assert steps == 18 and seconds == 6 * 2**-9  # six chunks reach 10 ms; the evaluations' 30 s are not counted
-    assert evaluated == [6, 12, 6]  # after the 2nd and 4th chunk of each cycle, the parameters of that step
+    assert steps == 18 and seconds == 6 * 2**-9  # six chunks reach 10 ms; the 60 s between them are not counted
+    assert seen == [(4, 4, 4, False), (6, 2, 2, True), (8, 2, 2, False), (12, 4, 4, True), (4, 4, 4, False),
+                    (6, 2, 2, True)]  # fmt: skip
 
 
 def test_the_calibration_replays_the_chunks_a_run_takes(tmp_path, monkeypatch):
@@ -110,6 +112,45 @@ def test_the_calibration_replays_the_chunks_a_run_takes(tmp_path, monkeypatch):
     starts = [sum(taken[:i]) for i in range(len(taken))]
     run = [(start, count) for start, count in zip(starts, taken) if start >= 4]
     assert run and all((start % 12, count) in cycle for start, count in run[:-1])  # the last: the budget's end
+
+
+def test_the_calibration_does_what_the_run_does_between_its_chunks(tmp_path, monkeypatch):
+    """What would make a calibrated step cost other than the run's: the calibration's program
+    calls the very compiled chunk the run calls, with the same counts, and between chunks
+    does the run's work in the run's order: the Recorder's evaluation (and its metrics
+    row) and a checkpoint after the chunks the run evaluates after (hig_toy's Adam,
+    shuffled, an evaluation every 6 steps: the run from step 12 on, one cycle of the
+    replay). A chunk after a checkpoint costs more than one back to back (run_chunks.Bookkeeping)."""
+    from physgrad.engine.recording import Checkpointer, Recorder
+    from physgrad.engine.step import Program
+
+    events, programs = [], set()
+    call, record, save = Program.__call__, Recorder.__call__, Checkpointer.save
+
+    def chunk(self, *args):
+        programs.add(id(self.compiled))
+        events.append(f"chunk {int(args[-1])}")
+        return call(self, *args)
+
+    monkeypatch.setattr(Program, "__call__", chunk)
+    monkeypatch.setattr(
+        Recorder, "__call__", lambda self, *a, **k: (events.append("evaluate"), record(self, *a, **k))[1]
+    )
+    monkeypatch.setattr(Checkpointer, "save", lambda self, state: (events.append("checkpoint"), save(self, state))[1])
+    config = make_config(
+        "hig_toy", "adam", budget=physgrad.Budget(steps=40), settings={"eval_every": "6", "shuffle": "true"}
+    )
+    train(config, tmp_path / "run")
+    run, ran = events[:], set(programs)
+    (program,), _, _ = step_programs(config)
+    events.clear()
+    programs.clear()
+    while len([e for e in events if e.startswith("chunk")]) < len(program.chunks):
+        program()
+    replayed = events[: events.index("checkpoint", events.index("chunk 4", 1)) + 1]  # one cycle: 4, 2, 2, 4 steps
+    assert replayed == ["chunk 4", "chunk 2", "evaluate", "checkpoint", "chunk 2", "chunk 4", "evaluate", "checkpoint"]
+    assert any(run[i : i + len(replayed)] == replayed for i in range(len(run)))
+    assert programs == ran and len(ran) == 1  # the run's compiled program itself
 
 
 def test_compares_table_flags_a_method_whose_in_run_step_is_not_its_calibrated_one():

@@ -9,9 +9,10 @@ settings), compiles its step with the engine's own :class:`~physgrad.engine.step
 do not compile it again), calls it once more to warm it up, and then times it in
 **interleaved rounds** (one call of every method per round, so that a change of load
 touches every method alike) under the thread setting the study runs with. A call replays
-the run's own chunks between evaluations, read-back and each epoch's order included
-(:mod:`physgrad.harness.run_chunks`), until they take about 10 ms. The median over the rounds of the
-seconds per step is the method's cost (the quartiles and the extremes are kept as its
+the run's own chunks between evaluations, read-back and each epoch's order included, with
+the run's work between chunks done untimed as the run does it (its evaluations, metrics
+rows and checkpoints; :mod:`physgrad.harness.run_chunks`), until they take about 10 ms.
+The median over the rounds of the seconds per step is the method's cost (the quartiles and the extremes are kept as its
 spread). Each run then trains for
 
     steps = floor(seconds / calibrated seconds per step)           (at least 1)
@@ -55,7 +56,9 @@ CALL_SECONDS = 0.01  # a timed call takes at least this many steps' worth (chunk
 # step a whole dispatch). A resumed study keeps its record (its runs were budgeted by it).
 # 3: a timed call replays the run's own chunks between evaluations, read-back and epoch orders
 # included, and the run's evaluations between them, untimed (harness.run_chunks).
-VERSION = 3
+# 4: and the run's other work between chunks, untimed: its metrics rows and the checkpoint it
+# saves at every evaluation (harness.run_chunks.Bookkeeping; a chunk after a checkpoint costs more).
+VERSION = 4
 MIN_REPEATS = 3  # every method gets at least this many rounds
 MAX_SECONDS = 10.0  # a method leaves the rounds once its timed steps add up to this (after MIN_REPEATS)
 # The timer of a calibration (``$PHYSGRAD_CALIBRATION_CLOCK``, recorded as the record's "clock").
@@ -81,7 +84,8 @@ def clock_name() -> str:
 
 RULE = ("median over interleaved rounds (one call of every method per round) of the compiled step's time per step, "
         "each call the run's own chunks between evaluations (dispatch to read-back; each epoch's order and, untimed, "
-        "the run's evaluations between chunks) adding up to about 10 ms; compilation, first call excluded; seed 0")  # fmt: skip
+        "the run's work between chunks: its evaluations, metrics rows and checkpoints) adding up to about 10 ms; "
+        "compilation, first call excluded; seed 0")  # fmt: skip
 
 Program = Callable[[], Any]  # one training step, blocking until its results are ready
 
@@ -202,14 +206,14 @@ def step_programs(
     from ..engine.strategies import Placement
     from ..engine.types import TrainState
     from .objects import devices as edge_devices
-    from .run_chunks import Replay, chunk_cycle, epoch_inputs, evaluation
+    from .run_chunks import Bookkeeping, Replay, chunk_cycle, epoch_inputs
     from .train import build, settings_of
 
     setup = build(config)
     placement = Placement(edge_devices(devices))
     params = placement.put(setup.params)
     steps = Steps(setup, placement, settings_of(config), config.seed)
-    programs, warmups, evaluate = [], [], evaluation(setup, settings_of(config), placement)
+    programs, warmups = [], []
     for i, stage in enumerate(setup.stages):
         opt_state = placement.put(stage.method.init(setup.params))
         state = TrainState(params, opt_state, stage=i)
@@ -236,7 +240,7 @@ def step_programs(
             lambda result: jax.device_get(distributed.to_host(result)),
             lambda epoch, i=i: epoch_inputs(steps, setup, i, epoch), (params, opt_state), [c for c, _ in cycle],
             same_every_epoch=steps.same_every_epoch, call_seconds=CALL_SECONDS, clock=clock,
-            evaluate=evaluate, evaluated=[e for _, e in cycle]))  # fmt: skip
+            between=Bookkeeping(setup, settings_of(config), placement), evaluated=[e for _, e in cycle]))  # fmt: skip
     return programs, warmups, list(setup.stages)
 
 

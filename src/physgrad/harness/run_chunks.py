@@ -15,14 +15,20 @@ an evaluation and an epoch's end meet again (at most :data:`MAX_CHUNKS` chunks),
 :class:`Replay` takes them in turn, with the parameters and optimizer state carried from
 chunk to chunk, each epoch's order and data drawn as the run draws them, and each chunk
 timed from its dispatch to its read-back, as the run's ``train_seconds`` counts it.
+Between chunks, untimed, it does the run's work there (:class:`Bookkeeping`: the
+statistics, and where the run evaluates its evaluation, metrics row and checkpoint), so
+each timed chunk starts as the run's does.
 """
 
 from __future__ import annotations
 
 import math
+import os
 import statistics
+import tempfile
 import time
 from collections.abc import Callable, Sequence
+from pathlib import Path
 from typing import Any
 
 MAX_CHUNKS = 256  # the replayed cycle's length at most (then it starts again)
@@ -82,22 +88,53 @@ def chunk_cycle(
     return chunks
 
 
-def evaluation(setup: Any, settings: Any, placement: Any) -> Callable[[Any], None]:
-    """The run's evaluation of some parameters (:class:`~physgrad.engine.recording.Recorder`'s
-    splits and metrics, read back as the run reads them), logging nothing."""
-    from ..engine.recording import MetricsLog, Recorder
-    from ..engine.strategies import Fidelity
+class Bookkeeping:
+    """The run's untimed work between two chunks (:func:`physgrad.engine.run.loop`), done
+    as the run does it, into a temporary run directory (removed with this object): after
+    every chunk its step statistics are added up (``Recorder.accumulate``); where the run
+    evaluates, its :class:`~physgrad.engine.recording.Recorder` evaluates every split and
+    appends the rows to ``metrics.csv``, and the :class:`~physgrad.engine.recording.Checkpointer`
+    saves a checkpoint (the run saves one at every evaluation: ``state.eqx``,
+    ``counters.json`` and the manifest, each synced to disk, then the renames); elsewhere it
+    saves one once ``checkpoint_seconds`` have passed (``Checkpointer.maybe``). The
+    directory holds one checkpoint and one evaluation's rows at a time.
 
-    recorder = Recorder(setup, settings=settings, placement=placement, fidelity=Fidelity.of(setup.problem, settings),
-                        log=MetricsLog(None, enabled=False))  # fmt: skip
-    splits = [*recorder.splits.values(), *([recorder.val] if recorder.val is not None else [])]
+    Why (version 4 of the calibration): the chunk that follows this work costs more than
+    the same chunk back to back, and the run counts it. Paired on ``hig_toy`` (one chunk
+    of 4 steps after each kind of work, 150 each, in random order, load 15-16 on 2 cores),
+    a chunk after a checkpoint took 1.44x the CPU seconds of a chunk back to back for Adam
+    and 1.22x for HIG (about 0.4 ms a chunk: the thread waits on the disk's syncs and
+    starts again on cold caches), after an evaluation 1.04x for both."""
 
-    def evaluate(params: Any) -> None:
-        with placement.scope():
-            for data in splits:
-                {k: float(v) for k, v in recorder.evaluate(params, data).items()}
+    def __init__(self, setup: Any, settings: Any, placement: Any):
+        from ..engine.recording import Checkpointer, MetricsLog, Recorder
+        from ..engine.strategies import Fidelity
 
-    return evaluate
+        self.directory = tempfile.TemporaryDirectory(prefix="physgrad-calibration-")
+        path = Path(self.directory.name)
+        self.metrics = path / "metrics.csv"
+        self.fidelity = Fidelity.of(setup.problem, settings)  # PRDP's controller starts as the run's
+        self.recorder = Recorder(setup, settings=settings, placement=placement, fidelity=self.fidelity,
+                                 log=MetricsLog(self.metrics))  # fmt: skip
+        self.checkpointer = Checkpointer(path, settings.checkpoint_seconds, True)
+        self.state: Any = None
+
+    def __call__(self, params: Any, opt_state: Any, stats: Any, taken: int, evaluated: bool) -> None:
+        """After a chunk of ``taken`` steps that ended at ``params``, ``opt_state`` with
+        the statistics ``stats`` (on the host); ``evaluated``: the run evaluates here."""
+        from ..engine.types import TrainState
+
+        state = self.state if self.state is not None else TrainState(params, opt_state, prdp=self.fidelity.initial())
+        state = self.recorder.accumulate(state, stats, taken)
+        state = state._replace(params=params, opt_state=opt_state, step=state.step + taken)
+        if evaluated:
+            state, _ = self.recorder(state, final=False)
+            self.checkpointer.save(state)  # the run's "an evaluation is work too: never lost to a kill"
+            # the rows were appended as the run appends them; emptied, the directory stays one checkpoint's size
+            os.truncate(self.metrics, 0)
+        else:
+            self.checkpointer.maybe(state)
+        self.state = state
 
 
 def epoch_inputs(steps: Any, setup: Any, stage: int, epoch: int) -> tuple[Any, Any]:
@@ -120,12 +157,11 @@ class Replay:
     run draws them (``same_every_epoch``: once). The cycle starts again from the initial
     parameters, as does a chunk after a divergent step.
 
-    ``evaluate(params)``, where given, runs after each chunk whose entry of ``evaluated`` is
-    true, untimed, as the run evaluates there (version 4 of the calibration): a chunk that
-    follows an evaluation starts with the evaluation's data in the caches, not its own.
-    Timed on hig_toy (evaluations every epoch of 4 steps, 300 paired cycles, load ≈ 18 on 2
-    cores), a chunk right after an evaluation took 1.10× the CPU seconds of the same chunk
-    back to back for Adam, 1.01× for HIG and GN."""
+    ``between(params, opt_state, stats, taken, evaluated)``, where given, runs after each
+    chunk, untimed, as the run's loop works between chunks (a :class:`Bookkeeping`;
+    ``evaluated``: the chunk's entry of ``evaluated``, whether the run evaluates and
+    checkpoints after it): the chunk that follows starts where the run's would, after the
+    run's evaluation, its metrics row and its checkpoint, not back to back."""
 
     def __init__(
         self,
@@ -138,12 +174,12 @@ class Replay:
         same_every_epoch: bool = False,
         call_seconds: float = CALL_SECONDS,
         clock: Callable[[], float] = time.perf_counter,
-        evaluate: Callable[[Any], Any] | None = None,
+        between: Callable[[Any, Any, Any, int, bool], Any] | None = None,
         evaluated: Sequence[bool] = (),
     ):
         self.dispatch, self.read, self.epoch_inputs = dispatch, read, epoch_inputs
         self.initial, self.chunks, self.same = initial, chunks or [(0, 0, 1)], same_every_epoch
-        self.evaluate, self.evaluated = evaluate, list(evaluated)
+        self.between, self.evaluated = between, list(evaluated)
         self.call_seconds, self.clock = call_seconds, clock
         self.position, self.state, self.epoch, self.inputs = 0, initial, None, None
         self.steps_per_call = int(statistics.median(c for _, _, c in self.chunks))
@@ -161,15 +197,11 @@ class Replay:
             data, order = self.inputs  # type: ignore[misc]
             t0 = self.clock()
             params, opt_state, *rest = self.dispatch(*self.state, data, order, batch, count)
-            taken, diverged, _ = self.read(tuple(rest))
+            taken, diverged, stats = self.read(tuple(rest))
             seconds += self.clock() - t0
             steps, done = steps + int(taken) + int(bool(diverged)), done + 1
             self.state = self.initial if diverged else (params, opt_state)
-            if (
-                self.evaluate is not None
-                and not diverged
-                and position < len(self.evaluated)
-                and self.evaluated[position]
-            ):
-                self.evaluate(params)  # untimed: the run evaluates here, then takes its next chunk
+            if self.between is not None and not diverged:  # untimed: the run's work before its next chunk
+                evaluated = position < len(self.evaluated) and self.evaluated[position]
+                self.between(params, opt_state, stats, int(taken), bool(evaluated))
         return steps, seconds
