@@ -60,9 +60,11 @@ def test_running_conv_factors_without_averaging_equal_the_fresh_rule():
     fresh = physgrad.Method(rule, optax.sgd(0.05))
     averaged = AveragedKronecker(rule, optax.sgd(0.05), curvature_ema=0.0, inverse_every=1)
     p_f, s_f, p_a, s_a = params, fresh.init(params), params, averaged.init(params)
+    fresh_step = jax.jit(fresh.step, static_argnums=0)  # once: both steps run one program each
+    averaged_step = jax.jit(averaged.step, static_argnums=0)
     for b in _batches(2):
-        p_f, s_f, _ = jax.jit(fresh.step, static_argnums=0)(objective, p_f, s_f, b)
-        p_a, s_a, stats = jax.jit(averaged.step, static_argnums=0)(objective, p_a, s_a, b)
+        p_f, s_f, _ = fresh_step(objective, p_f, s_f, b)
+        p_a, s_a, stats = averaged_step(objective, p_a, s_a, b)
         assert int(stats["refreshed"]) == 1
     for a, f in zip(jax.tree.leaves(p_a), jax.tree.leaves(p_f)):
         np.testing.assert_allclose(np.asarray(a), np.asarray(f), rtol=1e-10, atol=1e-12)

@@ -25,6 +25,7 @@ TIMEOUT = 600  # seconds per cell; a notebook takes one to three minutes on one 
 SESSION_ONLY_FLAGS = (
     "--xla_backend_optimization_level",
     "--xla_llvm_disable_expensive_passes",
+    "--xla_cpu_use_fusion_emitters",
     "--xla_force_host_platform_device_count",
 )
 NEEDS = {  # notebook -> modules of its extra
