@@ -33,9 +33,13 @@ if "xla_backend_optimization_level" not in _flags:
 # IEEE operations either way; a float32 result can differ in its last bits (another order of a
 # fused sum), as between XLA versions. XLA aborts the process on a flag it does not know, so the
 # controlling process asks a fresh interpreter first (one JAX start, about a second) and the
-# pytest-xdist workers inherit its verdict in XLA_FLAGS.
+# pytest-xdist workers inherit its verdict in XLA_FLAGS. Only for the fast tier (`-m "not
+# slow"`, make test and make test-typed): the slow tier's one-pass/two-pass stabilised-BPTT
+# gradient on quantum_control differs by 1e-3 relative in 5 of 10,800 float32 elements with
+# these emitters, past its 1e-4 tolerance, and the slow tier keeps XLA's default numerics.
 _LEGACY_EMITTERS = "--xla_cpu_use_fusion_emitters=false"
-if "xla_cpu_use_fusion_emitters" not in _flags and "PYTEST_XDIST_WORKER" not in os.environ:
+_FAST_TIER = any(a.replace(" ", "") == "notslow" for a in sys.argv)
+if "xla_cpu_use_fusion_emitters" not in _flags and "PYTEST_XDIST_WORKER" not in os.environ and _FAST_TIER:
     _probe = subprocess.run(
         [sys.executable, "-c", "import jax; jax.devices('cpu')"],
         env={**os.environ, "XLA_FLAGS": f"{_flags} {_LEGACY_EMITTERS}", "JAX_PLATFORMS": "cpu"},

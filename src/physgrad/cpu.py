@@ -119,7 +119,9 @@ def start_xla(n: int) -> str:
     ``start_xla(1)`` one thread does all the work; with the default pool, or with
     ``XLA_FLAGS=--xla_cpu_multi_thread_eigen=false``, three.
 
-    Linux only (``os.sched_setaffinity``); elsewhere, or with fewer than ``n`` CPUs in the
+    It starts JAX's backend, so a multi-process run joins first
+    (:func:`physgrad.distributed.initialize`: ``jax.distributed`` refuses once the backend
+    has started); the command line does. Linux only (``os.sched_setaffinity``); elsewhere, or with fewer than ``n`` CPUs in the
     mask, the backend starts with XLA's default. Raises ``RuntimeError`` if JAX's backend
     has started already: XLA's pool cannot change then::
 

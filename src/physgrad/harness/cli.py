@@ -125,7 +125,7 @@ def cmd_train(args, console):
     from .options import TrainOptions
     from .train import read_summary, train
 
-    options = TrainOptions.from_args(args, devices=_start_processes(args))
+    options = TrainOptions.from_args(args, devices=args.devices)  # main() joined the processes
     devices = options.devices
     config = make_config(options.problem, options.method, budget=options.budget, seed=options.seed,
                          settings=options.settings)  # fmt: skip
@@ -325,6 +325,10 @@ def main(argv=None) -> int:
             from ..engine.programs import use_compilation_cache
 
             use_compilation_cache(cache)
+        # A multi-process run joins before anything starts JAX's backend (jax.distributed
+        # refuses afterwards), and so before the thread setting below, which starts it.
+        if hasattr(args, "coordinator"):
+            args.devices = _start_processes(args)
         # The thread pools for the command (physgrad.cpu): set before the first JAX
         # computation, so that XLA's pool is sized too; restored when the command returns.
         from ..cpu import process_threads
