@@ -204,7 +204,8 @@ def test_limiters_clamp_to_their_neighbourhoods_and_the_old_names_still_work():
         np.asarray(fluid.advect_velocity(v, dt, dx, limiter=lim)) for lim in (fluid.FaceLimiter(), fluid.CellLimiter())
     )
     assert not np.array_equal(faces, cells)  # the limiter bites somewhere at this step size
-    with pytest.warns(DeprecationWarning, match="CellLimiter"):
+    with pytest.warns(DeprecationWarning, match="CellLimiter") as warned:
         np.testing.assert_array_equal(np.asarray(fluid.advect_velocity(v, dt, dx, limiter="cells")), cells)
+    assert warned[0].filename == __file__  # the caller's line, past physgrad's own frames
     with pytest.raises(ValueError, match=r"FaceLimiter\(\) or CellLimiter\(\)"):
         fluid.limiter_of("edges")

@@ -182,8 +182,9 @@ def test_linear_solve_reports_non_convergence():
 
 
 def test_linear_solve_krylov_names_are_deprecated_spellings_of_solver_objects():
-    with pytest.warns(DeprecationWarning, match="LinearSolve"):
+    with pytest.warns(DeprecationWarning, match="LinearSolve") as warned:
         old = LinearSolve("cg", rtol=1e-3)
+    assert warned[0].filename == __file__  # the user's line, not Equinox's __init__ wrapper
     assert old == LinearSolve(**objects.krylov("cg"), rtol=1e-3)
     with pytest.warns(DeprecationWarning):
         assert LinearSolve(krylov="gmres") == LinearSolve()

@@ -138,8 +138,9 @@ def test_gauss_newton_under_sip_style_jit_and_vmap_picks_reverse_mode():
 
 
 def test_jacobian_mode_names_are_deprecated_spellings_of_the_mode_objects():
-    with pytest.warns(DeprecationWarning, match="ReverseMode"):
+    with pytest.warns(DeprecationWarning, match="ReverseMode") as warned:
         assert GaussNewton(jacobian="reverse") == GaussNewton(jacobian=jacobian.ReverseMode())
+    assert warned[0].filename == __file__  # the user's line, not physgrad's or Equinox's
     assert GaussNewton().jacobian == jacobian.AutoMode()
 
 

@@ -71,8 +71,9 @@ def test_zero_init_zeroes_only_the_last_layer_of_a_users_sequential_network():
 
 
 def test_setup_and_composition_strings_are_deprecated_spellings_of_composition_objects():
-    with pytest.warns(DeprecationWarning, match="composition object"):
+    with pytest.warns(DeprecationWarning, match="composition object") as warned:
         residual = _SequentialDecay(setup="prediction", composition="residual")
+    assert warned[0].filename == __file__  # the user's line, past Equinox's __post_init__ frames
     assert residual.composition == Residual() and residual.setup is None
     with pytest.warns(DeprecationWarning):
         assert _SequentialDecay(composition="bypass").composition == Bypass(1.0)

@@ -168,16 +168,22 @@ class ProgressInvalid(ConfigError):
         )
 
 
-# Frames a deprecation warning looks past to find the user's line: this package's own, and
-# the wrappers that run a Module's __init__ (Equinox) or check its types (jaxtyping and the
-# checkers it calls), whose depth varies with how the user imported physgrad.
+# Frames a deprecation warning looks past to find the user's line: this package's own, the
+# wrappers that run a Module's __init__ (Equinox) or check its types (jaxtyping and the
+# checkers it calls), whose depth varies with how the user imported physgrad, and generated
+# code (a dataclass's __init__, "<string>", which runs with its class's module as globals:
+# a user's subclass of a physgrad Module).
 _LIBRARY_FRAMES = ("physgrad.", "equinox", "jaxtyping", "typeguard", "beartype")
+
+
+def _library_frame(frame) -> bool:
+    return frame.f_globals.get("__name__", "").startswith(_LIBRARY_FRAMES) or frame.f_code.co_filename.startswith("<")
 
 
 def warn_deprecated(message: str) -> None:
     """A ``DeprecationWarning`` that names the first line outside physgrad and the wrappers
     above (Python 3.12's ``skip_file_prefixes``, by module name, for 3.11)."""
     frame, level = sys._getframe(1), 2  # stacklevel 2 is warn_deprecated's caller
-    while frame is not None and frame.f_globals.get("__name__", "").startswith(_LIBRARY_FRAMES):
+    while frame is not None and _library_frame(frame):
         frame, level = frame.f_back, level + 1
     warnings.warn(message, DeprecationWarning, stacklevel=level)

@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import abc
 import functools
-import warnings
 from collections.abc import Callable
 from typing import ClassVar
 
@@ -18,6 +17,8 @@ import jax.extend.core as jax_core
 import jax.numpy as jnp
 from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, PyTree
+
+from .errors import warn_deprecated
 
 
 def flat_output(y: Array) -> Array:
@@ -225,11 +226,7 @@ def as_jacobian_mode(mode: AbstractJacobianMode | str) -> AbstractJacobianMode:
         return mode
     if mode not in _MODE_NAMES:
         raise ValueError(f"unknown jacobian mode {mode!r}; valid choices: {', '.join(MODES)}")
-    warnings.warn(
-        f"jacobian={mode!r} is deprecated; pass physgrad.jacobian.{_MODE_NAMES[mode].__name__}()",
-        DeprecationWarning,
-        stacklevel=3,
-    )
+    warn_deprecated(f"jacobian={mode!r} is deprecated; pass physgrad.jacobian.{_MODE_NAMES[mode].__name__}()")
     return _MODE_NAMES[mode]()
 
 

@@ -55,7 +55,6 @@ Internal module: the public names are those :mod:`physgrad.inverse` exports (its
 from __future__ import annotations
 
 import dataclasses
-import warnings
 from collections.abc import Iterable
 
 import equinox as eqx
@@ -63,6 +62,7 @@ import jax
 import jax.numpy as jnp
 import lineax as lx
 
+from ..errors import warn_deprecated
 from ..jacobian import require_forward_mode
 from .base import AbstractInverseSolver, InverseResult, all_finite
 
@@ -122,11 +122,9 @@ class LinearSolve(AbstractInverseSolver):
     ):
         if isinstance(solver, str) or krylov is not None:
             name = str(krylov if krylov is not None else solver)
-            warnings.warn(
+            warn_deprecated(
                 f"LinearSolve({name!r}) is deprecated; pass a lineax solver object, e.g. "
-                "LinearSolve(lx.GMRES(rtol=0.0, atol=0.0, max_steps=1000))",
-                DeprecationWarning,
-                stacklevel=2,
+                "LinearSolve(lx.GMRES(rtol=0.0, atol=0.0, max_steps=1000))"
             )
             if name not in _KRYLOV_NAMES:
                 raise ValueError(f"unknown krylov {name!r}; valid choices: {', '.join(_KRYLOV_NAMES)}")

@@ -40,7 +40,6 @@ m steps. Metrics on trajectories at least ``eval_horizon`` long (§1.5):
 from __future__ import annotations
 
 import abc
-import warnings
 from typing import Any, ClassVar
 
 import equinox as eqx
@@ -49,7 +48,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import loops
-from ..errors import NotRefinable
+from ..errors import NotRefinable, warn_deprecated
 from ..rollout import System
 from .base import AbstractProblem
 from .sim.cache import cached_arrays
@@ -381,11 +380,9 @@ class TimeStepperProblem(AbstractTimeStepper):
     def __post_init__(self):
         if self.setup is None and not isinstance(self.composition, str):
             return
-        warnings.warn(
+        warn_deprecated(
             "TimeStepperProblem(setup=..., composition='...') is deprecated; pass a composition object, "
-            "e.g. composition=physgrad.problems.sim.steppers.Parallel(1.0) or Prediction()",
-            DeprecationWarning,
-            stacklevel=3,
+            "e.g. composition=physgrad.problems.sim.steppers.Parallel(1.0) or Prediction()"
         )
         name = self.composition if isinstance(self.composition, str) else ""
         setup = self.setup or ("prediction" if name in ("full", "residual") else "correction")

@@ -44,7 +44,6 @@ by solving again).
 from __future__ import annotations
 
 import abc
-import warnings
 from typing import Any
 
 import equinox as eqx
@@ -52,6 +51,8 @@ import jax
 import jax.numpy as jnp
 import lineax as lx
 from jaxtyping import Array, Float
+
+from ...errors import warn_deprecated
 
 CENTRED = (0.5, 0.5)  # sample offset of a cell-centred field, in cells
 FACE_X = (0.0, 0.5)  # the x-component of a staggered velocity
@@ -217,10 +218,8 @@ def limiter_of(limiter: AbstractLimiter | str) -> AbstractLimiter:
     if isinstance(limiter, AbstractLimiter):
         return limiter
     if isinstance(limiter, str) and limiter in _LIMITER_NAMES:
-        warnings.warn(
-            f"limiter={limiter!r} is deprecated; pass FaceLimiter() or CellLimiter() (physgrad.problems.sim.fluid)",
-            DeprecationWarning,
-            stacklevel=3,
+        warn_deprecated(
+            f"limiter={limiter!r} is deprecated; pass FaceLimiter() or CellLimiter() (physgrad.problems.sim.fluid)"
         )
         return _LIMITER_NAMES[limiter]
     raise ValueError(f"limiter must be FaceLimiter() or CellLimiter() (physgrad.problems.sim.fluid), got {limiter!r}")
