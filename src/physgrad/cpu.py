@@ -121,9 +121,10 @@ def start_xla(n: int) -> str:
 
     It starts JAX's backend, so a multi-process run joins first
     (:func:`physgrad.distributed.initialize`: ``jax.distributed`` refuses once the backend
-    has started); the command line does. Linux only (``os.sched_setaffinity``); elsewhere, or with fewer than ``n`` CPUs in the
-    mask, the backend starts with XLA's default. Raises ``RuntimeError`` if JAX's backend
-    has started already: XLA's pool cannot change then::
+    has started); the command line does. Linux only (``os.sched_setaffinity``); elsewhere,
+    or with fewer than ``n`` CPUs in the mask, the backend starts with XLA's default.
+    Raises ``RuntimeError`` if JAX's backend has started already: XLA's pool cannot change
+    then::
 
         import physgrad
         physgrad.cpu.start_xla(1)  # first, before anything computes with JAX
