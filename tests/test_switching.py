@@ -102,9 +102,12 @@ def test_eval_seconds_spaces_evaluations_in_training_time(tmp_path):
     settings = {"n_train": "128", "n_test": "64", "batch_size": "32", "eval_seconds": "0.2"}
     train(make_config("hig_toy", "adam", budget=Budget(seconds=0.6), settings=settings), tmp_path / "run")
     times = sorted({r["wall_time"] for r in read_metrics(tmp_path / "run" / "metrics.csv") if r["metric"] == "loss"})
-    assert len(times) == 4  # at 0, then at the first step past 0.2, 0.4 and 0.6 s (the budget)
+    assert len(times) == 4  # at 0, then at the first chunk past 0.2, 0.4 and 0.6 s (the budget)
+    # Each evaluation in its own 0.2 s window: none skipped, none doubled. How far past its
+    # mark it lands is one chunk's time, which a loaded machine (or jaxtyping's run-time
+    # checks in make test-typed) stretches; CI saw 0.47 for the mark at 0.4.
     for k, t in enumerate(times):
-        assert 0.2 * k <= t < 0.2 * k + 0.05, times
+        assert 0.2 * k <= t < 0.2 * (k + 1), times
 
 
 def test_compare_runs_a_sequence_next_to_plain_methods(tmp_path, capsys):
