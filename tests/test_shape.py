@@ -113,23 +113,11 @@ def test_the_count_finds_a_default_overridden_twice():
     assert overridden_defaults({"AbstractBase": AbstractBase, "AbstractMiddle": AbstractMiddle, "C": C, "D": D}) == []
 
 
-# Defaults still overridden more than once, each with what keeps it (issue 52 left them for a
-# later step). The list may only shrink: a new offender fails, and so does an entry that no
-# longer offends (delete it).
-KNOWN = {
-    # AbstractProblem's optional hooks are the documented contract for a user's own problem
-    # (README: five required methods, the rest defaulted); as abstract methods every user
-    # problem would have to write them. No wrapper forwards them any more (a tuning trial's
-    # validation data is fit's split=HoldOut, not a problem), so what is left is variation:
-    # metrics: eleven problems' own measures, most reading the problem's settings
-    # (docs/architecture.md says why not metric objects); initial_network: the time-steppers
-    # (zero_init zeroes the output layer) and direct optimisation (the data's initial
-    # guesses); objective: the closed-loop and time-stepper bases (the open-loop pieces and
-    # their rollout system).
-    "physgrad.problems.base.AbstractProblem.metrics",
-    "physgrad.problems.base.AbstractProblem.initial_network",
-    "physgrad.problems.base.AbstractProblem.objective",
-}
+# Defaults still overridden more than once, each with what keeps it. The list may only
+# shrink: a new offender fails, and so does an entry that no longer offends (delete it).
+# (Empty since AbstractProblem's optional pieces became None-or-a-method, as target and
+# inverse were: metrics, rollout_pieces; its zero_init a declared flag.)
+KNOWN: set[str] = set()
 
 
 def test_no_concrete_method_of_an_abstract_base_is_overridden_by_more_than_one_subclass():

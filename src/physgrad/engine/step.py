@@ -172,7 +172,7 @@ def _make_evaluate(setup: Setup, chunk: int, per_sample: bool):
     def one(params, sample):
         x = problem.network_output(setup.network(params), sample)
         y = problem.simulate(x, sample)
-        return {"loss": scalar_loss(problem.loss)(y, sample), **problem.metrics(x, y, sample)}
+        return {"loss": scalar_loss(problem.loss)(y, sample), **problem.evaluate_metrics(x, y, sample)}
 
     def split_evaluate(params, data):
         n = jax.tree.leaves(data)[0].shape[0]

@@ -35,7 +35,8 @@ class AbstractProblem(eqx.Module):
     - ``simulate(x, sample) -> y``: per sample, differentiable;
     - ``loss(y, sample) -> scalar``: per-sample loss L_i; methods use the batch mean;
     - optionally ``metrics(x, y, sample) -> {name: scalar}``: extra per-sample metrics (e.g.
-      the error against a ground truth), averaged over each split at evaluation;
+      the error against a ground truth), averaged over each split at evaluation (read them
+      with :meth:`evaluate_metrics`, ``{}`` where a problem has none);
     - optionally ``target(sample) -> y*``: the y-space target, when the loss measures the
       distance to one (needed by SIP);
     - optionally ``inverse(x, y, y_target, sample) -> x̃``: the analytic local inverse of
@@ -50,7 +51,13 @@ class AbstractProblem(eqx.Module):
     - ``default_fresh_samples``: whether the paper trains on a stream of fresh samples
       (True: every epoch after the first draws a new train split from ``make_data``);
     - ``fixed_samples``: True where the samples are what is trained (direct optimisation),
-      so the engine refuses fresh samples for it.
+      so the engine refuses fresh samples for it;
+    - optionally ``rollout_pieces(static) -> {field: value}``: the
+      :class:`~physgrad.methods.Objective`'s rollout fields, where the problem is a closed
+      loop or a time-stepper (the bases :class:`~physgrad.problems.AbstractClosedLoop` and
+      :class:`~physgrad.problems.AbstractTimeStepper` define it);
+    - ``zero_output_layer``: True where :meth:`initial_network` zeroes the network's output
+      layer (a declared flag; the time-steppers' ``zero_init``).
 
     All per-sample functions must be pure and traceable (vmap, jit, jacrev).
     """
@@ -75,18 +82,24 @@ class AbstractProblem(eqx.Module):
     @abc.abstractmethod
     def loss(self, y: PyTree, sample: Sample) -> jax.Array: ...
 
-    def metrics(self, x: PyTree, y: PyTree, sample: Sample) -> dict[str, jax.Array]:
-        """Extra per-sample metrics besides the loss (none by default)."""
-        return {}
-
     def initial_guess(self, sample: Sample) -> PyTree:
         """Start of direct optimisation of x for one sample (zeros shaped like the output)."""
         # Only the output's shape is needed: trace the network abstractly, build no weights.
         shape = jax.eval_shape(lambda s: self.network_output(self.make_network(jax.random.key(0)), s), sample)
         return jnp.zeros(shape.shape, shape.dtype)
 
+    # Optional pieces: None where a problem has none; a problem that has one defines it as a
+    # method of the same name (no default is written here for a subclass to replace).
+    metrics = None  # optional: (x, y, sample) -> {name: per-sample scalar}, besides the loss
     target = None  # optional: (sample) -> y*
     inverse = None  # optional: (x, y, y_target, sample) -> x̃
+    # optional: (static) -> the Objective's rollout fields ("rollout", and for time-steppers
+    # "unrolled" and "differentiable"), where the problem runs a closed loop or a rollout
+    rollout_pieces = None
+
+    def evaluate_metrics(self, x: PyTree, y: PyTree, sample: Sample) -> dict[str, jax.Array]:
+        """The problem's :attr:`metrics` for one sample, ``{}`` where it declares none."""
+        return {} if self.metrics is None else self.metrics(x, y, sample)
 
     def predict(self, network: PyTree, sample: Sample) -> PyTree:
         """Simulator output ``y = P(network(sample))`` for one sample."""
@@ -100,10 +113,18 @@ class AbstractProblem(eqx.Module):
     # x64 (their few float64 parts, such as reference solvers for data, scope it themselves).
     needs_float64: ClassVar[bool] = False
 
+    # True where the network's output layer starts at zero (a declared flag, a property
+    # where a setting decides it: the time-steppers' ``zero_init``, so a corrector starts as
+    # the bare solver). Closed-loop problems that zero a kernel do it in make_network.
+    zero_output_layer: ClassVar[bool] = False
+
     def initial_network(self, key: PRNGKeyArray, data: dict[str, Sample]) -> PyTree:
-        """The network a run starts from (default: :meth:`make_network`; direct
-        optimisation starts from the data's initial guesses)."""
-        return self.make_network(key)
+        """The network a run starts from: :meth:`make_network`, with its output layer
+        zeroed (weights and bias) where the problem declares ``zero_output_layer``
+        (:func:`zeroed_output_layer`). Direct optimisation starts from the data's initial
+        guesses instead."""
+        net = self.make_network(key)
+        return zeroed_output_layer(net) if self.zero_output_layer else net
 
     def objective(self, static: PyTree) -> Objective:
         """The pieces the update rules use, as functions of the trainable parameters
@@ -117,6 +138,7 @@ class AbstractProblem(eqx.Module):
             simulate=self.simulate,
             target=self.target,
             inverse=self.inverse,
+            **({} if self.rollout_pieces is None else self.rollout_pieces(static)),
         )
 
     refinable_setting: ClassVar[str | None] = None  # an iterative solver's count, refined by PRDP
@@ -161,3 +183,27 @@ class AbstractProblem(eqx.Module):
     def settings(cls) -> dict[str, Any]:
         """The problem's settings (dataclass fields) and their defaults."""
         return {f.name: f.default for f in dataclasses.fields(cls) if f.default is not dataclasses.MISSING}
+
+
+def _output_layer(net):
+    """``net -> its output layer``: the ResNets' ``conv_out``, the last layer with
+    parameters of a network with ``layers`` (``eqx.nn.Sequential``, ``eqx.nn.MLP``,
+    :class:`physgrad.MLP`), or a single-layer network itself."""
+    if hasattr(net, "conv_out"):
+        return lambda n: n.conv_out
+    layers = getattr(net, "layers", None)
+    if isinstance(layers, tuple | list):
+        with_params = [i for i, layer in enumerate(layers) if jax.tree.leaves(eqx.filter(layer, eqx.is_inexact_array))]
+        if with_params:
+            index = with_params[-1]
+            return lambda n: n.layers[index]
+    return lambda n: n
+
+
+def zeroed_output_layer(net: PyTree) -> PyTree:
+    """``net`` with its output layer's weights and bias at zero (:func:`_output_layer`).
+    Only the output layer: zeroing every layer of a deeper network would leave only the
+    last bias with a gradient."""
+    last = _output_layer(net)
+    zeroed = jax.tree.map(jnp.zeros_like, eqx.filter(last(net), eqx.is_inexact_array))
+    return eqx.tree_at(last, net, eqx.combine(zeroed, last(net)))

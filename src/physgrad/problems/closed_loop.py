@@ -121,13 +121,10 @@ class AbstractClosedLoop(AbstractProblem):
         terms = jax.vmap(self.step_loss)(states, controls, jnp.arange(self.num_steps))
         return jnp.sum(self.loss_weights().astype(terms.dtype) * terms)
 
-    def objective(self, static):
-        """The open-loop pieces and the rollout system (BPTT and its variants)."""
-        return (
-            super()
-            .objective(static)
-            ._replace(rollout=self.system(lambda p, s: self.control(eqx.combine(p, static), s)))
-        )
+    def rollout_pieces(self, static):
+        """The rollout system (BPTT and its variants) beside the open-loop pieces of
+        :meth:`~physgrad.problems.AbstractProblem.objective`."""
+        return {"rollout": self.system(lambda p, s: self.control(eqx.combine(p, static), s))}
 
     def system(self, control) -> System:
         """The rollout :class:`~physgrad.rollout.System` over a batch, with

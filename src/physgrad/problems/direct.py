@@ -68,8 +68,12 @@ class DirectOptimisation(AbstractProblem):
     def loss(self, y, sample):
         return self.problem.loss(y, sample["sample"])
 
-    def metrics(self, x, y, sample):
-        return self.problem.metrics(x, y, sample["sample"])
+    @property
+    def metrics(self):  # pyright: ignore[reportIncompatibleVariableOverride]
+        metrics = self.problem.metrics
+        if metrics is None:
+            return None
+        return lambda x, y, sample: metrics(x, y, sample["sample"])
 
     @property
     def target(self):

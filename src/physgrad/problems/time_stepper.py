@@ -96,19 +96,6 @@ def solver_rollout(solver, u0, n: int):
     return jax.lax.scan(body, u0, None, length=n)
 
 
-def _output_layer(net):
-    """``net -> its output layer`` for :meth:`TimeStepperProblem.initial_network`'s ``zero_init``."""
-    if hasattr(net, "conv_out"):
-        return lambda n: n.conv_out
-    layers = getattr(net, "layers", None)
-    if isinstance(layers, tuple | list):
-        with_params = [i for i, layer in enumerate(layers) if jax.tree.leaves(eqx.filter(layer, eqx.is_inexact_array))]
-        if with_params:
-            index = with_params[-1]
-            return lambda n: n.layers[index]
-    return lambda n: n
-
-
 class AbstractTimeStepper(AbstractProblem):
     """A neural time-stepper problem: the rollout, data windows, metrics and open-loop
     contract, implemented once.
@@ -195,19 +182,11 @@ class AbstractTimeStepper(AbstractProblem):
 
     training_only_settings: ClassVar[tuple[str, ...]] = ()
 
-    def initial_network(self, key, data):
-        """The paper's network, or with ``zero_init`` its output layer zeroed (weights and bias).
-
-        The output layer is the ResNets' ``conv_out``, the last layer with parameters of a
-        network with ``layers`` (``eqx.nn.Sequential``, ``eqx.nn.MLP``, :class:`physgrad.MLP`),
-        or a single-layer network itself. Zeroing every layer of a deeper network would leave
-        only the last bias with a gradient."""
-        net = self.make_network(key)
-        if not self.zero_init:
-            return net
-        last = _output_layer(net)
-        zeroed = jax.tree.map(jnp.zeros_like, eqx.filter(last(net), eqx.is_inexact_array))
-        return eqx.tree_at(last, net, eqx.combine(zeroed, last(net)))
+    @property
+    def zero_output_layer(self) -> bool:  # pyright: ignore[reportIncompatibleVariableOverride]
+        """``zero_init``: the network's output layer starts at zero
+        (:meth:`AbstractProblem.initial_network`)."""
+        return self.zero_init
 
     # --- data ------------------------------------------------------------------------------
     def trajectories(self, split: str) -> dict[str, np.ndarray]:
@@ -279,9 +258,10 @@ class AbstractTimeStepper(AbstractProblem):
         if not self.composition.uses_solver:
             raise NotRefinable(self.composition)
 
-    def objective(self, static):
-        """The open-loop pieces, the rollout over the problem's m steps and the unrolled
-        windows of any m (ONE / NOG / WIG); ``differentiable`` is the solver's declaration."""
+    def rollout_pieces(self, static):
+        """Beside the open-loop pieces of :meth:`~physgrad.problems.AbstractProblem.objective`:
+        the rollout over the problem's m steps and the unrolled windows of any m
+        (ONE / NOG / WIG); ``differentiable`` is the solver's declaration."""
 
         def apply(p, u, cond):
             return self.apply(eqx.combine(p, static), u, cond)
@@ -290,11 +270,7 @@ class AbstractTimeStepper(AbstractProblem):
             return self.system(apply, m, teacher_forcing)
 
         rollout = unrolled()
-        return (
-            super()
-            .objective(static)
-            ._replace(rollout=rollout, unrolled=unrolled, differentiable=rollout.differentiable_physics)
-        )
+        return {"rollout": rollout, "unrolled": unrolled, "differentiable": rollout.differentiable_physics}
 
     # --- the open-loop contract and the metrics -------------------------------------------
     def network_output(self, network, sample):
