@@ -64,8 +64,17 @@ def spawn(out, steps=STEPS, resume=False, fault=None, extra=()) -> subprocess.Po
     if cache:
         env["PHYSGRAD_COMPILATION_CACHE"] = cache
     argv = [*with_extra(list(extra)), "--steps", str(steps), "--out", str(out)] + (["--resume"] if resume else [])
-    return subprocess.Popen([sys.executable, "-m", "physgrad", *argv], env=env, stdout=subprocess.PIPE,
+    return subprocess.Popen([sys.executable, "-c", WITH_CTRL_C, *argv], env=env, stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True)  # fmt: skip
+
+
+# ``python -m physgrad`` with Ctrl-C raising KeyboardInterrupt, as in a terminal. A shell that
+# starts the suite in the background (``make test &``, nohup) leaves SIGINT ignored; a child
+# inherits that and Python keeps it ignored, so an ``int`` fault would do nothing.
+WITH_CTRL_C = (
+    "import runpy, signal, sys; signal.signal(signal.SIGINT, signal.default_int_handler); "
+    "sys.argv[0] = 'physgrad'; runpy.run_module('physgrad', run_name='__main__', alter_sys=True)"
+)
 
 
 def result(run_dir: Path) -> dict:
