@@ -11,7 +11,8 @@ idle speed.
 It trains HIG (``JacobianPower(-0.5)`` by SGD, the paper's η = 1 and τ = 10⁻⁶) on the HIG
 paper's oscillators with ``physgrad.fit`` on a budget of ``--seconds`` training seconds,
 in memory, first idle, then beside one neighbour process that multiplies two N × N float64
-matrices in a loop with NumPy's default BLAS threads (one per core), each condition with
+matrices in a loop with NumPy's default BLAS threads (one per core; ``--neighbour-threads 1``:
+one thread, i.e. one busy core), each condition with
 ``threads=1`` and ``threads=None`` alternating over ``--rounds`` rounds (so a change of the
 machine's load hits both). A run's time per step is ``summary["train_seconds"] /
 summary["steps"]`` (compilation and evaluation excluded); the median over the rounds is
@@ -22,7 +23,7 @@ single-threaded pure-Python loop (``threads.py``'s) timed in the same condition.
 The goal (issue 53, item 3): ``threads=1`` beside one busy neighbour within 1.5× of idle.
 
     python benchmarks/fit_under_load.py [--problem oscillators] [--batch-size 128]
-        [--seconds 4] [--rounds 3] [--matrix 1000] [--xla-threads 1]
+        [--seconds 4] [--rounds 3] [--matrix 1000] [--neighbour-threads 1] [--xla-threads 1]
 
 ``--xla-threads 1`` calls :func:`physgrad.cpu.start_xla` first, as a script may at its top:
 XLA sizes its intra-op pool (its matrix products) once, when JAX's backend starts, from the
@@ -59,6 +60,9 @@ def main():
     parser.add_argument("--seconds", type=float, default=4.0, help="training seconds per fit")
     parser.add_argument("--rounds", type=int, default=3, help="fits per condition and mode, alternating the modes")
     parser.add_argument("--matrix", type=int, default=1000, help="the neighbour's matrix size N")
+    parser.add_argument("--neighbour-threads", type=int, default=None,
+                        help="the neighbour's BLAS threads; default: the library's (one per core, so on a 2-core "
+                             "machine it keeps every core busy); 1: one busy core")  # fmt: skip
     parser.add_argument("--xla-threads", type=int, default=None,
                         help="size XLA's intra-op pool first (physgrad.cpu.start_xla), as a script may at its top; "
                              "default: XLA's pool as JAX starts it (one thread per usable CPU)")  # fmt: skip
@@ -93,6 +97,8 @@ def main():
             raise SystemExit(f"the fit ended {summary['status']!r}: {summary}")
         return 1e3 * summary["train_seconds"] / summary["steps"]
 
+    neighbour_threads = ("default threads" if args.neighbour_threads is None
+                         else f"{args.neighbour_threads} BLAS thread(s)")  # fmt: skip
     ms_per_step(1)  # JAX's backend, SciPy's LAPACK and the problem's data are loaded now
     pools = ", ".join(f"{p['prefix']} {p['num_threads']}" for p in threadpool_info() if p["user_api"] == "blas")
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
@@ -100,9 +106,11 @@ def main():
           f"{cores} usable of {os.cpu_count()} cores | load average before {os.getloadavg()[0]:.2f}")  # fmt: skip
     print(f"HIG on {args.problem}, batch {batch}, {args.seconds:g} s of training per fit, {args.rounds} fits per "
           f"cell; this process's BLAS pools by default: {pools}; neighbour: {args.matrix}x{args.matrix} float64 "
-          f"matmul loop, default threads; {xla}")  # fmt: skip
+          f"matmul loop, {neighbour_threads}; {xla}")  # fmt: skip
 
     environment = {k: v for k, v in os.environ.items() if k not in POOL_VARIABLES}
+    if args.neighbour_threads is not None:
+        environment.update(dict.fromkeys(POOL_VARIABLES, str(args.neighbour_threads)))
     modes = {"threads=1": 1, "threads=None": None}
     results: dict[str, dict[str, float]] = {}
     for condition, neighbours in (("idle", 0), ("1 BLAS neighbour", 1)):
