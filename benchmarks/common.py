@@ -104,7 +104,10 @@ def median_seconds(fn, args, repeats: int) -> float:
     harness's :func:`physgrad.harness.calibration.time_programs` (a calibrated study uses it
     too, with each call a chunk of the run's loop; here a call is one call of ``fn``)."""
     jax.block_until_ready(fn(*args))  # compile and warm up
-    times = time_programs({"step": [lambda: jax.block_until_ready(fn(*args))]}, repeats=repeats, max_seconds=math.inf)
+    # the timed call returns None (one step): time_programs reads a returned tuple as a
+    # replay's (steps, seconds), and fn's own result may be a tuple (a loss and its gradient)
+    times = time_programs({"step": [lambda: (jax.block_until_ready(fn(*args)), None)[1]]}, repeats=repeats,
+                          max_seconds=math.inf)  # fmt: skip
     return statistics.median(times["step"][0])
 
 
