@@ -68,23 +68,24 @@ class DirectOptimisation(AbstractProblem):
     def loss(self, y, sample):
         return self.problem.loss(y, sample["sample"])
 
+    # The wrapped problem's optional pieces, each on its own samples (``sample`` is the last
+    # argument of every one of them); None where it has none.
     @property
     def metrics(self):  # pyright: ignore[reportIncompatibleVariableOverride]
-        metrics = self.problem.metrics
-        if metrics is None:
-            return None
-        return lambda x, y, sample: metrics(x, y, sample["sample"])
+        return _on_wrapped_sample(self.problem.metrics)
 
     @property
     def target(self):
-        target = self.problem.target
-        if target is None:
-            return None
-        return lambda sample: target(sample["sample"])
+        return _on_wrapped_sample(self.problem.target)
 
     @property
     def inverse(self):
-        inverse = self.problem.inverse
-        if inverse is None:
-            return None
-        return lambda x, y, y_target, sample: inverse(x, y, y_target, sample["sample"])
+        return _on_wrapped_sample(self.problem.inverse)
+
+
+def _on_wrapped_sample(piece):
+    """``piece(..., sample)`` of the wrapped problem as a piece of :class:`DirectOptimisation`,
+    whose samples are ``{"sample": the wrapped problem's, "index": i}``; None stays None."""
+    if piece is None:
+        return None
+    return lambda *args: piece(*args[:-1], args[-1]["sample"])
