@@ -62,15 +62,14 @@ KRON_COMMIT="${KRON_COMMIT:-2463647}"
 CORE="${CORE:-0}"
 WORKERS="${WORKERS:-1}"
 PY="${PY:-$ROOT/.venv/bin/python}"
-if [ ! -d "$CODE/src/physgrad" ]; then git -C "$ROOT" worktree add --detach "$CODE" "$KRON_COMMIT"; fi
-[ "$(git -C "$CODE" rev-parse --short=7 HEAD)" = "${KRON_COMMIT:0:7}" ] || { echo "worktree $CODE is not at $KRON_COMMIT" >&2; exit 2; }
+# shellcheck source=../lane_common.sh
+source "$ROOT/docs/benchmark/lane_common.sh"
+pin_worktree "$ROOT" "$CODE" "$KRON_COMMIT"
 export PHYSGRAD_CALIBRATION_CLOCK=cpu
 
 lane() {  # lane NAME ARGS...: one bench directory
   local name=$1; shift
-  echo "== kronecker lane $name ($(date -u +%FT%TZ))"
-  PYTHONPATH="$CODE/src" nice -n 19 taskset -c "$CORE" "$PY" -m physgrad bench --tuned --trials 5 --seeds 3 \
-    --workers "$WORKERS" --quiet --out "$ROOT/docs/benchmark/tuned/kronecker_$name" "$@"
+  tuned_bench "kronecker lane $name" "$ROOT/docs/benchmark/tuned/kronecker_$name" "$@"
 }
 
 KRON="khig,kgn,khig_half"

@@ -26,15 +26,14 @@ TUNED_COMMIT="${TUNED_COMMIT:-b8150ef}"
 CORE="${CORE:-0}"
 WORKERS="${WORKERS:-1}"
 PY="${PY:-$ROOT/.venv/bin/python}"
-if [ ! -d "$CODE/src/physgrad" ]; then git -C "$ROOT" worktree add --detach "$CODE" "$TUNED_COMMIT"; fi
-[ "$(git -C "$CODE" rev-parse --short=7 HEAD)" = "${TUNED_COMMIT:0:7}" ] || { echo "worktree $CODE is not at $TUNED_COMMIT" >&2; exit 2; }
+# shellcheck source=../lane_common.sh
+source "$ROOT/docs/benchmark/lane_common.sh"
+pin_worktree "$ROOT" "$CODE" "$TUNED_COMMIT"
 export PHYSGRAD_CALIBRATION_CLOCK=cpu
 
 lane() {  # lane NAME ARGS...: one bench directory
   local name=$1; shift
-  echo "== tuned lane $name ($(date -u +%FT%TZ))"
-  PYTHONPATH="$CODE/src" nice -n 19 taskset -c "$CORE" "$PY" -m physgrad bench --tuned --trials 5 --seeds 3 \
-    --workers "$WORKERS" --quiet --out "$ROOT/docs/benchmark/tuned/$name" "$@"
+  tuned_bench "tuned lane $name" "$ROOT/docs/benchmark/tuned/$name" "$@"
 }
 
 UNET="--set poisson.resolution=32 --set heat.resolution=32 --set navier_stokes.resolution=32"

@@ -29,10 +29,9 @@ CORE="${CORE:-0}"
 PY="${PY:-$ROOT/.venv/bin/python}"
 DATA="$ROOT/docs/reproductions/data"
 
-if [ ! -d "$CODE/src/physgrad" ]; then
-  git -C "$ROOT" worktree add --detach "$CODE" "$STUDY_COMMIT"
-fi
-[ "$(git -C "$CODE" rev-parse --short=7 HEAD)" = "${STUDY_COMMIT:0:7}" ] || { echo "worktree $CODE is not at $STUDY_COMMIT" >&2; exit 2; }
+# shellcheck source=../../benchmark/lane_common.sh
+source "$ROOT/docs/benchmark/lane_common.sh"
+pin_worktree "$ROOT" "$CODE" "$STUDY_COMMIT"
 
 pg() { PYTHONPATH="${LANE_CODE:-$CODE}/src" nice -n 10 taskset -c "$CORE" "$PY" -m physgrad "$@"; }
 
@@ -40,8 +39,7 @@ pg() { PYTHONPATH="${LANE_CODE:-$CODE}/src" nice -n 10 taskset -c "$CORE" "$PY" 
 # usage: use_commit DIR COMMIT  (sets LANE_CODE for the lane's runs)
 use_commit() {
   local dir=$1 commit=$2
-  [ -d "$dir/src/physgrad" ] || git -C "$ROOT" worktree add --detach "$dir" "$commit"
-  [ "$(git -C "$dir" rev-parse --short=7 HEAD)" = "${commit:0:7}" ] || { echo "worktree $dir is not at $commit" >&2; exit 2; }
+  pin_worktree "$ROOT" "$dir" "$commit"
   LANE_CODE="$dir"
 }
 
