@@ -368,7 +368,24 @@ def test_bench_plan_prints_the_estimate_and_runs_nothing(tmp_path, capsys):
     assert main(["bench", "--quick", "--plan", "--problems", "hig_toy,toy2d", "--out", str(out)]) == 0
     printed = capsys.readouterr().out
     assert "estimated total:" in printed and "nothing was trained" in printed and "seeds [0, 1, 2]" in printed
+    assert "workers" not in printed  # one worker (the suite's default): the total is the wall-clock
     assert not out.exists()
+
+
+def test_the_plan_on_workers_spreads_the_runs_and_not_the_calibration():
+    from physgrad.harness.bench.estimate import wall_seconds
+
+    rows = [{"seconds": 100.0, "calibration_seconds": 10.0}, {"seconds": 30.0, "calibration_seconds": 0.0}]
+    assert wall_seconds(rows, 1) == 140.0
+    assert wall_seconds(rows, 2) == 10.0 + 50.0 + 15.0
+    assert wall_seconds(rows, 4) == 10.0 + 25.0 + 7.5
+
+
+def test_bench_plan_on_two_workers_prints_their_wall_clock(tmp_path, capsys):
+    argv = ["bench", "--quick", "--plan", "--problems", "hig_toy", "--workers", "2", "--out", str(tmp_path / "p")]
+    assert main(argv) == 0
+    printed = capsys.readouterr().out
+    assert "on 2 workers: about" in printed and "of wall-clock at best" in printed
 
 
 @pytest.mark.parametrize(

@@ -158,7 +158,14 @@ def print_plan(console, options: BenchOptions, run: BenchChoices) -> int:
     and their estimated time from the calibration (:mod:`physgrad.harness.bench.estimate`);
     nothing trains."""
     from .. import bench
-    from .estimate import LOOP_SECONDS_PER_STEP, RUN_OVERHEAD_SECONDS, UNCALIBRATED_COMPILE_SECONDS, duration
+    from ..workers import default_workers
+    from .estimate import (
+        LOOP_SECONDS_PER_STEP,
+        RUN_OVERHEAD_SECONDS,
+        UNCALIBRATED_COMPILE_SECONDS,
+        duration,
+        wall_seconds,
+    )
 
     problems, seeds, budget, budgets, out = run.problems, run.seeds, run.budget, run.budgets, run.out
     verdicts = bench.plan(problems, run.methods, run.settings, echo=console.print)
@@ -184,4 +191,8 @@ def print_plan(console, options: BenchOptions, run: BenchChoices) -> int:
             "; every method calibrated")  # fmt: skip
     console.print(f"estimated total: {duration(bench.total_seconds(rows))} for {sum(r['runs'] for r in rows)} runs"
                   f"{note}; nothing was trained")  # fmt: skip
+    workers = options.workers if options.workers is not None else default_workers()
+    if options.scheduler is None and workers > 1:  # a cluster's size is its own: not known here
+        console.print(f"on {workers} workers: about {duration(wall_seconds(rows, workers))} of wall-clock at best "
+                      "(the runs spread over them; each problem's calibration one method after the other)")  # fmt: skip
     return 0

@@ -107,3 +107,11 @@ def plan_lines(rows: Sequence[dict[str, Any]]) -> list[list[str]]:
 
 def total_seconds(rows: Sequence[dict[str, Any]]) -> float:
     return sum(r["total"] for r in rows)
+
+
+def wall_seconds(rows: Sequence[dict[str, Any]], workers: int) -> float:
+    """The plan's wall-clock on ``workers`` workers at best: each problem's calibration one
+    method after the other (it times steps alone), its runs spread evenly over the workers,
+    one run per worker at a time. A lower bound: a wave of runs that does not divide evenly,
+    or a worker's compilation, adds to it."""
+    return sum(r["calibration_seconds"] + r["seconds"] / max(workers, 1) for r in rows)
