@@ -285,7 +285,12 @@ def finish(ending: Ending, *, recorder: Recorder, checkpointer: Checkpointer, bu
         with placement.scope():
             cases = distributed.to_host(make_evaluate(setup, per_sample=True)(params, recorder.splits["test"]))
         if checkpointer.writes:
-            write_json(run_dir / "test_cases.json", {k: [float(v) for v in vals] for k, vals in cases.items()})
+            # one host copy per metric, then Python floats: iterating a JAX array compiles an
+            # unstack with one output per case (1.6 s for 65,536 cases, in every process)
+            write_json(
+                run_dir / "test_cases.json",
+                {k: np.asarray(vals, dtype=np.float64).tolist() for k, vals in cases.items()},
+            )
     last = recorder.last
     summary = {
         "status": status,
