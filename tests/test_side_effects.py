@@ -129,6 +129,7 @@ def fresh_imports(tmp_path_factory) -> tuple[dict, Path]:
     return run_fresh(f"FIGURES = {str(tmp_path)!r}\n{FRESH_IMPORTS}", tmp_path), tmp_path
 
 
+@pytest.mark.costly("a fresh interpreter (x64 off, nothing imported); its module fixture serves the next two tests too")
 def test_importing_every_physgrad_module_leaves_jax_configuration_alone(fresh_imports):
     info, _ = fresh_imports
     assert "physgrad.precision" in info["modules"] and "physgrad.problems.heat" in info["modules"]
