@@ -3,8 +3,6 @@
 import csv
 import json
 import re
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -17,6 +15,7 @@ from physgrad.harness.cli import main
 from physgrad.harness.config import make_config
 from physgrad.harness.registry import METHODS
 from physgrad.harness.train import train
+from test_validation import module_entry
 
 RUN_FILES = ("config.json", "metrics.csv", "env.json", "summary.json", "params.eqx", "checkpoint/state.eqx")
 
@@ -220,12 +219,11 @@ def test_bad_input_is_one_line_exit_2(argv, message, capsys, tmp_path):
 
 
 def test_console_script_and_module_entry_points():
-    listed = subprocess.run([sys.executable, "-m", "physgrad", "list"], capture_output=True, text=True)
-    assert listed.returncode == 0 and "oscillators" in listed.stdout
-    bad = subprocess.run(
-        [sys.executable, "-m", "physgrad", "train", "nope", "--method", "hig"], capture_output=True, text=True
-    )
-    assert bad.returncode == 2 and bad.stderr.strip().count("\n") == 0 and "valid choices" in bad.stderr
+    # both commands through physgrad/__main__.py in one fresh interpreter (test_validation.module_entry,
+    # as ``python -m physgrad`` runs it; test_packaging starts ``python -m physgrad --version`` itself)
+    (listed, out, _), (bad, _, err) = module_entry([["list"], ["train", "nope", "--method", "hig"]])
+    assert listed == 0 and "oscillators" in out
+    assert bad == 2 and err.strip().count("\n") == 0 and "valid choices" in err
 
 
 def test_rich_progress_meter_runs_through_a_training_run(tmp_path):

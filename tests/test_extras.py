@@ -17,6 +17,8 @@ import textwrap
 
 import pytest
 
+from test_validation import module_entry
+
 BLOCKED = ("kfac_jax", "exponax")
 
 SCRIPT = """
@@ -81,21 +83,18 @@ def test_core_install_trains_and_names_the_missing_extras(tmp_path):
     ]
 
 
-@pytest.mark.costly("the fast tier's one check that the command line names a missing extra: two fresh interpreters")
+@pytest.mark.costly("the fast tier's one check that the command line names a missing extra: a fresh interpreter")
 def test_command_line_names_the_missing_extra_in_one_line(tmp_path):
     env = core_only_env(tmp_path)
-    for args, line in (
-        (
-            ["train", "hig_toy", "--method", "kfac", "--steps", "1"],
-            "kfac needs the kfac extra: pip install 'physgrad[kfac]'",
-        ),
-        (
-            ["train", "ks", "--method", "one", "--steps", "1"],
-            "the ks problem needs the pde extra: pip install 'physgrad[pde]'",
-        ),
-    ):
-        result = subprocess.run([sys.executable, "-m", "physgrad", *args, "--out", str(tmp_path / "run")],
-                                capture_output=True, text=True, env=env, cwd=tmp_path, timeout=300)  # fmt: skip
-        assert result.returncode == 2
-        assert result.stderr.strip() == f"physgrad: error: {line}"
-        assert "Traceback" not in result.stdout + result.stderr
+    probes = [
+        ["train", "hig_toy", "--method", "kfac", "--steps", "1"],
+        ["train", "ks", "--method", "one", "--steps", "1"],
+    ]
+    lines = ["kfac needs the kfac extra: pip install 'physgrad[kfac]'",
+             "the ks problem needs the pde extra: pip install 'physgrad[pde]'"]  # fmt: skip
+    # both through ``python -m physgrad`` in one core-only interpreter (test_validation.module_entry)
+    results = module_entry([[*args, "--out", str(tmp_path / "run")] for args in probes], env=env, cwd=tmp_path)
+    for (code, out, err), line in zip(results, lines, strict=True):
+        assert code == 2
+        assert err.strip() == f"physgrad: error: {line}"
+        assert "Traceback" not in out + err

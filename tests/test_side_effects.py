@@ -69,43 +69,90 @@ def save_in_fresh(function: str, tmp_path: Path) -> dict[str, np.ndarray]:
         return {k: f[k] for k in f.files}
 
 
-# --- (a) imports -------------------------------------------------------------------------
-def test_importing_every_physgrad_module_leaves_jax_configuration_alone(tmp_path):
-    info = run_fresh(
-        """
-        import importlib, json, os, pkgutil
-        import equinox as eqx, jax, jax.numpy as jnp
-        import scipy.linalg.cython_lapack  # the LAPACK jaxlib runs on: its thread pool is loaded
-        from threadpoolctl import threadpool_info
-        before = {k: repr(v) for k, v in jax.config.values.items()}
-        environ = dict(os.environ)
-        pools = {p["filepath"]: p["num_threads"] for p in threadpool_info()}
-        import physgrad
-        modules = [m.name for m in pkgutil.walk_packages(physgrad.__path__, "physgrad.")
-                   if m.name != "physgrad.__main__"]  # __main__ runs the command line
-        for name in modules:
-            importlib.import_module(name)
-        after = {k: repr(v) for k, v in jax.config.values.items()}
-        pools_after = {p["filepath"]: p["num_threads"] for p in threadpool_info()}
-        print(json.dumps({
-            "modules": modules,
-            "environ": sorted(k for k in set(environ) | set(os.environ) if environ.get(k) != os.environ.get(k)),
-            "pools": [f for f in pools if pools_after.get(f) != pools[f]], "n_pools": len(pools),
-            "changed": sorted(k for k in before if before[k] != after.get(k)),
-            "x64": bool(jax.config.jax_enable_x64),
-            "zeros": str(jnp.zeros(()).dtype),
-            "arange": str(jnp.arange(3).dtype),
-            "normal": str(jax.random.normal(jax.random.key(0), (2,)).dtype),
-            "linear": str(eqx.nn.Linear(2, 2, key=jax.random.key(0)).weight.dtype),
-        }))
-        """,
-        tmp_path,
-    )
+# --- (a) imports, lazy imports and figures ------------------------------------------------
+# One fresh interpreter for the three tests of a fresh import (each start costs ~3 s of CPU), in
+# the order a notebook meets them: a backend of its own (svg) set first; JAX's configuration, the
+# environment and the thread pools taken before physgrad is imported; the heavy optional packages
+# looked for after importing physgrad and its command line; the figures drawn; then every
+# physgrad module imported and the configuration, environment and pools compared.
+FRESH_IMPORTS = """
+import importlib, json, os, pkgutil, sys
+import matplotlib
+matplotlib.use("svg")
+import equinox as eqx, jax, jax.numpy as jnp
+import scipy.linalg.cython_lapack  # the LAPACK jaxlib runs on: its thread pool is loaded
+from threadpoolctl import threadpool_info
+before = {k: repr(v) for k, v in jax.config.values.items()}
+environ = dict(os.environ)
+pools = {p["filepath"]: p["num_threads"] for p in threadpool_info()}
+
+import physgrad, physgrad.harness.cli, physgrad.harness.registry, physgrad.harness.study, physgrad.harness.bench
+heavy = ("optimistix", "kfac_jax", "exponax", "matplotlib.pyplot", "phi", "phiml")
+imported = [m for m in heavy if m in sys.modules]
+
+from physgrad.harness import bench, plots
+rows = [{"method": m, "seed": s, "split": "test", "metric": "loss", "wall_time": t, "value": v}
+        for m in ("adam", "hig") for s in (0, 1) for t, v in ((0.0, 1.0), (1.0, 0.5 + s / 10))]
+plots.loss_vs_time(rows, os.path.join(FIGURES, "loss.png"), order=["adam", "hig"])
+cells = [({"clip": c}, [dict(r, epoch=int(r["wall_time"])) for r in rows]) for c in ("value", "norm")]
+plots.grid_panels(cells, os.path.join(FIGURES, "grid.png"), panel="clip", methods=["adam", "hig"])
+table = [{"method": m, "status": "ok", "ratio": r, "diverged": 0, "failed": 0} for m, r in (("adam", 1.0), ("hig", 0.1))]
+bench.heatmap({"p": table}, os.path.join(FIGURES, "heat.png"))
+figures = {"backend": matplotlib.get_backend(), "pyplot": "matplotlib.pyplot" in sys.modules}
+
+modules = [m.name for m in pkgutil.walk_packages(physgrad.__path__, "physgrad.")
+           if m.name != "physgrad.__main__"]  # __main__ runs the command line
+for name in modules:
+    importlib.import_module(name)
+after = {k: repr(v) for k, v in jax.config.values.items()}
+pools_after = {p["filepath"]: p["num_threads"] for p in threadpool_info()}
+print(json.dumps({
+    "imported": imported,
+    "figures": figures,
+    "modules": modules,
+    "environ": sorted(k for k in set(environ) | set(os.environ) if environ.get(k) != os.environ.get(k)),
+    "pools": [f for f in pools if pools_after.get(f) != pools[f]], "n_pools": len(pools),
+    "changed": sorted(k for k in before if before[k] != after.get(k)),
+    "x64": bool(jax.config.jax_enable_x64),
+    "zeros": str(jnp.zeros(()).dtype),
+    "arange": str(jnp.arange(3).dtype),
+    "normal": str(jax.random.normal(jax.random.key(0), (2,)).dtype),
+    "linear": str(eqx.nn.Linear(2, 2, key=jax.random.key(0)).weight.dtype),
+}))
+"""
+
+
+@pytest.fixture(scope="module")
+def fresh_imports(tmp_path_factory) -> tuple[dict, Path]:
+    """What FRESH_IMPORTS saw, and the folder its figures are in."""
+    tmp_path = tmp_path_factory.mktemp("imports")
+    return run_fresh(f"FIGURES = {str(tmp_path)!r}\n{FRESH_IMPORTS}", tmp_path), tmp_path
+
+
+@pytest.mark.costly("a fresh interpreter (x64 off, nothing imported); its module fixture serves the next two tests too")
+def test_importing_every_physgrad_module_leaves_jax_configuration_alone(fresh_imports):
+    info, _ = fresh_imports
     assert "physgrad.precision" in info["modules"] and "physgrad.problems.heat" in info["modules"]
     assert info["changed"] == []
     assert info["environ"] == [] and info["pools"] == [] and info["n_pools"] >= 1  # no variable, no thread pool
     assert info["x64"] is False
     assert (info["zeros"], info["arange"], info["normal"], info["linear"]) == ("float32", "int32", "float32", "float32")
+
+
+def test_importing_physgrad_leaves_the_heavy_optional_packages_unimported(fresh_imports):
+    """optimistix (the L-BFGS inverse), kfac-jax, exponax and pyplot are imported where they
+    are used, not by ``import physgrad`` or its command line."""
+    info, _ = fresh_imports
+    assert info["imported"] == []
+
+
+def test_figures_leave_the_matplotlib_backend_alone(fresh_imports):
+    """The figures draw on their own Figure canvas: a notebook's backend (here: svg) stays,
+    and pyplot is never imported."""
+    info, figures = fresh_imports
+    assert info["figures"] == {"backend": "svg", "pyplot": False}
+    for name in ("loss.png", "grid.png", "heat.png"):
+        assert (figures / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
 # --- (b) the update rules with x64 off ---------------------------------------------------
@@ -320,44 +367,3 @@ def test_precision_helpers():
             back = cast_like(wide, x)
         assert not jax.config.jax_enable_x64
     assert jax.tree.map(lambda a: a.dtype, back) == jax.tree.map(lambda a: a.dtype, x)
-
-
-# --- lazy imports and figures ----------------------------------------------------------------
-def test_importing_physgrad_leaves_the_heavy_optional_packages_unimported(tmp_path):
-    """optimistix (the L-BFGS inverse), kfac-jax, exponax and pyplot are imported where they
-    are used, not by ``import physgrad`` or its command line."""
-    info = run_fresh(
-        """
-        import json, sys
-        import physgrad, physgrad.harness.cli, physgrad.harness.registry, physgrad.harness.study, physgrad.harness.bench
-        heavy = ("optimistix", "kfac_jax", "exponax", "matplotlib.pyplot", "phi", "phiml")
-        print(json.dumps({"imported": [m for m in heavy if m in sys.modules]}))
-        """,
-        tmp_path,
-    )
-    assert info["imported"] == []
-
-
-def test_figures_leave_the_matplotlib_backend_alone(tmp_path):
-    """The figures draw on their own Figure canvas: a notebook's backend (here: svg) stays,
-    and pyplot is never imported."""
-    info = run_fresh(
-        f"""
-        import json, sys
-        import matplotlib
-        matplotlib.use("svg")
-        from physgrad.harness import bench, plots
-        rows = [{{"method": m, "seed": s, "split": "test", "metric": "loss", "wall_time": t, "value": v}}
-                for m in ("adam", "hig") for s in (0, 1) for t, v in ((0.0, 1.0), (1.0, 0.5 + s / 10))]
-        plots.loss_vs_time(rows, {str(tmp_path / "loss.png")!r}, order=["adam", "hig"])
-        cells = [({{"clip": c}}, [dict(r, epoch=int(r["wall_time"])) for r in rows]) for c in ("value", "norm")]
-        plots.grid_panels(cells, {str(tmp_path / "grid.png")!r}, panel="clip", methods=["adam", "hig"])
-        table = [{{"method": m, "status": "ok", "ratio": r, "diverged": 0, "failed": 0}} for m, r in (("adam", 1.0), ("hig", 0.1))]
-        bench.heatmap({{"p": table}}, {str(tmp_path / "heat.png")!r})
-        print(json.dumps({{"backend": matplotlib.get_backend(), "pyplot": "matplotlib.pyplot" in sys.modules}}))
-        """,
-        tmp_path,
-    )
-    assert info == {"backend": "svg", "pyplot": False}
-    for name in ("loss.png", "grid.png", "heat.png"):
-        assert (tmp_path / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
