@@ -63,18 +63,23 @@ def problem_for(method):
     return "oscillators", {**OSC, **extra}
 
 
-def one_step(problem, method, settings, devices):
-    """Parameters and loss after the first training step on ``devices`` devices."""
+def first_steps(problem, method, settings):
+    """The start parameters, and the parameters and loss after the first training step on one
+    device and on ``DEVICES`` devices, from one build of the problem (the data and the network
+    are the same for both: building them twice only cost time)."""
     setup = build(make_config(problem, method, budget=Budget(steps=1), settings=settings))
     stage = setup.stages[0]
     data = setup.data["train"]
     order = jnp.arange(jax.tree.leaves(data)[0].shape[0], dtype=jnp.int32)
     inputs = (setup.params, stage.method.init(setup.params), data, order)
-    mesh = make_mesh(devices)
-    with use_mesh(mesh):
-        step = make_step(setup, stage.batch_size, stage.method)
-        params, _, stats = step(*replicate(inputs, mesh), np.int32(0))
-    return setup.params, params, float(stats["loss"])
+    out = []
+    for devices in (1, DEVICES):
+        mesh = make_mesh(devices)
+        with use_mesh(mesh):
+            step = make_step(setup, stage.batch_size, stage.method)
+            params, _, stats = step(*replicate(inputs, mesh), np.int32(0))
+        out += [params, float(stats["loss"])]
+    return setup.params, *out
 
 
 def relative_update_difference(start, a, b):
@@ -106,8 +111,7 @@ def _tiered(method):
 @pytest.mark.parametrize("method", [_tiered(m) for m in sorted(METHODS)])
 def test_every_method_sharded_over_4_devices_gives_the_single_device_update(method):
     problem, settings = problem_for(method)
-    start, single, loss1 = one_step(problem, method, settings, 1)
-    _, sharded, loss4 = one_step(problem, method, settings, DEVICES)
+    start, single, loss1, sharded, loss4 = first_steps(problem, method, settings)
     # float64 problems: rounding of reordered sums only; float32 ones (poisson, cartpole,
     # advection): float32 rounding.
     tol = 1e-9 if settings.get("dtype") == "float64" else 1e-4
@@ -123,8 +127,7 @@ def test_every_method_sharded_over_4_devices_gives_the_single_device_update(meth
 )
 def test_hig_routes_sharded_over_4_devices(route):
     settings = {**OSC, "route": route, "blocks": "4", "lanczos_steps": "200", "truncation": "1e-3"}
-    start, single, _ = one_step("oscillators", "hig", settings, 1)
-    _, sharded, _ = one_step("oscillators", "hig", settings, DEVICES)
+    start, single, _, sharded, _ = first_steps("oscillators", "hig", settings)
     assert relative_update_difference(start, single, sharded) < 1e-8
 
 
@@ -211,7 +214,7 @@ def two_layer_net(seed=0, batch_size=8):
     def predict(p, x):
         return p["w2"] @ jnp.tanh(p["w1"] @ x)
 
-    jac = np.asarray(stacked_jacobian(predict, params, batch)[0])
+    jac = np.asarray(jax.jit(lambda p, b: stacked_jacobian(predict, p, b)[0])(params, batch))  # one program
     return predict, params, batch, jac, rng.normal(size=jac.shape[0])
 
 

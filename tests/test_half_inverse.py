@@ -1,5 +1,7 @@
 """half_inverse against a NumPy float64 SVD formula written here, and its two routes."""
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -43,8 +45,9 @@ def test_routes_agree_in_float32(shape):
     m, p = shape
     j = matrix_with_spectrum(rng, m, p, np.linspace(1.0, 0.2, min(m, p))).astype(np.float32)
     g = rng.standard_normal(m).astype(np.float32)
-    svd = half_inverse(jnp.asarray(j), jnp.asarray(g), route=SVD())
-    gram = half_inverse(jnp.asarray(j), jnp.asarray(g), route=Gram())
+    # each route compiled as one program (eagerly, each operation compiles on its own)
+    svd = jax.jit(lambda j, g: half_inverse(j, g, route=SVD()))(jnp.asarray(j), jnp.asarray(g))
+    gram = jax.jit(lambda j, g: half_inverse(j, g, route=Gram()))(jnp.asarray(j), jnp.asarray(g))
     assert svd.dtype == gram.dtype == jnp.float32
     rel = np.linalg.norm(np.asarray(svd) - np.asarray(gram)) / np.linalg.norm(np.asarray(gram))
     assert rel < 1e-5
@@ -162,6 +165,22 @@ def _spectrum_case(tall: bool):
     return model, batch, predict, loss
 
 
+@functools.cache
+def _spectrum_reference(tall: bool):
+    """The stacked Jacobian's shape and NumPy's singular values of it, once per case for all six
+    routes (the Jacobian compiled as one program: eagerly, each operation compiles on its own)."""
+    import equinox as eqx
+
+    from physgrad.jacobian import stacked_jacobian
+
+    model, batch, predict, _ = _spectrum_case(tall)
+    arrays, static = eqx.partition(model, eqx.is_inexact_array)
+    jac, _ = jax.jit(lambda a, b: stacked_jacobian(lambda p, s: predict(eqx.combine(p, static), s), a, b))(
+        arrays, batch
+    )
+    return jac.shape, np.linalg.svd(np.asarray(jac), compute_uv=False)
+
+
 @pytest.mark.parametrize("tall", [False, True])
 @pytest.mark.parametrize("route_name", ["auto", "svd", "gram", "structured", "blockgram", "lanczos"])
 def test_stats_report_the_route_rank_and_kept_singular_values(route_name, tall):
@@ -171,21 +190,18 @@ def test_stats_report_the_route_rank_and_kept_singular_values(route_name, tall):
 
     import physgrad
     from physgrad import routes
-    from physgrad.jacobian import stacked_jacobian
 
     model, batch, predict, loss = _spectrum_case(tall)
-    arrays, static = eqx.partition(model, eqx.is_inexact_array)
-    jac, _ = stacked_jacobian(lambda p, s: predict(eqx.combine(p, static), s), arrays, batch)
-    s = np.linalg.svd(np.asarray(jac), compute_uv=False)
+    shape, s = _spectrum_reference(tall)
     truncation = float(0.5 * (s[-2] + s[-3]) / s.max())  # drops the two smallest singular values
     keep = s > truncation * s.max()
     objects = {"auto": routes.Auto(), "svd": routes.SVD(), "gram": routes.Gram(), "structured": routes.Structured(),
-               "blockgram": routes.BlockGram(2), "lanczos": routes.Lanczos(steps=jac.shape[0])}  # fmt: skip
+               "blockgram": routes.BlockGram(2), "lanczos": routes.Lanczos(steps=shape[0])}  # fmt: skip
     estimate = physgrad.hig(predict, loss, truncation=truncation, route=objects[route_name])
     described = estimate.describe(model, batch)
     _, stats = eqx.filter_jit(estimate)(model, batch)
 
-    assert described["jacobian"] == jac.shape
+    assert described["jacobian"] == shape
     ran = routes.ROUTE_NAMES[int(stats["route"])]
     assert ran == described["route"]
     if route_name == "auto":

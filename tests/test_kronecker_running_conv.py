@@ -40,12 +40,14 @@ def test_layer_pass_gradients_equal_patch_products_and_jax_grad():
     args = (plan.structure, plan.structure.dense, plan.convs, params, batch, plan.jacobian.loss_and_gradient)
     grads, counts, value = jax.jit(lambda: (lambda r: (r.grads, r.counts, r.loss))(layer_terms.layer_pass(*args, 0)))()
     sig, *_ = jax.jit(lambda: kfc.layer_signals(*args, 0))()
-    want = jax.grad(lambda p: jnp.mean(jax.vmap(lambda s: loss(predict(p, s), s))(batch)))(params)
+    # the references compiled as one program each (eagerly, each operation of the conv network's
+    # reverse pass and of the patch extraction compiles on its own: most of the test's CPU)
+    want = jax.jit(jax.grad(lambda p: jnp.mean(jax.vmap(lambda s: loss(predict(p, s), s))(batch))))(params)
     assert [c.leaf for c in plan.convs] == [0, 2]  # leaves: c1's kernel and bias, then c2's
     for c, x, d_g, fast, name in zip(plan.convs, sig.x, sig.d_g, grads, ("c1", "c2")):
-        p = np.asarray(kfc.conv_patches(plan.structure, c, x))
+        p = np.asarray(jax.jit(lambda x: kfc.conv_patches(plan.structure, c, x))(x))
         p = np.concatenate([p, np.ones((p.shape[0], 1))], axis=1)
-        d = np.asarray(kfc.conv_signals(plan.structure, c, d_g)).reshape(-1, 3)
+        d = np.asarray(jax.jit(lambda d_g: kfc.conv_signals(plan.structure, c, d_g))(d_g)).reshape(-1, 3)
         np.testing.assert_allclose(np.asarray(fast), d.T @ p, rtol=1e-12, atol=1e-14)
         np.testing.assert_allclose(np.asarray(fast), _full(want, name), rtol=1e-12, atol=1e-14)
     assert counts == [B * 8, B * 4]  # b·T: 8 positions, then 4 (stride 2)

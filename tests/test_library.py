@@ -8,6 +8,7 @@ then clipping and a learning-rate schedule written out in NumPy.
 
 from __future__ import annotations
 
+import functools
 import json
 from typing import ClassVar
 
@@ -79,15 +80,30 @@ def pieces(key=0):
     return params, predict, loss, batches
 
 
+@functools.cache
+def per_sample_pieces(predict, loss):
+    """One sample's Jacobian of ``predict`` with respect to the flat parameters, and ∂L/∂y,
+    each compiled once per test (eagerly, every operation of the reverse pass compiles on its
+    own: most of the test's CPU)."""
+
+    def jacobian(params, sample):
+        flat, unravel = ravel_pytree(params)
+        return jax.jacrev(lambda t: predict(unravel(t), sample))(flat)
+
+    def gradient(params, sample):
+        return jax.grad(loss)(predict(params, sample), sample)
+
+    return jax.jit(jacobian), jax.jit(gradient)
+
+
 def kappa_power_reference(predict, loss, params, batch, exponent, truncation):
     """V Σ^κ Uᵀ g in float64 NumPy from the per-sample Jacobians (SVD, σ ≤ τσ_max dropped)."""
-    flat, unravel = ravel_pytree(params)
+    jacobian, gradient = per_sample_pieces(predict, loss)
     rows, grads = [], []
     for i in range(batch["x"].shape[0]):
         sample = jax.tree.map(lambda a: a[i], batch)
-        rows.append(np.asarray(jax.jacrev(lambda t: predict(unravel(t), sample))(flat), np.float64))
-        y = predict(params, sample)
-        grads.append(np.asarray(jax.grad(loss)(y, sample), np.float64) / batch["x"].shape[0])
+        rows.append(np.asarray(jacobian(params, sample), np.float64))
+        grads.append(np.asarray(gradient(params, sample), np.float64) / batch["x"].shape[0])
     jac, g = np.concatenate(rows), np.concatenate(grads)
     u, s, vt = np.linalg.svd(jac, full_matrices=False)
     keep = s > truncation * s.max()
@@ -154,14 +170,17 @@ def test_sip_in_a_user_loop_with_clipping_and_a_schedule():
     path = user_loop(estimate, params, batches)
     theta, unravel = ravel_pytree(params)
     theta = np.asarray(theta, np.float64)
+    # x and ∂x/∂θ of one sample, each compiled once (eagerly, every operation compiles on its own)
+    output_of = jax.jit(lambda th, sample: network_output(unravel(th), sample))
+    jacobian_of = jax.jit(jax.jacrev(lambda th, sample: network_output(unravel(th), sample)))
     for t, batch in enumerate(batches):
-        p = unravel(jnp.asarray(theta, jnp.float32))
+        th = jnp.asarray(theta, jnp.float32)
         grad = np.zeros_like(theta)
         for i in range(4):
             sample = jax.tree.map(lambda v: v[i], batch)
-            x = np.asarray(network_output(p, sample), np.float64)
+            x = np.asarray(output_of(th, sample), np.float64)
             x_tilde = x + np.linalg.solve(a.astype(np.float64), np.asarray(sample["y"], np.float64) - a @ x)
-            jac = np.asarray(jax.jacrev(lambda th: network_output(unravel(th), sample))(ravel_pytree(p)[0]), np.float64)
+            jac = np.asarray(jacobian_of(th, sample), np.float64)
             grad += jac.T @ (x - x_tilde) / 4
         theta = by_hand(theta, grad, t)
         np.testing.assert_allclose(np.asarray(ravel_pytree(path[t])[0]), theta, rtol=2e-4, atol=2e-5)
@@ -210,19 +229,22 @@ def test_stabilised_bptt_in_a_user_loop_with_clipping_and_a_schedule():
 
 def test_multisteps_and_apply_if_finite_compose_unchanged():
     params, predict, loss, batches = pieces()
-    estimate = physgrad.hig(predict, loss)
+    # The estimate and the optimizer's update each compiled once as one program, as a user's
+    # jitted loop runs them (eagerly, every operation of both compiles on its own: 3x the CPU).
+    estimate = jax.jit(physgrad.hig(predict, loss))
     optimizer = optax.apply_if_finite(optax.MultiSteps(optax.sgd(0.5), every_k_schedule=2), max_consecutive_errors=3)
+    update = jax.jit(optimizer.update)
     state = optimizer.init(params)
     d0, _ = estimate(params, batches[0])
     d1, _ = estimate(params, batches[1])
-    updates, state = optimizer.update(d0, state, params)
+    updates, state = update(d0, state, params)
     assert all(float(jnp.max(jnp.abs(u))) == 0 for u in jax.tree.leaves(updates))  # accumulating
-    updates, state = optimizer.update(d1, state, params)
+    updates, state = update(d1, state, params)
     expected = jax.tree.map(lambda a, b: -0.5 * (a + b) / 2, d0, d1)
     for u, e in zip(jax.tree.leaves(updates), jax.tree.leaves(expected)):
         np.testing.assert_allclose(u, e, rtol=1e-6, atol=1e-8)
     nan = jax.tree.map(lambda a: jnp.full_like(a, jnp.nan), d0)
-    updates, state = optimizer.update(nan, state, params)
+    updates, state = update(nan, state, params)
     assert all(float(jnp.max(jnp.abs(u))) == 0 for u in jax.tree.leaves(updates))  # skipped
 
 

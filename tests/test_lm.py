@@ -1,6 +1,7 @@
 """Levenberg–Marquardt: the damped filter against NumPy float64, its limits, Nielsen's rule
 by hand, the gain ratio on a model that is exact, and training from the command line."""
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -75,20 +76,29 @@ def _problem(key=0):
 def _dense_jacobian_and_gradient(objective, params, batch):
     flat, unravel = ravel_pytree(params)
     outputs = lambda th: jax.vmap(lambda s: objective.predict(unravel(th), s))(batch).ravel()  # noqa: E731
-    j = np.asarray(jax.jacfwd(outputs)(flat))
-    g = (np.asarray(outputs(flat)) - np.asarray(batch["t"]).ravel()) / batch["x"].shape[0]
+    j = np.asarray(jax.jit(jax.jacfwd(outputs))(flat))
+    g = (np.asarray(jax.jit(outputs)(flat)) - np.asarray(batch["t"]).ravel()) / batch["x"].shape[0]
     return j, g
+
+
+@pytest.fixture(scope="module")
+def damped_case():
+    """The problem and its dense J and g, built once for every route (they do not depend on it)."""
+    objective, params, batch = _problem()
+    return objective, params, batch, *_dense_jacobian_and_gradient(objective, params, batch)
 
 
 @pytest.mark.parametrize(
     "route", [routes.Gram(), routes.SVD(), routes.Structured(), routes.BlockGram(3), routes.Lanczos(12)]
 )
-def test_every_route_gives_the_damped_direction(route):
-    objective, params, batch = _problem()
-    j, g = _dense_jacobian_and_gradient(objective, params, batch)
+def test_every_route_gives_the_damped_direction(route, damped_case):
+    objective, params, batch, j, g = damped_case
     lam = 0.01
     s_max = np.linalg.svd(j, compute_uv=False).max()
-    direction, _ = JacobianPower(-1.0, 0.0, route).filtered(objective, params, batch, Damped(lam))
+    # the route's direction compiled as one program, as a step runs it (eagerly, each of its
+    # operations compiles on its own: twice the CPU)
+    filtered = eqx.filter_jit(lambda p, b: JacobianPower(-1.0, 0.0, route).filtered(objective, p, b, Damped(lam)))
+    direction, _ = filtered(params, batch)
     want = numpy_lm(j, g, lam * s_max**2)
     np.testing.assert_allclose(np.asarray(ravel_pytree(direction)[0]), want, rtol=1e-6, atol=1e-9 * np.abs(want).max())
 

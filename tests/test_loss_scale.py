@@ -5,6 +5,8 @@ linear in g = ∂L/∂y and J does not change, so each is c times its direction 
 Adam's update does not change (up to its ε). Checked against a NumPy float64 reference
 built from a finite-difference Jacobian and a hand-written g."""
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -46,17 +48,25 @@ def problem():
     return params, batch
 
 
-def numpy_reference(params, batch, c, spectrum):
+@functools.cache
+def finite_difference_jacobian():
+    """J by central differences of the outputs, and the outputs y, at problem()'s θ in float64:
+    the same for every c and spectrum, so computed once."""
+    with float64_scope():
+        params, batch = problem()
+        flat, unravel = ravel_pytree(params)
+        flat = np.asarray(flat)
+        forward = jax.jit(lambda theta: jax.vmap(lambda s: predict(unravel(theta), s))(batch).ravel())
+        outputs = lambda theta: np.asarray(forward(jnp.asarray(theta)))  # noqa: E731
+        eps = 1e-6
+        jac = np.stack([(outputs(flat + eps * e) - outputs(flat - eps * e)) / (2 * eps) for e in np.eye(flat.size)], 1)
+        return jac, outputs(flat)
+
+
+def numpy_reference(batch, c, spectrum):
     """V f(Σ) Uᵀ g with J from central differences and g = c (y − y*) / b, in float64."""
-    flat, unravel = ravel_pytree(params)
-    flat = np.asarray(flat)
-
-    forward = jax.jit(lambda theta: jax.vmap(lambda s: predict(unravel(theta), s))(batch).ravel())
-    outputs = lambda theta: np.asarray(forward(jnp.asarray(theta)))  # noqa: E731
-
-    eps = 1e-6
-    jac = np.stack([(outputs(flat + eps * e) - outputs(flat - eps * e)) / (2 * eps) for e in np.eye(flat.size)], 1)
-    g = c * (outputs(flat) - np.asarray(batch["target"]).ravel()) / B
+    jac, y = finite_difference_jacobian()
+    g = c * (y - np.asarray(batch["target"]).ravel()) / B
     u, s, vt = np.linalg.svd(jac, full_matrices=False)
     keep = s > TAU * s.max()
     if isinstance(spectrum, Damped):
@@ -72,15 +82,20 @@ def test_jacobian_rules_scale_linearly_with_the_loss(spectrum):
         params, batch = problem()
         rule = JacobianPower(-0.5, TAU)  # the exponent is replaced by `spectrum` in `filtered`
 
-        def direction(c):
+        # c an argument of one compiled program (eagerly, every operation compiles on its own:
+        # 3x the CPU); c = 1/64 and 64 are powers of two, so c·L is exact either way
+        @jax.jit
+        def filtered(c):
             objective = physgrad.Objective(predict, scaled(c))
-            d, _ = rule.filtered(objective, params, batch, spectrum)
-            return np.asarray(ravel_pytree(d)[0])
+            return ravel_pytree(rule.filtered(objective, params, batch, spectrum)[0])[0]
+
+        def direction(c):
+            return np.asarray(filtered(jnp.float64(c)))
 
         base = direction(1.0)
         for c in SCALES:
             got = direction(c)
-            want = numpy_reference(params, batch, c, spectrum)
+            want = numpy_reference(batch, c, spectrum)
             np.testing.assert_allclose(got, want, rtol=1e-6, atol=1e-9 * np.abs(want).max())
             np.testing.assert_allclose(got, c * base, rtol=1e-12, atol=1e-14 * np.abs(got).max())
 
@@ -89,9 +104,11 @@ def test_hig_estimator_direction_scales_with_c():
     # the public entry point, default route (structured for this wide J), float32 network
     params, batch = problem()
     params, batch = jax.tree.map(lambda a: a.astype(jnp.float32), (params, batch))
-    base = np.asarray(ravel_pytree(physgrad.hig(predict, summed)(params, batch)[0])[0])
+    base = np.asarray(ravel_pytree(jax.jit(physgrad.hig(predict, summed))(params, batch)[0])[0])
+    # c a float32 argument of one compiled estimate (eagerly, every operation compiles on its own)
+    scaled_hig = jax.jit(lambda p, b, c: physgrad.hig(predict, scaled(c))(p, b)[0])
     for c in SCALES:
-        got = np.asarray(ravel_pytree(physgrad.hig(predict, scaled(c))(params, batch)[0])[0])
+        got = np.asarray(ravel_pytree(scaled_hig(params, batch, jnp.float32(c)))[0])
         np.testing.assert_allclose(got, c * base, rtol=1e-4, atol=1e-6 * np.abs(got).max())
 
 
@@ -99,15 +116,20 @@ def test_adam_update_does_not_change():
     with float64_scope():
         params, batch = problem()
 
-        def trajectory(c, steps=3):
+        # ε far below every |gradient| entry: at c = 1/64 some are ~1e-6, where the default
+        # ε = 1e-8 would move the update by ~1 %; the invariance holds while |g| ≫ ε
+        opt = optax.adam(1e-2, eps=1e-12)
+
+        @jax.jit  # one program for every c and step (eagerly, every operation compiles on its own)
+        def step(p, state, c):
             loss = lambda p: jnp.mean(jax.vmap(lambda s: scaled(c)(predict(p, s), s))(batch))  # noqa: E731
-            # ε far below every |gradient| entry: at c = 1/64 some are ~1e-6, where the default
-            # ε = 1e-8 would move the update by ~1 %; the invariance holds while |g| ≫ ε
-            opt = optax.adam(1e-2, eps=1e-12)
+            updates, state = opt.update(jax.grad(loss)(p), state, p)
+            return optax.apply_updates(p, updates), state
+
+        def trajectory(c, steps=3):
             p, state = params, opt.init(params)
             for _ in range(steps):
-                updates, state = opt.update(jax.grad(loss)(p), state, p)
-                p = optax.apply_updates(p, updates)
+                p, state = step(p, state, jnp.float64(c))
             return np.asarray(ravel_pytree(p)[0])
 
         base = trajectory(1.0)

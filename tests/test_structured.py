@@ -83,15 +83,24 @@ def _batch(n_in, n_out, b=6, key=1, complex_target=False):
     return {"x": x, "t": t * (1 + 1j) if complex_target else t}
 
 
-def _numpy_reference(objective, params, batch, exponent, truncation):
-    """``V Σ^κ Uᵀ g`` with σ ≤ τ σ_max dropped, from the explicit J in NumPy float64 (J and
-    g jitted: one program each, where eager calls compile op by op)."""
+def _explicit(objective, params, batch):
+    """The explicit J and g in NumPy float64 (jitted: one program each, where eager calls
+    compile op by op)."""
     jac, y = jax.jit(lambda p, b: stacked_jacobian(objective.predict, p, b))(params, batch)
     _, g = jax.jit(lambda p, b, y: JointJacobian.of(objective, p, b).loss_and_gradient(y))(params, batch, y)
-    j, g = np.asarray(jac, np.float64), np.asarray(g, np.float64)
+    return np.asarray(jac, np.float64), np.asarray(g, np.float64)
+
+
+def _svd_formula(j, g, exponent, truncation):
+    """``V Σ^κ Uᵀ g`` with σ ≤ τ σ_max dropped, and the singular values, in NumPy float64."""
     u, s, vt = np.linalg.svd(j, full_matrices=False)
     keep = s > truncation * s.max()
     return vt[keep].T @ (s[keep] ** exponent * (u[:, keep].T @ g)), s
+
+
+def _numpy_reference(objective, params, batch, exponent, truncation):
+    """``V Σ^κ Uᵀ g`` with σ ≤ τ σ_max dropped, from the explicit J in NumPy float64."""
+    return _svd_formula(*_explicit(objective, params, batch), exponent, truncation)
 
 
 def _direction(route, objective, params, batch, exponent, truncation):
@@ -163,9 +172,10 @@ def test_structured_update_equals_the_numpy_svd_formula_with_dropped_singular_va
     net = jax.tree.map(lambda a: a.astype(jnp.float64) if eqx.is_inexact_array(a) else a, NETWORKS[name]())
     objective, params = _objective(net)
     batch = _batch(3, OUTPUTS[name])
-    _, s = _numpy_reference(objective, params, batch, exponent, 0.0)
+    j, g = _explicit(objective, params, batch)  # once, for the spectrum and the direction
+    _, s = _svd_formula(j, g, exponent, 0.0)
     tau = _between(s, len(s) // 2)  # drops the smaller half of the spectrum
-    want, _ = _numpy_reference(objective, params, batch, exponent, tau)
+    want, _ = _svd_formula(j, g, exponent, tau)
     got, loss, _ = jax.jit(lambda p, b: routes.Structured()(objective, p, b, exponent, tau))(params, batch)
     np.testing.assert_allclose(np.asarray(got), want, rtol=1e-8, atol=1e-10 * np.abs(want).max())
     assert float(loss) == pytest.approx(float(objective.batch_loss(params, batch)), rel=1e-12)
@@ -215,8 +225,9 @@ def test_complex_outputs_equal_the_gram_route():
         net, physics=lambda u: jnp.exp(1j * u) * (1 + u), loss=lambda y, s: jnp.sum(jnp.abs(y - s["t"]) ** 2)
     )
     batch = _batch(3, 2, complex_target=True)
+    j, g = _explicit(objective, params, batch)  # once, for both exponents
     for exponent in (-0.5, -1.0):
-        want, _ = _numpy_reference(objective, params, batch, exponent, 1e-6)
+        want, _ = _svd_formula(j, g, exponent, 1e-6)
         got = _direction(routes.Structured(), objective, params, batch, exponent, 1e-6)
         np.testing.assert_allclose(np.asarray(got), want, rtol=1e-8, atol=1e-10 * np.abs(want).max())
 
