@@ -207,7 +207,8 @@ def test_nog_trains_a_users_exponax_stepper_declared_without_derivatives_and_wig
     assert not external.solver_differentiable
     net = external.initial_network(jax.random.key(1), data)
     batch = jax.tree.map(lambda a: a[:4], data["train"])
-    g, stats = physgrad.unrolled(external.system(external.apply), policy=S())(net, batch)
+    # jitted: one program, not the rollout's operations compiled one by one
+    g, stats = eqx.filter_jit(physgrad.unrolled(external.system(external.apply), policy=S()))(net, batch)
     assert all(np.isfinite(leaf).all() for leaf in jax.tree.leaves(g)) and np.isfinite(float(stats["loss"]))
     with pytest.raises(Exception, match="differentiat"):
         physgrad.unrolled(external.system(external.apply), policy=R())(net, batch)
@@ -231,5 +232,5 @@ def test_repeated_keeps_the_states_dtype_when_the_stepper_was_built_with_x64():
     frames = jnp.stack([u, out, out, out])[None]  # one window of m + 1 frames
     batch = {"u": frames, "cond": jnp.zeros(1, jnp.float32), "index": jnp.zeros(1, jnp.int32)}
     net = problem.initial_network(jax.random.key(0), {})
-    g, stats = physgrad.unrolled(problem.system(problem.apply), policy=R())(net, batch)
+    g, stats = eqx.filter_jit(physgrad.unrolled(problem.system(problem.apply), policy=R()))(net, batch)  # one program
     assert np.isfinite(float(stats["loss"])) and all(np.isfinite(leaf).all() for leaf in jax.tree.leaves(g))
