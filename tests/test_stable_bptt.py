@@ -223,7 +223,7 @@ def one_update(problem, method, settings=None):
         pytest.param("quantum_control", marks=pytest.mark.slow),
     ],
 )
-@pytest.mark.costly("the fast tier's one check of the one-pass combination: two setups, four gradient programs")
+@pytest.mark.costly("the fast tier's one check of the one-pass combination: two setups, one program of four gradients")
 def test_one_pass_and_two_pass_combination_give_the_same_gradient(problem):
     # Not zero-initialised: at a zero last kernel ∂N/∂s = 0 and g_M = g_R, masking nothing.
     settings = {"poles": "2", "zero_init": "false"} if problem == "cartpole" else {}
