@@ -28,6 +28,19 @@ def samples(problem):
     return problem.examples(jax.random.key(0), 4)
 
 
+@pytest.fixture(scope="module")
+def simulate(problem):
+    """The problem's simulation as one jitted function for the module (a new jit of the bound
+    method compiles again)."""
+    return jax.jit(problem.simulate)
+
+
+@pytest.fixture(scope="module")
+def inverse(problem):
+    """The authors' local inverse, jitted once for the module."""
+    return jax.jit(problem.inverse)
+
+
 def one(samples, i=0):
     return {k: jnp.asarray(v[i]) for k, v in samples.items()}
 
@@ -50,13 +63,13 @@ def test_threshold_keeps_the_top_fraction():
     assert int(marked.sum()) == 7 and float(values[marked == 1].min()) == 93.0
 
 
-def test_data_are_consistent(problem, samples):
+@pytest.mark.costly("the module fixtures' first user: it generates the fluid samples, compiles the simulation")
+def test_data_are_consistent(problem, samples, simulate):
     s = one(samples)
     m0 = np.asarray(s["m0"])
     assert m0.min() >= 0 and m0.max() <= 1  # 1 inside the box, the covered fraction on its edge cells
     assert 1 <= int((m0 > 0).sum()) <= round(0.15 * 256)  # at most the top 15 % of the cells
     # m_T is the simulation of the true v₀: the loss there is 0 (PhiFlow's floor √1e-5 per mode removed)
-    simulate = jax.jit(problem.simulate)
     y = simulate(s["v0"], s)
     np.testing.assert_allclose(np.asarray(y), np.asarray(s["mT"]), atol=1e-5)
     assert abs(float(problem.loss(y, s))) < 1e-4
@@ -79,8 +92,7 @@ def test_paper_swirl_normaliser():
     assert float(NavierStokes().swirl_norm()) == pytest.approx(120.5, abs=0.05)
 
 
-def test_inverse_lies_in_the_prior_family_and_improves_a_bad_guess(problem, samples):
-    inverse, simulate = jax.jit(problem.inverse), jax.jit(problem.simulate)
+def test_inverse_lies_in_the_prior_family_and_improves_a_bad_guess(problem, samples, simulate, inverse):
     for i in range(3):
         s = one(samples, i)
         guess = jnp.zeros_like(s["v0"])
@@ -93,12 +105,12 @@ def test_inverse_lies_in_the_prior_family_and_improves_a_bad_guess(problem, samp
         assert err(x_tilde) < 0.5 * err(guess)
 
 
-def test_inverse_at_the_truth_stays_near_it(problem, samples):
+def test_inverse_at_the_truth_stays_near_it(inverse):
     """From the true v₀ the forward and reversed centres of mass agree, so x̃ is the true
     drift + swirl: what remains is the 0.1 noise the prior cannot express."""
     no_noise = NavierStokes(**{**SMALL, "fluctuations": 0.0})
     data = no_noise.examples(jax.random.key(1), 2)
-    inverse = jax.jit(no_noise.inverse)  # one program for both samples (a new jit of a bound method compiles again)
+    # the module's compiled inverse: the fluctuations only shape the data (example), not the inverse
     for i in range(2):
         s = one(data, i)
         x_tilde = inverse(s["v0"], s["mT"], s["mT"], s)
@@ -151,9 +163,10 @@ def test_weight_standardisation_equals_numpy_and_is_scale_invariant():
     expected = (flat - flat.mean(1, keepdims=True)) / (flat.std(1, keepdims=True) + 1e-5) * np.sqrt(2 / 27)
     np.testing.assert_allclose(np.asarray(standardised_weight(jnp.asarray(w))), expected.reshape(w.shape), atol=1e-6)
     # as under batch norm, a standardised conv's output does not depend on its kernel's scale
-    net = eqx.filter_jit(
-        lambda key: UNet(2, 2, levels=3, filters=4, key=key, activation="leaky_relu", weight_standardisation=True)
-    )(jax.random.key(0))  # one program, not every layer's initialisation op by op
+    # built eagerly (as one jitted program its initialisation cost ~1 s more of CPU); the function,
+    # not the deprecated "leaky_relu" string
+    net = UNet(2, 2, levels=3, filters=4, key=jax.random.key(0), activation=jax.nn.leaky_relu,
+               weight_standardisation=True)  # fmt: skip
     scaled = eqx.tree_at(lambda n: n.down[1].first.weight, net, 7.0 * net.down[1].first.weight)
     x = jax.random.uniform(jax.random.key(1), (2, 16, 16))
     apply = eqx.filter_jit(lambda n, x: n(x))  # one program, not hundreds of eager ops

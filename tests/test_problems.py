@@ -45,11 +45,18 @@ def check_contract(name, settings):
     b = str(min(8, cls.default_batch_size))  # toy2d optimises one x
     setup = build(make_config(name, "hig", budget=Budget(steps=1), settings={**settings, "batch_size": b}))
     batch = jax.tree.map(lambda a: a[: int(b)], setup.data["train"])
-    losses = jax.jit(setup.objective.sample_losses)(setup.params, batch)
-    assert losses.shape == (int(b),) and bool(jnp.all(jnp.isfinite(losses)))
     sample = jax.tree.map(lambda a: a[0], batch)
-    if setup.objective.target is not None:  # SIP's y-space target has the simulator's shape
-        y = jax.jit(setup.objective.predict)(setup.params, sample)
+
+    has_target = setup.objective.target is not None
+
+    @jax.jit  # one program for the losses and (with a target) the first sample's prediction, not two
+    def evaluate(params, batch, sample):
+        y = setup.objective.predict(params, sample) if has_target else None
+        return setup.objective.sample_losses(params, batch), y
+
+    losses, y = evaluate(setup.params, batch, sample)
+    assert losses.shape == (int(b),) and bool(jnp.all(jnp.isfinite(losses)))
+    if has_target:  # SIP's y-space target has the simulator's shape
         assert setup.objective.target(sample).shape == y.shape
         assert float(setup.objective.loss(setup.objective.target(sample), sample)) == pytest.approx(0.0, abs=1e-6)
     # the same seed gives the same data and network

@@ -20,9 +20,13 @@ def run_example(heading: str, factor: float):
     predict = namespace.get("predict") or (lambda p, s: namespace["simulate"](namespace["output"](p, s), s))
     objective = physgrad.Objective(predict, namespace["loss"])
 
-    def batch_loss(net):  # the net as it is: its activation functions are not arrays
+    @eqx.filter_jit  # one program for the loss before and after (eagerly, op by op)
+    def loss_of(net):  # the net as it is: its activation functions are not arrays
         arrays, static = eqx.partition(net, eqx.is_inexact_array)
-        return float(objective.bind_static(static).batch_loss(arrays, batch))
+        return objective.bind_static(static).batch_loss(arrays, batch)
+
+    def batch_loss(net):
+        return float(loss_of(net))
 
     initial = batch_loss(namespace["net"])
     exec(compile("for _ in range" + loop, "README.md", "exec"), namespace)

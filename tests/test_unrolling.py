@@ -212,9 +212,13 @@ def test_one_nog_wig_differ_and_wig_truncate_m_equals_nog_plus_local():
     params = eqx.tree_at(lambda p: p.weight, setup.params, jnp.array([[[0.2, 0.6]]], jnp.float32))
     system = setup.objective.unrolled(None, False)
     s0 = system.initial_state(batch)
-    _, g_trunc = value_and_grad(system, params, s0, setup.stages[0].method.policy)
-    _, g_nog = value_and_grad(system, params, s0, nog.policy)
-    _, g_full = value_and_grad(system, params, s0, METHODS["wig"]().policy)
+
+    @jax.jit  # one program for the three gradients (eagerly, each rollout's scans compile on their own)
+    def gradients(p):
+        policies = (setup.stages[0].method.policy, nog.policy, METHODS["wig"]().policy)
+        return [value_and_grad(system, p, s0, policy)[1] for policy in policies]
+
+    g_trunc, g_nog, g_full = gradients(params)
     np.testing.assert_allclose(g_trunc.weight, g_nog.weight, rtol=1e-5)
     assert not np.allclose(g_full.weight, g_nog.weight, rtol=1e-3)
 
@@ -269,38 +273,52 @@ def test_nondifferentiable_solver_trains_under_nog_and_one_and_is_refused_by_wig
 # --- stabilisers ------------------------------------------------------------------------------
 
 
-def one_step(method_name, batch_transform=None, state_transform=None, **hyper):
+def stepper(method_name, **hyper):
+    """``one_step(batch_transform, state_transform)``: one update of the method from the
+    initial parameters on four windows, the setup built and the step compiled once for all
+    the calls (a test's cases differ in values, not shapes)."""
     setup = build(adv_config(method_name, **hyper))
     method = setup.stages[0].method
-    batch = jax.tree.map(lambda a: a[:4], setup.data["train"])
-    if batch_transform:
-        batch = batch_transform(batch)
-    state = method.init(setup.params)
-    if state_transform:
-        state = state_transform(state)
-    params, state, stats = jax.jit(lambda p, s, b: method.step(setup.objective, p, s, b))(setup.params, state, batch)
-    return setup.params, params, state, stats
+    step = jax.jit(lambda p, s, b: method.step(setup.objective, p, s, b))
+
+    def one_step(batch_transform=None, state_transform=None):
+        batch = jax.tree.map(lambda a: a[:4], setup.data["train"])
+        if batch_transform:
+            batch = batch_transform(batch)
+        state = method.init(setup.params)
+        if state_transform:
+            state = state_transform(state)
+        params, state, stats = step(setup.params, state, batch)
+        return setup.params, params, state, stats
+
+    return one_step
+
+
+def one_step(method_name, batch_transform=None, state_transform=None, **hyper):
+    return stepper(method_name, **hyper)(batch_transform, state_transform)
 
 
 def test_nan_gradient_skips_the_update():
     poison = lambda b: {**b, "u": b["u"].at[0, 2, 0, 3].set(jnp.nan)}  # noqa: E731
-    before, after, _, stats = one_step("nog", poison)
+    nog = stepper("nog")
+    before, after, _, stats = nog(poison)
     assert float(stats["skipped"]) == 1.0 and float(stats["skip_nan"]) == 1.0
     np.testing.assert_array_equal(before.weight, after.weight)
-    _, after, _, stats = one_step("nog")
+    _, after, _, stats = nog()
     assert float(stats["skipped"]) == 0.0 and not np.array_equal(before.weight, after.weight)
 
 
 def test_norm_guard_skips_an_outlier_and_tracks_the_running_bound():
     bound = lambda s: float(optax.tree_utils.tree_get(s, "bound"))  # noqa: E731  (norm_guard's state)
     set_bound = lambda c: lambda s: optax.tree_utils.tree_set(s, bound=jnp.asarray(c, jnp.float32))  # noqa: E731
-    _, _, state, stats = one_step("wig", norm_guard=True)
+    wig = stepper("wig", norm_guard=True)
+    _, _, state, stats = wig()
     norm = float(stats["grad_norm"])
     assert bound(state) == pytest.approx(100 * norm, rel=1e-5)  # the first update sets c = 100‖g‖
-    before, after, state, stats = one_step("wig", state_transform=set_bound(0.5 * norm), norm_guard=True)
+    before, after, state, stats = wig(state_transform=set_bound(0.5 * norm))
     assert float(stats["skip_norm"]) == 1.0 and bound(state) == pytest.approx(0.5 * norm, rel=1e-6)
     np.testing.assert_array_equal(before.weight, after.weight)
-    _, _, state, stats = one_step("wig", state_transform=set_bound(2.0 * norm), norm_guard=True)
+    _, _, state, stats = wig(state_transform=set_bound(2.0 * norm))
     assert float(stats["skipped"]) == 0.0
     assert bound(state) == pytest.approx(0.9 * 2.0 * norm + 10 * norm, rel=1e-5)
 

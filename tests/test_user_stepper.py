@@ -89,6 +89,11 @@ FINE = Repeated(ex.stepper.Burgers(1, 1.0, N, 0.01, diffusivity=0.02, order=2), 
 COARSE = single_precision(Repeated(ex.stepper.Burgers(1, 1.0, N, 0.04, diffusivity=0.02, order=1)))
 
 
+# the reference step compiled once, per state (1, N): eagerly each of its operations compiles on
+# its own, again for every split's batch size
+_fine = jax.jit(lambda v: FINE(v, None))
+
+
 class _UserBurgers(TimeStepperProblem):
     name = "user_burgers"
     description = "a user's exponax Burgers stepper corrected towards a finer one"
@@ -100,7 +105,7 @@ class _UserBurgers(TimeStepperProblem):
         phase = jnp.arange(count)[:, None] * 0.7 + {"train": 0.0, "val": 0.3, "test": 0.5}[split]
         u = [jnp.sin(2 * jnp.pi * (x[None] + phase))[:, None]]  # (count, 1, N)
         for _ in range(frames):
-            u.append(jax.vmap(lambda v: FINE(v, None))(u[-1]))
+            u.append(jnp.stack([_fine(v) for v in u[-1]]))  # one compiled step for every split and size
         return {"u": np.stack(u, 1).astype(np.float32), "cond": np.zeros(count, np.float32),
                 "index": np.zeros(count, np.int32)}  # fmt: skip
 
@@ -202,7 +207,8 @@ def test_nog_trains_a_users_exponax_stepper_declared_without_derivatives_and_wig
     assert not external.solver_differentiable
     net = external.initial_network(jax.random.key(1), data)
     batch = jax.tree.map(lambda a: a[:4], data["train"])
-    g, stats = physgrad.unrolled(external.system(external.apply), policy=S())(net, batch)
+    # jitted: one program, not the rollout's operations compiled one by one
+    g, stats = eqx.filter_jit(physgrad.unrolled(external.system(external.apply), policy=S()))(net, batch)
     assert all(np.isfinite(leaf).all() for leaf in jax.tree.leaves(g)) and np.isfinite(float(stats["loss"]))
     with pytest.raises(Exception, match="differentiat"):
         physgrad.unrolled(external.system(external.apply), policy=R())(net, batch)
@@ -226,5 +232,5 @@ def test_repeated_keeps_the_states_dtype_when_the_stepper_was_built_with_x64():
     frames = jnp.stack([u, out, out, out])[None]  # one window of m + 1 frames
     batch = {"u": frames, "cond": jnp.zeros(1, jnp.float32), "index": jnp.zeros(1, jnp.int32)}
     net = problem.initial_network(jax.random.key(0), {})
-    g, stats = physgrad.unrolled(problem.system(problem.apply), policy=R())(net, batch)
+    g, stats = eqx.filter_jit(physgrad.unrolled(problem.system(problem.apply), policy=R()))(net, batch)  # one program
     assert np.isfinite(float(stats["loss"])) and all(np.isfinite(leaf).all() for leaf in jax.tree.leaves(g))
