@@ -216,6 +216,15 @@ def test_prune_removes_only_the_checkpoints_of_final_runs(tmp_path):
     metric, values = case_values(tmp_path / "study" / "adam")
     assert metric == "loss" and values["adam"][0].tolist() == [0.25, 0.75]
     assert [r["value"] for r in before] == [2.5, 0.5]
+    # a finished study's results.csv gzipped; its reader and its writer take the packed copy
+    from physgrad.harness.study.tables import read_csv, write_csv
+
+    table = tmp_path / "study" / "adam" / "results.csv"
+    table.write_text("method,seed,value\nadam,0,0.5\n")
+    prune.pack_table(table)
+    assert not table.exists() and read_csv(table) == [{"method": "adam", "seed": "0", "value": "0.5"}]
+    write_csv(table, ["method", "seed", "value"], [{"method": "adam", "seed": 1, "value": 0.25}])
+    assert not table.exists() and read_csv(table)[0]["seed"] == "1"
 
 
 def _long_report(monkeypatch):

@@ -12,7 +12,8 @@ committed tree, which must stay small enough to travel to a lent GPU machine (64
 deletes ``checkpoint/`` of every final run under docs/reproductions/data (runs in progress
 keep theirs), prints what it removed and the size of the committed tree against that limit;
 commit the deletions with the lane data. ``--pack`` also gzips the final runs' ``metrics.csv``
-and ``test_cases.json`` (to ``….gz``, 2–5× smaller) in the named studies: only for a study
+and ``test_cases.json`` (to ``….gz``, 2–5× smaller) in the named studies, and their
+``results.csv`` tables (physgrad rewrites a table kept gzipped gzipped): only for a study
 whose lane is done, since a lane at a physgrad older than the packed-file readers could not
 re-collect them (physgrad's ``read_metrics`` and paired tests, and ``long/report.py``, read
 the packed copies). ``--root`` points it at another tree of run directories (a bench such as
@@ -64,6 +65,16 @@ def pack_run(run: Path) -> int:
     return saved
 
 
+def pack_table(table: Path) -> int:
+    """Gzip a finished study's ``results.csv`` to ``results.csv.gz`` and remove the plain copy
+    (collecting the study again rewrites the packed copy: ``write_csv``); the bytes saved."""
+    packed = table.with_name(table.name + ".gz")
+    pack_file(table, packed)
+    saved = table.stat().st_size - packed.stat().st_size
+    table.unlink()
+    return saved
+
+
 def tracked_bytes(root: Path) -> int | None:
     """The size of the files git tracks in the checkout holding ``root`` (None without git)."""
     try:
@@ -98,6 +109,8 @@ def main():
             raise SystemExit(f"no study {study!r} under {args.root}")
         for run in final_runs(args.root / study):
             saved += 0 if args.dry_run else pack_run(run)
+        for table in sorted((args.root / study).rglob("results.csv")):
+            saved += 0 if args.dry_run else pack_table(table)
     if args.pack and not args.dry_run:
         print(f"{saved / 2**20:.1f} MiB saved by packing {' and '.join(PACKED)} in {', '.join(args.pack)}")
     size = tracked_bytes(args.root)
