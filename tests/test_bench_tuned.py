@@ -139,6 +139,11 @@ def test_the_leaderboard_equals_a_recomputation_from_the_kept_files(tuned_bench,
             else:
                 assert float(row["score"]) == pytest.approx(score, rel=1e-5), (budget, method)
     assert any(float(board[("full", m)]["integrated"]) > 0 for m in ("adam", "hig"))
+    effect = {r["method"]: r for r in rows(out / "tuning_effect.csv")}  # what tuning changed, from trials.csv
+    for method in ("adam", "hig"):
+        mine = [r for r in rows(out / "hig_toy" / "trials.csv") if r["method"] == method and r["state"] == "COMPLETE"]
+        assert float(effect[method]["tuned_val_loss"]) == pytest.approx(min(float(r["val_loss"]) for r in mine), rel=1e-5)
+    assert "What tuning changed" in (out / "bench.md").read_text()
 
 
 def test_the_same_command_again_runs_nothing_and_keeps_the_tables(tuned_bench, capsys):
@@ -183,6 +188,28 @@ def test_the_report_of_a_tuned_bench_interrupted_before_its_first_problem(tmp_pa
     assert [(b["budget"], b["method"], b["integrated"]) for b in result.board] == [("half", "adam", 0.0),
                                                                                  ("full", "adam", 0.0)]  # fmt: skip
     assert "5 trials per method" in (tmp_path / "bench.md").read_text() and result.hyperparameters == []
+
+
+def test_what_tuning_changed_against_hand_computed_ranks(tmp_path):
+    """tuning_effect.csv's rows from a hand-written trials.csv: trial 0 is the untuned
+    configuration, the chosen one the lowest finished trial; a failed trial 0 ranks last."""
+    from physgrad.harness.bench.tuned_report import effect_lines, tuning_effect, winners
+
+    (tmp_path / "p").mkdir()
+    (tmp_path / "p" / "tune.json").write_text(json.dumps({"methods": ["a", "b", "c", "d"], "spaces": {}}))
+    trials = [("a", 0, "COMPLETE", 0.5), ("a", 1, "COMPLETE", 0.1), ("b", 0, "COMPLETE", 0.2),
+              ("b", 1, "FAIL", 1e300), ("c", 0, "FAIL", 1e300), ("c", 1, "COMPLETE", 0.3)]  # fmt: skip
+    (tmp_path / "p" / "trials.csv").write_text("method,trial,state,val_loss,steps,run_dir,params\n" + "".join(
+        f"{m},{t},{state},{loss},10,trials/{m}/trial{t:03d},{{}}\n" for m, t, state, loss in trials))  # fmt: skip
+    got = {e["method"]: e for e in tuning_effect(tmp_path, "p")}
+    assert set(got) == {"a", "b", "c"}  # d ran no trial
+    assert (got["a"]["untuned_val_loss"], got["a"]["tuned_val_loss"], got["a"]["gain"]) == (0.5, 0.1, 5.0)
+    assert (got["b"]["tuned_val_loss"], got["b"]["gain"]) == (0.2, 1.0)
+    assert math.isinf(got["c"]["untuned_val_loss"]) and math.isinf(got["c"]["gain"])
+    assert [(got[m]["rank_untuned"], got[m]["rank_tuned"]) for m in "abc"] == [(2, 1), (1, 2), (3, 3)]
+    assert winners(list(got.values())) == ["p: untuned b; tuned a (changed)"]
+    assert [line[-1] for line in effect_lines(list(got.values()))[1:]] == ["2 → 1 *", "1 → 2 *", "3 → 3"]
+    assert tuning_effect(tmp_path, "absent") == []
 
 
 def test_plan_counts_trials_and_test_runs(tmp_path, capsys):

@@ -137,18 +137,21 @@ def print_tuned(console, result) -> None:
     hyperparameters and its leaderboard at both budgets
     (:class:`physgrad.harness.bench.tuned_report.TunedReport`)."""
     from .. import bench
-    from .tuned_report import CAP, hyper_lines
+    from .tuned_report import CAP, effect_lines, hyper_lines, winners
 
     for problem, table in result.tables.items():
         print_table(console, bench.table_lines(table, inapplicable=False),
                     title=f"{problem}: the tuned configurations on test")  # fmt: skip
     if result.hyperparameters:
         print_table(console, hyper_lines(result.hyperparameters), title="tuned hyperparameters (chosen on validation)")
+    if result.effect:
+        print_table(console, effect_lines(result.effect), title="what tuning changed, on validation (* rank moved)",
+                    caption="; ".join(winners(result.effect)))  # fmt: skip
     print_table(console, result.lines, title="leaderboard (tuned): time to target at the full and at half the budget",
                 caption=f"integrated performance profile: 1/({CAP:g}-1) x the integral of rho(tau) over tau in "
                         f"[1, {CAP:g}] (1: fastest on every problem); geo-mean time ratio over the problems run "
                         "(unsolved: 2x the budget)")  # fmt: skip
-    written = files(*(result.files[k] for k in ("markdown", "leaderboard", "hyperparameters", "table",
+    written = files(*(result.files[k] for k in ("markdown", "leaderboard", "hyperparameters", "effect", "table",
                                                 "profile_full", "profile_half")))  # fmt: skip
     console.print(f"wrote {written}; per problem its tune (trials.csv, best.json) and final/ study")
 

@@ -28,6 +28,12 @@ runs at half shows whether the ranking holds earlier in training ("Fantastic pre
 optimizers", Wen et al. 2025, found rankings that flip between intermediate and final
 checkpoints). A diverged run counts as not reaching the target at either budget, as in
 every other table.
+
+**What tuning changed** (``tuning_effect.csv``), on each problem's validation split, where
+both configurations ran: per method the untuned configuration's validation loss (trial 0)
+beside the chosen one's, their ratio, and the method's rank among the problem's methods by
+each. It answers "would the untuned comparison have named the same winner?" with one trial
+per configuration, so a rank swapped between close losses is not a verdict.
 """
 
 from __future__ import annotations
@@ -53,6 +59,7 @@ BUDGETS = (("half", 0.5), ("full", 1.0))  # (name, fraction of each run's budget
 BOARD_COLUMNS = ("budget", "fraction", "method", "integrated", "score", "score_problems", "fastest", "solved",
                  "problems_solved", "problems", "problems_run")  # fmt: skip
 HYPER_COLUMNS = ("problem", "method", "name", "untuned", "tuned", "low", "high", "trials_finished", "trials")
+EFFECT_COLUMNS = ("problem", "method", "untuned_val_loss", "tuned_val_loss", "gain", "rank_untuned", "rank_tuned")
 
 
 class TunedReport(NamedTuple):
@@ -64,6 +71,7 @@ class TunedReport(NamedTuple):
     board: list[dict[str, Any]]
     hyperparameters: list[dict[str, Any]]
     files: dict[str, Path | None]
+    effect: list[dict[str, Any]] = []
 
     @property
     def lines(self) -> list[list[str]]:
@@ -166,6 +174,61 @@ def hyperparameters(out: Path, problem: str) -> list[dict[str, Any]]:
     return rows
 
 
+def tuning_effect(out: Path, problem: str) -> list[dict[str, Any]]:
+    """What tuning changed on one problem, on its validation split (from its ``trials.csv``):
+    per method L₀, the untuned configuration's validation loss (trial 0; +∞ where it failed or
+    diverged), L*, the chosen configuration's (the lowest of the finished trials:
+    :func:`physgrad.harness.tune_report.chosen`), ``gain`` = L₀ / L* (≥ 1; +∞ where only tuning
+    finished, NaN where nothing did), and the method's rank among the problem's methods by L₀
+    and by L* (1 the lowest; equal losses share the better rank)."""
+    from ..study import kept_path
+    from ..tune_report import chosen, read_trials
+
+    if not (out / problem / "tune.json").exists() or not kept_path(out / problem / "trials.csv").exists():
+        return []
+    info, trials = read_trials(out / problem)
+    losses: dict[str, tuple[float, float]] = {}
+    for method in info["methods"]:
+        mine = [t for t in trials if t["method"] == method]
+        if not mine:
+            continue
+        zero = next((t for t in mine if t["trial"] == 0 and t["state"] == "COMPLETE"), None)
+        best = chosen(trials, method)
+        losses[method] = (zero["val_loss"] if zero else math.inf, best["val_loss"] if best else math.inf)
+    rows = []
+    for method, (untuned, tuned) in losses.items():
+        gain = math.nan if math.isinf(untuned) and math.isinf(tuned) else untuned / tuned
+        rows.append({"problem": problem, "method": method, "untuned_val_loss": untuned, "tuned_val_loss": tuned,
+                     "gain": gain, "rank_untuned": 1 + sum(u < untuned for u, _ in losses.values()),
+                     "rank_tuned": 1 + sum(t < tuned for _, t in losses.values())})  # fmt: skip
+    return rows
+
+
+def effect_lines(effect: Sequence[Mapping[str, Any]]) -> list[list[str]]:
+    """Printable lines (header first) of :func:`tuning_effect`'s rows, a problem's rows by
+    their tuned rank, with the winner on validation untuned and tuned named per problem."""
+    lines = [["problem", "method", "untuned val loss", "tuned val loss", "untuned / tuned", "rank: untuned → tuned"]]
+    for problem in dict.fromkeys(e["problem"] for e in effect):
+        mine = sorted((e for e in effect if e["problem"] == problem), key=lambda e: (e["rank_tuned"], e["method"]))
+        for e in mine:
+            moved = "" if e["rank_untuned"] == e["rank_tuned"] else " *"
+            lines.append([problem, e["method"], number(as_float(e["untuned_val_loss"]), ".3g"),
+                          number(as_float(e["tuned_val_loss"]), ".3g"), number(as_float(e["gain"]), ".3g"),
+                          f"{e['rank_untuned']} → {e['rank_tuned']}{moved}"])  # fmt: skip
+    return lines
+
+
+def winners(effect: Sequence[Mapping[str, Any]]) -> list[str]:
+    """Per problem one sentence: the method(s) ranked first on validation, untuned and tuned."""
+    out = []
+    for problem in dict.fromkeys(e["problem"] for e in effect):
+        mine = [e for e in effect if e["problem"] == problem]
+        first = {k: ", ".join(sorted(e["method"] for e in mine if e[k] == 1)) for k in ("rank_untuned", "rank_tuned")}
+        same = "the same" if first["rank_untuned"] == first["rank_tuned"] else "changed"
+        out.append(f"{problem}: untuned {first['rank_untuned']}; tuned {first['rank_tuned']} ({same})")
+    return out
+
+
 def tuned_report(out: str | Path) -> TunedReport:
     """(Re)write a tuned bench's tables, leaderboard and ``bench.md`` from its files."""
     out = Path(out)
@@ -174,7 +237,7 @@ def tuned_report(out: str | Path) -> TunedReport:
     info = rundir.read_json(out / "bench.json", rundir.NOT_A_STUDY)
     if not info.get("tuned"):
         raise ConfigError(f"{out} is an untuned bench: physgrad report draws it as one")
-    tables, runs, hyper = {}, {}, []
+    tables, runs, hyper, effect = {}, {}, [], []
     for problem in info["problems"]:
         verdicts = [Verdict(**v) for v in info["verdicts"][problem]]
         final = out / problem / "final"
@@ -184,6 +247,7 @@ def tuned_report(out: str | Path) -> TunedReport:
         write_csv(out / problem / "bench_table.csv", TABLE_COLUMNS, table_records(problem, table))
         atomic_write(out / problem / "bench_table.md", markdown(table_lines(table)) + "\n")
         hyper += hyperparameters(out, problem)
+        effect += tuning_effect(out, problem)
     methods = list(dict.fromkeys(t["method"] for table in tables.values() for t in table
                                  if t["status"] not in ("not applicable", "skipped")))  # fmt: skip
     ran = {m: {p for p, table in tables.items() for t in table
@@ -191,10 +255,12 @@ def tuned_report(out: str | Path) -> TunedReport:
     board = leaderboard(runs, methods, ran)
     write_csv(out / "leaderboard.csv", BOARD_COLUMNS, [{k: _cell(b[k]) for k in BOARD_COLUMNS} for b in board])
     write_csv(out / "hyperparameters.csv", HYPER_COLUMNS, [{k: _cell(h[k]) for k in HYPER_COLUMNS} for h in hyper])
+    write_csv(out / "tuning_effect.csv", EFFECT_COLUMNS, [{k: _cell(e[k]) for k in EFFECT_COLUMNS} for e in effect])
     write_csv(out / "bench_table.csv", TABLE_COLUMNS, [r for p, t in tables.items() for r in table_records(p, t)])
     atomic_write(out / "leaderboard.md", markdown(board_lines(board)) + "\n")
     files: dict[str, Path | None] = {"leaderboard": out / "leaderboard.csv", "hyperparameters": out / "hyperparameters.csv",
-                                     "table": out / "bench_table.csv", "markdown": out / "bench.md"}  # fmt: skip
+                                     "table": out / "bench_table.csv", "markdown": out / "bench.md",
+                                     "effect": out / "tuning_effect.csv"}  # fmt: skip
     for name, fraction in BUDGETS:  # the profile's curves at each budget
         times = {p: {t["method"]: t["time"]["median"] for t in targets.method_times(at_fraction(rows, fraction), methods)}
                  for p, rows in runs.items()}  # fmt: skip
@@ -207,8 +273,8 @@ def tuned_report(out: str | Path) -> TunedReport:
             plots.performance_profile, taus, rho, out / ("profile.png" if name == "full" else "profile_half.png"),
             title=f"tuned, {name} budget: performance profile of the time to each problem's target test loss",
         )  # fmt: skip
-    atomic_write(out / "bench.md", tuned_markdown(info, tables, board, hyper))
-    return TunedReport(tables, board, hyper, files)
+    atomic_write(out / "bench.md", tuned_markdown(info, tables, board, hyper, effect))
+    return TunedReport(tables, board, hyper, files, effect)
 
 
 def _cell(x: Any) -> Any:
@@ -232,9 +298,11 @@ def tuned_markdown(
     tables: Mapping[str, Sequence[dict[str, Any]]],
     board: Sequence[Mapping[str, Any]],
     hyper: Sequence[Mapping[str, Any]],
+    effect: Sequence[Mapping[str, Any]] = (),
 ) -> str:
-    """``bench.md`` of a tuned bench: what ran, the leaderboard, the tuned hyperparameters
-    and every problem's table of the chosen configurations on test."""
+    """``bench.md`` of a tuned bench: what ran, the leaderboard, the tuned hyperparameters,
+    what tuning changed on validation and every problem's table of the chosen
+    configurations on test."""
     budget = ", ".join(f"{v:g} {k}" for k, v in info["budget"].items())
     own = "".join(f"; {p}: {', '.join(f'{v:g} {k}' for k, v in b.items())}" for p, b in info.get("budgets", {}).items())
     tuned = info["tuned"]
@@ -265,6 +333,14 @@ def tuned_markdown(
         "",
         markdown(hyper_lines(hyper)) if hyper else "(none yet)",
         "",
+        "## What tuning changed (validation)",
+        "",
+        "Per problem and method the untuned configuration's validation loss (trial 0) beside the chosen one's, "
+        "and the method's rank among the problem's methods by each (* where it moved). One trial per "
+        "configuration: a rank swapped between close losses is not a verdict.",
+        "",
+        *([markdown(effect_lines(effect)), "", *(f"- {w}" for w in winners(effect))] if effect else ["(none yet)"]),
+        "",
     ]
     for problem, table in tables.items():
         out += [f"## {problem}", "", markdown(table_lines(table)), "",
@@ -272,4 +348,5 @@ def tuned_markdown(
     return "\n".join(out)
 
 
-__all__ = ["BUDGETS", "CAP", "TunedReport", "at_fraction", "integrated_profile", "leaderboard", "tuned_report"]
+__all__ = ["BUDGETS", "CAP", "TunedReport", "at_fraction", "integrated_profile", "leaderboard", "tuned_report",
+           "tuning_effect"]
