@@ -142,7 +142,9 @@ def test_the_leaderboard_equals_a_recomputation_from_the_kept_files(tuned_bench,
     effect = {r["method"]: r for r in rows(out / "tuning_effect.csv")}  # what tuning changed, from trials.csv
     for method in ("adam", "hig"):
         mine = [r for r in rows(out / "hig_toy" / "trials.csv") if r["method"] == method and r["state"] == "COMPLETE"]
-        assert float(effect[method]["tuned_val_loss"]) == pytest.approx(min(float(r["val_loss"]) for r in mine), rel=1e-5)
+        assert float(effect[method]["tuned_val_loss"]) == pytest.approx(
+            min(float(r["val_loss"]) for r in mine), rel=1e-5
+        )
     assert "What tuning changed" in (out / "bench.md").read_text()
 
 

@@ -348,5 +348,13 @@ def tuned_markdown(
     return "\n".join(out)
 
 
-__all__ = ["BUDGETS", "CAP", "TunedReport", "at_fraction", "integrated_profile", "leaderboard", "tuned_report",
-           "tuning_effect"]
+__all__ = [
+    "BUDGETS",
+    "CAP",
+    "TunedReport",
+    "at_fraction",
+    "integrated_profile",
+    "leaderboard",
+    "tuned_report",
+    "tuning_effect",
+]
