@@ -119,6 +119,9 @@ def test_the_probe_tells_reverse_only_functions_apart_at_trace_time():
     marked = jacobian.mark_reverse_only(lambda z: plain(z))
     assert jacobian.is_reverse_only(marked) and jacobian.is_reverse_only(eqx.Partial(marked))
     assert not jacobian.supports_forward_mode(marked, x)  # the mark alone decides
+    # a sample with an integer leaf (a time-stepper's solver index) gets a float0 tangent there
+    indexed = lambda z, sample: plain(z) * sample["index"].astype(z.dtype)  # noqa: E731
+    assert jacobian.supports_forward_mode(indexed, x, {"index": jnp.asarray(2, jnp.int32)})
     with pytest.raises(ValueError, match="unknown jacobian mode"):
         jacobian.jacobian_mode(plain, x, 4, "sideways")
 

@@ -164,6 +164,35 @@ def test_one_pass_joint_gradients_equal_two_passes(base, checkpoint):
     close(g_r, ref_r)
 
 
+def test_joint_gradients_with_an_integer_leaf_in_the_state():
+    """A state carrying an integer leaf (a time-stepper sample's solver ``index``) has no
+    adjoint for it: the one-pass joint gradients equal the two plain passes (JAX's own
+    handling of integer inputs), and the index still acts on the physics."""
+
+    def control(p, s):
+        return jnp.tanh(p["W"] @ s["u"] + p["b"])
+
+    def physics(s, c):
+        rate = 1.0 + 0.1 * s["index"].astype(F32)  # the integer leaf selects the dynamics
+        return {"u": rate * (jnp.asarray(A, F32) @ s["u"]) + jnp.asarray(B, F32) @ c, "index": s["index"]}
+
+    system = closed_loop(control, physics, lambda s, c, k: jnp.sum(s["u"] ** 2) + 0.1 * jnp.sum(c**2), 6,
+                         jnp.linspace(0.5, 1.5, 6, dtype=F32))  # fmt: skip
+    params, u0 = params_and_states()
+    s0 = {"u": u0, "index": jnp.arange(4, dtype=jnp.int32)}
+
+    @jax.jit
+    def gradients(p):
+        return joint_gradients(system, p, s0, M(), R()), value_and_grad(system, p, s0, R()), value_and_grad(
+            system, p, s0, M())[1]  # fmt: skip
+
+    (loss, g_m, g_r), (l_r, ref_r), ref_m = gradients(params)
+    np.testing.assert_allclose(loss, l_r, rtol=1e-6)
+    close(g_m, ref_m)
+    close(g_r, ref_r)
+    assert not np.allclose(np.asarray(g_r["W"]), np.asarray(ref_m["W"]))  # the two flows differ here
+
+
 def test_combined_is_the_sign_masked_modified_gradient():
     system, _ = nonlinear_system()
     params, s0 = params_and_states()

@@ -15,6 +15,7 @@ import equinox as eqx
 import jax
 import jax.extend.core as jax_core
 import jax.numpy as jnp
+import numpy as np
 from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, PyTree
 
@@ -110,7 +111,7 @@ def supports_forward_mode(fn: Callable, *primals, transform: Callable | None = N
     if is_reverse_only(fn) or (source is not None and is_reverse_only(source)):
         return False
     if transform is None:
-        probe = lambda *p: jax.jvp(fn, p, p)  # noqa: E731
+        probe = lambda *p: jax.jvp(fn, p, tangents_for(p))  # noqa: E731
     else:
         probe = transform(fn)
     try:
@@ -120,6 +121,19 @@ def supports_forward_mode(fn: Callable, *primals, transform: Callable | None = N
             return False
         raise
     return not _uses_primitive(closed.jaxpr, "custom_lin")
+
+
+def tangents_for(primals):
+    """Tangents that ``jax.jvp`` accepts for ``primals``: each inexact leaf its own value, each
+    integer or boolean leaf (a sample's solver index, a step counter) a zero of dtype float0,
+    the only tangent JAX takes for one."""
+
+    def tangent(x):
+        if jnp.issubdtype(jnp.result_type(x), jnp.inexact):
+            return x
+        return np.zeros(np.shape(x), jax.dtypes.float0)
+
+    return jax.tree.map(tangent, primals)
 
 
 def _uses_primitive(jaxpr, name: str) -> bool:

@@ -45,6 +45,7 @@ from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, PyTree
 
 from .. import loops
@@ -210,7 +211,7 @@ def joint_gradients(
         adjoints, grads = carry  # both stacked on a leading axis of 2: (base, comparison)
         k, w, step_saved = inputs
         pullback = linearise(step_saved, k)[1] if checkpoint else join(step_saved)
-        g_params, g_network, g_physics = _pair(pullback, adjoints, w)
+        g_params, g_network, g_physics = _pair(pullback, adjoints, w, s0)
         keep = jnp.array([base.keeps(k), comparison.keeps(k)], jnp.float32)  # (2, [net, phys])
 
         def propagate(a, b):
@@ -221,7 +222,7 @@ def joint_gradients(
         grads = jax.tree.map(jnp.add, grads, g_params)
         return (adjoints, grads), None
 
-    pair = lambda tree: jax.tree.map(lambda a: jnp.zeros((2,) + a.shape, a.dtype), tree)  # noqa: E731
+    pair = lambda tree: jax.tree.map(lambda a: jnp.zeros((2,) + a.shape, _adjoint_dtype(a)), tree)  # noqa: E731
     init = (pair(s0), pair(params))
     (_, grads), _ = loops.scan(backward, init, (steps, weights, saved), reverse=True)
     g_base = jax.tree.map(lambda g: g[0], grads)
@@ -229,11 +230,36 @@ def joint_gradients(
     return loss, g_base, g_comparison
 
 
-def _pair(pullback, adjoints, w):
+def _pair(pullback, adjoints, w, s0):
     """A step's pullback applied to both cotangents (stacked on a leading axis of 2).
 
     Two calls of the same pullback, not ``vmap``: on CPU the vmapped (batched) transpose
-    measured ~1.5× slower than two plain ones (benchmarks/rollout_step.py)."""
-    first = pullback((jax.tree.map(lambda a: a[0], adjoints), w[0]))
-    second = pullback((jax.tree.map(lambda a: a[1], adjoints), w[1]))
-    return jax.tree.map(lambda a, b: jnp.stack([a, b]), first, second)
+    measured ~1.5× slower than two plain ones (benchmarks/rollout_step.py). A state's integer
+    or boolean leaves (a time-stepper sample's solver ``index``) have no adjoint: JAX takes and
+    returns a float0 cotangent for them, which cannot be added or carried through a scan, so the
+    carry holds float32 zeros in their place (:func:`_adjoint_dtype`) and they are swapped at
+    the pullback's door."""
+
+    def cotangent(i):
+        return jax.tree.map(lambda a, like: a[i] if _has_adjoint(like) else _float0_like(like), adjoints, s0)
+
+    def stack(a, b):
+        if a.dtype == jax.dtypes.float0:  # an integer input's cotangent: zeros, as the carry holds them
+            return jnp.zeros((2,) + a.shape, jnp.float32)
+        return jnp.stack([a, b])
+
+    return jax.tree.map(stack, pullback((cotangent(0), w[0])), pullback((cotangent(1), w[1])))
+
+
+def _has_adjoint(a) -> bool:
+    return bool(jnp.issubdtype(jnp.result_type(a), jnp.inexact))
+
+
+def _adjoint_dtype(a):
+    """The dtype of ``a``'s adjoint in the backward scan's carry: its own where it is inexact,
+    float32 zeros for an integer or boolean leaf (see :func:`_pair`)."""
+    return jnp.result_type(a) if _has_adjoint(a) else jnp.float32
+
+
+def _float0_like(a):
+    return np.zeros(np.shape(a), jax.dtypes.float0)
