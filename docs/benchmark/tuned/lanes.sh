@@ -23,7 +23,9 @@ set -euo pipefail
 ROOT="$(cd "$(dirname "$0")/../../.." && pwd)"
 # Each lane runs one commit from start to end. closed_loop ran at b8150ef; the others run at
 # 8069c83, which builds stabilised BPTT (C) and LM on the time-steppers (at b8150ef their steps
-# failed on the samples' integer solver index, and the bench left them out).
+# failed on the samples' integer solver index, and the bench left them out) and whose khig has
+# the Kronecker factors of convolutions (at b8150ef a convolution's kernel went to khig's exact
+# leftover block: on advection_1d's one-layer Conv1d, exact HIG by another name).
 CLOSED_LOOP_COMMIT="${CLOSED_LOOP_COMMIT:-b8150ef}"
 TUNED_COMMIT="${TUNED_COMMIT:-8069c83}"
 CORE="${CORE:-0}"
