@@ -18,6 +18,7 @@ import physgrad
 from physgrad.methods import JacobianPower
 from physgrad.precision import float64_scope
 from physgrad.routes import Damped
+from test_methods import central_differences
 
 B, TAU = 5, 1e-3  # τ keeps the finite-difference Jacobian's error from being amplified by σ^κ
 SCALES = (1 / 64, 64.0)
@@ -56,11 +57,8 @@ def finite_difference_jacobian():
         params, batch = problem()
         flat, unravel = ravel_pytree(params)
         flat = np.asarray(flat)
-        forward = jax.jit(lambda theta: jax.vmap(lambda s: predict(unravel(theta), s))(batch).ravel())
-        outputs = lambda theta: np.asarray(forward(jnp.asarray(theta)))  # noqa: E731
-        eps = 1e-6
-        jac = np.stack([(outputs(flat + eps * e) - outputs(flat - eps * e)) / (2 * eps) for e in np.eye(flat.size)], 1)
-        return jac, outputs(flat)
+        outputs = lambda theta: jax.vmap(lambda s: predict(unravel(theta), s))(batch).ravel()  # noqa: E731
+        return central_differences(outputs, flat), np.asarray(jax.jit(outputs)(jnp.asarray(flat)))
 
 
 def numpy_reference(batch, c, spectrum):
