@@ -208,10 +208,25 @@ def test_what_tuning_changed_against_hand_computed_ranks(tmp_path):
     assert (got["a"]["untuned_val_loss"], got["a"]["tuned_val_loss"], got["a"]["gain"]) == (0.5, 0.1, 5.0)
     assert (got["b"]["tuned_val_loss"], got["b"]["gain"]) == (0.2, 1.0)
     assert math.isinf(got["c"]["untuned_val_loss"]) and math.isinf(got["c"]["gain"])
-    assert [(got[m]["rank_untuned"], got[m]["rank_tuned"]) for m in "abc"] == [(2, 1), (1, 2), (3, 3)]
+    assert [(got[m]["rank_untuned"], got[m]["rank_tuned"]) for m in "abc"] == [(2, 1), (1, 2), (None, 3)]
     assert winners(list(got.values())) == ["p: untuned b; tuned a (changed)"]
-    assert [line[-1] for line in effect_lines(list(got.values()))[1:]] == ["2 → 1 *", "1 → 2 *", "3 → 3"]
+    assert [line[-1] for line in effect_lines(list(got.values()))[1:]] == ["2 → 1 *", "1 → 2 *", "– → 3 *"]
     assert tuning_effect(tmp_path, "absent") == []
+    # a NaN loss (an empty cell) ranks nowhere, equal losses share a rank, a zero loss divides
+    (tmp_path / "q").mkdir()
+    (tmp_path / "q" / "tune.json").write_text(json.dumps({"methods": ["a", "b", "c", "d"], "spaces": {}}))
+    trials = [("a", 0, "COMPLETE", ""), ("b", 0, "COMPLETE", 0.5), ("c", 0, "COMPLETE", 0.5), ("d", 0, "COMPLETE", 0.0),
+              ("d", 1, "COMPLETE", 0.0)]  # fmt: skip
+    (tmp_path / "q" / "trials.csv").write_text("method,trial,state,val_loss,steps,run_dir,params\n" + "".join(
+        f"{m},{t},{state},{loss},10,trials/{m}/trial{t:03d},{{}}\n" for m, t, state, loss in trials))  # fmt: skip
+    got = {e["method"]: e for e in tuning_effect(tmp_path, "q")}
+    assert [(got[m]["rank_untuned"], got[m]["rank_tuned"]) for m in "abcd"] == [(None, None), (2, 2), (2, 2), (1, 1)]
+    assert math.isnan(got["a"]["gain"]) and got["d"]["gain"] == 1.0
+    assert winners(list(got.values())) == ["q: untuned d; tuned d (the same)"]
+    # nothing finished anywhere: no winner is named
+    (tmp_path / "q" / "trials.csv").write_text("method,trial,state,val_loss,steps,run_dir,params\n"
+                                               "a,0,FAIL,1e+300,10,trials/a/trial000,{}\n")  # fmt: skip
+    assert winners(tuning_effect(tmp_path, "q")) == ["q: untuned none finished; tuned none finished (the same)"]
 
 
 def test_plan_counts_trials_and_test_runs(tmp_path, capsys):

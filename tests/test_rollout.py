@@ -164,7 +164,8 @@ def test_one_pass_joint_gradients_equal_two_passes(base, checkpoint):
     close(g_r, ref_r)
 
 
-def test_joint_gradients_with_an_integer_leaf_in_the_state():
+@pytest.mark.parametrize("checkpoint", [False, True])
+def test_joint_gradients_with_an_integer_leaf_in_the_state(checkpoint):
     """A state carrying an integer leaf (a time-stepper sample's solver ``index``) has no
     adjoint for it: the one-pass joint gradients equal the two plain passes (JAX's own
     handling of integer inputs), and the index still acts on the physics."""
@@ -183,8 +184,8 @@ def test_joint_gradients_with_an_integer_leaf_in_the_state():
 
     @jax.jit
     def gradients(p):
-        return joint_gradients(system, p, s0, M(), R()), value_and_grad(system, p, s0, R()), value_and_grad(
-            system, p, s0, M())[1]  # fmt: skip
+        return joint_gradients(system, p, s0, M(), R(), checkpoint=checkpoint), value_and_grad(
+            system, p, s0, R()), value_and_grad(system, p, s0, M())[1]  # fmt: skip
 
     (loss, g_m, g_r), (l_r, ref_r), ref_m = gradients(params)
     np.testing.assert_allclose(loss, l_r, rtol=1e-6)

@@ -91,7 +91,8 @@ def main():
     parser.add_argument("--root", type=Path, default=DATA, help="where the run directories are (default: the data)")
     parser.add_argument("--dry-run", action="store_true", help="list what would go, remove nothing")
     parser.add_argument("--pack", nargs="+", default=[], metavar="STUDY",
-                        help="also gzip the final runs' metrics.csv and test_cases.json in these (finished) studies")  # fmt: skip
+                        help="also gzip the final runs' metrics.csv and test_cases.json, and every results.csv, "
+                             "in these (finished) studies")  # fmt: skip
     args = parser.parse_args()
     total = 0
     for checkpoint in final_checkpoints(args.root):
@@ -112,7 +113,7 @@ def main():
         for table in sorted((args.root / study).rglob("results.csv")):
             saved += 0 if args.dry_run else pack_table(table)
     if args.pack and not args.dry_run:
-        print(f"{saved / 2**20:.1f} MiB saved by packing {' and '.join(PACKED)} in {', '.join(args.pack)}")
+        print(f"{saved / 2**20:.1f} MiB saved by packing {', '.join(PACKED)} and results.csv in {', '.join(args.pack)}")
     size = tracked_bytes(args.root)
     if size is not None:
         note = "" if size < LIMIT - 8 * 2**20 else " -- near the limit: prune or pack more before a GPU session"

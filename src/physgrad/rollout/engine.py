@@ -174,7 +174,9 @@ def joint_gradients(
     checkpoint: bool = False,
 ):
     """``(L, g_base, g_comparison)`` from one forward rollout and one backward scan that
-    carries both adjoints (see the module docstring). L is the comparison policy's loss."""
+    carries both adjoints (see the module docstring). L is the comparison policy's loss.
+    Integer or boolean leaves of the state (or of ``params``) have no adjoint; their entries
+    of the gradients are float32 zeros, not JAX's float0 (see :func:`_pair`)."""
     steps = jnp.arange(system.num_steps)
 
     def linearise(s, k):
@@ -222,7 +224,7 @@ def joint_gradients(
         grads = jax.tree.map(jnp.add, grads, g_params)
         return (adjoints, grads), None
 
-    pair = lambda tree: jax.tree.map(lambda a: jnp.zeros((2,) + a.shape, _adjoint_dtype(a)), tree)  # noqa: E731
+    pair = lambda tree: jax.tree.map(lambda a: jnp.zeros((2,) + jnp.shape(a), _adjoint_dtype(a)), tree)  # noqa: E731
     init = (pair(s0), pair(params))
     (_, grads), _ = loops.scan(backward, init, (steps, weights, saved), reverse=True)
     g_base = jax.tree.map(lambda g: g[0], grads)

@@ -176,11 +176,15 @@ def hyperparameters(out: Path, problem: str) -> list[dict[str, Any]]:
 
 def tuning_effect(out: Path, problem: str) -> list[dict[str, Any]]:
     """What tuning changed on one problem, on its validation split (from its ``trials.csv``):
-    per method L₀, the untuned configuration's validation loss (trial 0; +∞ where it failed or
-    diverged), L*, the chosen configuration's (the lowest of the finished trials:
-    :func:`physgrad.harness.tune_report.chosen`), ``gain`` = L₀ / L* (≥ 1; +∞ where only tuning
-    finished, NaN where nothing did), and the method's rank among the problem's methods by L₀
-    and by L* (1 the lowest; equal losses share the better rank)."""
+    per method L₀, the untuned configuration's validation loss (trial 0, where it completed
+    with a finite loss; +∞ where it failed, diverged or was pruned), L*, the chosen
+    configuration's (the lowest finite loss of the completed trials:
+    :func:`physgrad.harness.tune_report.chosen`; +∞ where none), ``gain`` = L₀ / L* (≥ 1: the
+    chosen one may be trial 0; +∞ where only a tuned trial finished, NaN where none did), and
+    the method's rank among the problem's methods by L₀ and by L* (1 the lowest; equal losses
+    share the better rank; None for a method with no finite loss there, which ranks nowhere).
+    Trial 0 runs the untuned configuration clipped into the searched range where a default
+    lies outside it (:mod:`physgrad.harness.tune`)."""
     from ..study import kept_path
     from ..tune_report import chosen, read_trials
 
@@ -193,37 +197,58 @@ def tuning_effect(out: Path, problem: str) -> list[dict[str, Any]]:
         if not mine:
             continue
         zero = next((t for t in mine if t["trial"] == 0 and t["state"] == "COMPLETE"), None)
+        untuned = zero["val_loss"] if zero and math.isfinite(zero["val_loss"]) else math.inf
         best = chosen(trials, method)
-        losses[method] = (zero["val_loss"] if zero else math.inf, best["val_loss"] if best else math.inf)
+        losses[method] = (untuned, best["val_loss"] if best else math.inf)
     rows = []
     for method, (untuned, tuned) in losses.items():
-        gain = math.nan if math.isinf(untuned) and math.isinf(tuned) else untuned / tuned
         rows.append({"problem": problem, "method": method, "untuned_val_loss": untuned, "tuned_val_loss": tuned,
-                     "gain": gain, "rank_untuned": 1 + sum(u < untuned for u, _ in losses.values()),
-                     "rank_tuned": 1 + sum(t < tuned for _, t in losses.values())})  # fmt: skip
+                     "gain": _gain(untuned, tuned), "rank_untuned": _rank(untuned, [u for u, _ in losses.values()]),
+                     "rank_tuned": _rank(tuned, [t for _, t in losses.values()])})  # fmt: skip
     return rows
+
+
+def _gain(untuned: float, tuned: float) -> float:
+    """L₀ / L* (see :func:`tuning_effect`), with 0 / 0 = 1 and nothing finished NaN."""
+    if math.isinf(tuned):
+        return math.nan
+    if tuned == 0.0:
+        return 1.0 if untuned == 0.0 else math.inf
+    return untuned / tuned
+
+
+def _rank(loss: float, losses: Sequence[float]) -> int | None:
+    """1 + how many finite ``losses`` are lower; None for a loss that is not finite."""
+    return 1 + sum(x < loss for x in losses if math.isfinite(x)) if math.isfinite(loss) else None
 
 
 def effect_lines(effect: Sequence[Mapping[str, Any]]) -> list[list[str]]:
     """Printable lines (header first) of :func:`tuning_effect`'s rows, a problem's rows by
-    their tuned rank, with the winner on validation untuned and tuned named per problem."""
+    their tuned rank (methods with none last), * where the rank moved."""
     lines = [["problem", "method", "untuned val loss", "tuned val loss", "untuned / tuned", "rank: untuned → tuned"]]
     for problem in dict.fromkeys(e["problem"] for e in effect):
-        mine = sorted((e for e in effect if e["problem"] == problem), key=lambda e: (e["rank_tuned"], e["method"]))
+        mine = sorted((e for e in effect if e["problem"] == problem),
+                      key=lambda e: (e["rank_tuned"] is None, e["rank_tuned"] or 0, e["method"]))  # fmt: skip
         for e in mine:
             moved = "" if e["rank_untuned"] == e["rank_tuned"] else " *"
             lines.append([problem, e["method"], number(as_float(e["untuned_val_loss"]), ".3g"),
                           number(as_float(e["tuned_val_loss"]), ".3g"), number(as_float(e["gain"]), ".3g"),
-                          f"{e['rank_untuned']} → {e['rank_tuned']}{moved}"])  # fmt: skip
+                          f"{_place(e['rank_untuned'])} → {_place(e['rank_tuned'])}{moved}"])  # fmt: skip
     return lines
 
 
+def _place(rank: int | None) -> str:
+    return "–" if rank is None else str(rank)
+
+
 def winners(effect: Sequence[Mapping[str, Any]]) -> list[str]:
-    """Per problem one sentence: the method(s) ranked first on validation, untuned and tuned."""
+    """Per problem one sentence: the method(s) ranked first on validation, untuned and tuned
+    ("none finished" where no method has a finite loss)."""
     out = []
     for problem in dict.fromkeys(e["problem"] for e in effect):
         mine = [e for e in effect if e["problem"] == problem]
-        first = {k: ", ".join(sorted(e["method"] for e in mine if e[k] == 1)) for k in ("rank_untuned", "rank_tuned")}
+        first = {k: ", ".join(sorted(e["method"] for e in mine if e[k] == 1)) or "none finished"
+                 for k in ("rank_untuned", "rank_tuned")}  # fmt: skip
         same = "the same" if first["rank_untuned"] == first["rank_tuned"] else "changed"
         out.append(f"{problem}: untuned {first['rank_untuned']}; tuned {first['rank_tuned']} ({same})")
     return out
