@@ -227,6 +227,22 @@ def test_prune_removes_only_the_checkpoints_of_final_runs(tmp_path):
     assert not table.exists() and read_csv(table)[0]["seed"] == "1"
 
 
+def test_pack_finished_finds_the_tuned_problems_whose_test_study_is_complete(tmp_path):
+    """prune.py --pack-finished: a tuned problem is done when final/summary.csv has one row per
+    test run and every test run is final; one with a run under way, or no test study yet, is not."""
+    spec = importlib.util.spec_from_file_location("prune", ROOT / "docs/reproductions/long/prune.py")
+    prune = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(prune)
+    final = {"status": "finished", "final_test_loss": 0.1}
+    for problem, states in {"done": [final, final], "running": [final, {"status": "finished"}], "trials": []}.items():
+        _write(tmp_path / "lane" / problem / "tune.json", "{}")
+        for i, state in enumerate(states):
+            _write(tmp_path / "lane" / problem / "final" / "runs" / f"adam-seed{i}" / "summary.json", json.dumps(state))
+        if states:
+            _write(tmp_path / "lane" / problem / "final" / "summary.csv", "method,seed\n" + "adam,0\n" * len(states))
+    assert [p.name for p in prune.finished_tunes(tmp_path)] == ["done"]
+
+
 def _long_report(monkeypatch):
     spec = importlib.util.spec_from_file_location("long_report", ROOT / "docs/reproductions/long/report.py")
     report = importlib.util.module_from_spec(spec)

@@ -7,7 +7,7 @@ from its summary alone, and ``long/report.py`` and ``sign_mask.py`` read ``metri
 ``summary.json``, ``config.json`` and ``params.eqx``. The checkpoints were a third of the
 committed tree, which must stay small enough to travel to a lent GPU machine (64 MiB).
 
-    python docs/reproductions/long/prune.py [--dry-run] [--pack STUDY ...]
+    python docs/reproductions/long/prune.py [--dry-run] [--pack STUDY ...] [--pack-finished]
 
 deletes ``checkpoint/`` of every final run under docs/reproductions/data (runs in progress
 keep theirs), prints what it removed and the size of the committed tree against that limit;
@@ -17,7 +17,10 @@ and ``test_cases.json`` (to ``….gz``, 2–5× smaller) in the named studies, a
 whose lane is done, since a lane at a physgrad older than the packed-file readers could not
 re-collect them (physgrad's ``read_metrics`` and paired tests, and ``long/report.py``, read
 the packed copies). ``--root`` points it at another tree of run directories (a bench such as
-docs/benchmark/dense, whose studies are its problems).
+docs/benchmark/dense, whose studies are its problems); ``--pack-finished`` packs every
+tuned-bench problem there whose test study is complete (``python
+docs/reproductions/long/prune.py --root docs/benchmark/tuned --pack-finished`` after a lane
+commit), so no finished problem's curves stay plain.
 """
 
 from __future__ import annotations
@@ -75,6 +78,24 @@ def pack_table(table: Path) -> int:
     return saved
 
 
+def finished_tunes(root: Path) -> list[Path]:
+    """The tuned-bench problems under ``root`` that are done: a tune directory (``tune.json``)
+    whose test study ``final/`` has its ``summary.csv`` with one row per run directory and
+    every one of those runs final. A problem whose trials or test runs are under way is not."""
+    done = []
+    for tune in sorted(root.rglob("tune.json")):
+        final = tune.parent / "final"
+        if not (final / "summary.csv").exists() or not (final / "runs").is_dir():
+            continue
+        runs = [r for r in (final / "runs").iterdir() if r.is_dir()]
+        with (final / "summary.csv").open() as f:
+            rows = sum(1 for _ in f) - 1
+        summaries = [r / "summary.json" for r in runs]
+        if runs and rows == len(runs) and all(s.exists() and is_final(json.loads(s.read_text())) for s in summaries):
+            done.append(tune.parent)
+    return done
+
+
 def tracked_bytes(root: Path) -> int | None:
     """The size of the files git tracks in the checkout holding ``root`` (None without git)."""
     try:
@@ -93,7 +114,11 @@ def main():
     parser.add_argument("--pack", nargs="+", default=[], metavar="STUDY",
                         help="also gzip the final runs' metrics.csv and test_cases.json, and every results.csv, "
                              "in these (finished) studies")  # fmt: skip
+    parser.add_argument("--pack-finished", action="store_true",
+                        help="also pack every finished tuned-bench problem under --root (its test study complete)")  # fmt: skip
     args = parser.parse_args()
+    if args.pack_finished:
+        args.pack += [str(t.relative_to(args.root)) for t in finished_tunes(args.root)]
     total = 0
     for checkpoint in final_checkpoints(args.root):
         size = sum(f.stat().st_size for f in checkpoint.rglob("*") if f.is_file())
