@@ -24,3 +24,11 @@ tuned_bench() {
   PYTHONPATH="$CODE/src" nice -n 19 taskset -c "$CORE" "$PY" -m physgrad bench --tuned --trials 5 --seeds 3 \
     --workers "$WORKERS" --quiet --out "$out" "$@"
 }
+
+# pack_finished ROOT: after a lane, the finished runs' checkpoints removed and every finished tuned
+# problem's curves gzipped (docs/reproductions/long/prune.py --pack-finished; the reports and a
+# resumed lane read them packed), so that the next lane commit carries no plain curves of a
+# finished problem.
+pack_finished() {
+  "$PY" "$1/docs/reproductions/long/prune.py" --root "$1/docs/benchmark/tuned" --pack-finished | tail -n 2
+}

@@ -91,7 +91,7 @@ run() {
 }
 
 if [ $# -eq 0 ]; then
-  for which in dense poisson_hig unets; do run "$which"; done
+  for which in dense poisson_hig unets; do run "$which"; pack_finished "$ROOT"; done
 else
   run "$@"
 fi

@@ -64,7 +64,7 @@ run() {
 }
 
 if [ $# -eq 0 ]; then
-  for which in closed_loop advection_1d ks unets dense; do run "$which"; done
+  for which in closed_loop advection_1d ks unets dense; do run "$which"; pack_finished "$ROOT"; done
 else
   run "$@"
 fi
