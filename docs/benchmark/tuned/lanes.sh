@@ -18,6 +18,8 @@
 #   bash docs/benchmark/tuned/lanes.sh                 # every lane in order, on core $CORE (default 0)
 #   bash docs/benchmark/tuned/lanes.sh closed_loop     # one lane; extra arguments go to physgrad bench
 #   bash docs/benchmark/tuned/lanes.sh unets --plan    # its plan (estimated time), nothing run
+# OUT_ROOT puts the bench directories elsewhere (docs/benchmark/tuned/workers.sh: a lane again
+# on 1 and on 2 workers in scratch directories).
 # physgrad report docs/benchmark/tuned/<lane> redraws a lane's leaderboard from a clone.
 set -euo pipefail
 ROOT="$(cd "$(dirname "$0")/../../.." && pwd)"
@@ -42,7 +44,7 @@ lane() {  # lane NAME ARGS...: one bench directory, at the lane's commit in its 
   else
     CODE="$ROOT/../studycode-tuned-${TUNED_COMMIT:0:7}"; pin_worktree "$ROOT" "$CODE" "$TUNED_COMMIT"
   fi
-  tuned_bench "tuned lane $name at $(git -C "$CODE" rev-parse --short=7 HEAD)" "$ROOT/docs/benchmark/tuned/$name" "$@"
+  tuned_bench "tuned lane $name at $(git -C "$CODE" rev-parse --short=7 HEAD)" "${OUT_ROOT:-$ROOT/docs/benchmark/tuned}/$name" "$@"
 }
 
 UNET="--set poisson.resolution=32 --set heat.resolution=32 --set navier_stokes.resolution=32"
