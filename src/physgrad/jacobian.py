@@ -125,15 +125,19 @@ def supports_forward_mode(fn: Callable, *primals, transform: Callable | None = N
 
 def tangents_for(primals):
     """Tangents that ``jax.jvp`` accepts for ``primals``: each inexact leaf its own value, each
-    integer or boolean leaf (a sample's solver index, a step counter) a zero of dtype float0,
-    the only tangent JAX takes for one."""
+    integer or boolean leaf (a sample's solver index, a step counter) :func:`float0_zeros`."""
+    return jax.tree.map(lambda x: x if has_tangent(x) else float0_zeros(x), primals)
 
-    def tangent(x):
-        if jnp.issubdtype(jnp.result_type(x), jnp.inexact):
-            return x
-        return np.zeros(np.shape(x), jax.dtypes.float0)
 
-    return jax.tree.map(tangent, primals)
+def has_tangent(x) -> bool:
+    """Whether JAX differentiates the leaf ``x``: floating or complex. An integer or boolean
+    leaf's tangent and cotangent are zeros of dtype float0 (:func:`float0_zeros`)."""
+    return bool(jnp.issubdtype(jnp.result_type(x), jnp.inexact))
+
+
+def float0_zeros(x):
+    """The only tangent or cotangent JAX takes for an integer or boolean leaf ``x``."""
+    return np.zeros(np.shape(x), jax.dtypes.float0)
 
 
 def _uses_primitive(jaxpr, name: str) -> bool:

@@ -45,10 +45,10 @@ from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 from jaxtyping import Array, PyTree
 
 from .. import loops
+from ..jacobian import float0_zeros, has_tangent
 from .policy import GradientFlow, R
 
 Transition = Callable[[PyTree, PyTree, PyTree, Array], tuple[PyTree, Array]]
@@ -243,7 +243,7 @@ def _pair(pullback, adjoints, w, s0):
     the pullback's door."""
 
     def cotangent(i):
-        return jax.tree.map(lambda a, like: a[i] if _has_adjoint(like) else _float0_like(like), adjoints, s0)
+        return jax.tree.map(lambda a, like: a[i] if has_tangent(like) else float0_zeros(like), adjoints, s0)
 
     def stack(a, b):
         if a.dtype == jax.dtypes.float0:  # an integer input's cotangent: zeros, as the carry holds them
@@ -253,15 +253,7 @@ def _pair(pullback, adjoints, w, s0):
     return jax.tree.map(stack, pullback((cotangent(0), w[0])), pullback((cotangent(1), w[1])))
 
 
-def _has_adjoint(a) -> bool:
-    return bool(jnp.issubdtype(jnp.result_type(a), jnp.inexact))
-
-
 def _adjoint_dtype(a):
     """The dtype of ``a``'s adjoint in the backward scan's carry: its own where it is inexact,
     float32 zeros for an integer or boolean leaf (see :func:`_pair`)."""
-    return jnp.result_type(a) if _has_adjoint(a) else jnp.float32
-
-
-def _float0_like(a):
-    return np.zeros(np.shape(a), jax.dtypes.float0)
+    return jnp.result_type(a) if has_tangent(a) else jnp.float32
