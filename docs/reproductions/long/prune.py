@@ -31,7 +31,7 @@ import shutil
 import subprocess
 from pathlib import Path
 
-from physgrad.engine.recording import is_final, pack_file
+from physgrad.engine.recording import is_final, pack_file, packed_path
 
 DATA = Path(__file__).resolve().parent.parent / "data"
 LIMIT = 64 * 2**20  # the working tree a lent GPU machine accepts
@@ -56,25 +56,19 @@ PACKED = ("metrics.csv", "test_cases.json")  # the files of a final run that --p
 
 
 def pack_run(run: Path) -> int:
-    """Gzip a final run's ``metrics.csv`` and ``test_cases.json`` to ``….gz`` (no name or time
-    in the header, so the same bytes every time) and remove the plain copies; the bytes saved."""
-    saved = 0
-    for name in PACKED:
-        plain, packed = run / name, run / (name + ".gz")
-        if plain.exists():
-            pack_file(plain, packed)
-            saved += plain.stat().st_size - packed.stat().st_size
-            plain.unlink()
-    return saved
+    """Gzip a final run's ``metrics.csv`` and ``test_cases.json`` (:func:`pack_table`); the
+    bytes saved."""
+    return sum(pack_table(run / name) for name in PACKED if (run / name).exists())
 
 
-def pack_table(table: Path) -> int:
-    """Gzip a finished study's ``results.csv`` to ``results.csv.gz`` and remove the plain copy
-    (collecting the study again rewrites the packed copy: ``write_csv``); the bytes saved."""
-    packed = table.with_name(table.name + ".gz")
-    pack_file(table, packed)
-    saved = table.stat().st_size - packed.stat().st_size
-    table.unlink()
+def pack_table(plain: Path) -> int:
+    """Gzip ``plain`` to ``….gz`` beside it (no name or time in the header, so the same bytes
+    every time) and remove the plain copy; the bytes saved. A study's ``results.csv`` packed
+    so stays packed: collecting the study again rewrites the gzipped copy (``write_csv``)."""
+    packed = packed_path(plain)
+    pack_file(plain, packed)
+    saved = plain.stat().st_size - packed.stat().st_size
+    plain.unlink()
     return saved
 
 
